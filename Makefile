@@ -1,0 +1,49 @@
+# rotlearn: everyday commands. Every target builds .venv from nothing when it is missing or older
+# than pyproject.toml, so `make train` and `make test` are the whole set-up on a fresh machine.
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+ARGS   ?=
+
+.DEFAULT_GOAL := help
+.PHONY: help venv train test test-full lint format bench tensorboard clean
+
+help: ## list the targets
+	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-12s %s\n", $$1, $$2}'
+	@echo "  pass options with ARGS, e.g.  make train ARGS='rep=sixd optim.lr=1e-3'"
+
+$(STAMP): pyproject.toml
+	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	@touch $@
+
+venv: $(STAMP) ## create or refresh .venv (torch==2.13.0 CPU build, dev tools)
+
+train: $(STAMP) ## train the default experiment (A head, synthetic Wahba data); ARGS=overrides
+	$(BIN)/rotlearn-train $(ARGS)
+
+test: $(STAMP) ## fast test suite (under 10 minutes on 2 cores)
+	$(BIN)/python -m pytest -m "not slow" -q $(ARGS)
+
+test-full: $(STAMP) ## every test, the slow ones too
+	$(BIN)/python -m pytest -q $(ARGS)
+
+lint: $(STAMP) ## ruff lint and format check
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+
+format: $(STAMP) ## apply ruff fixes and formatting
+	$(BIN)/ruff check --fix .
+	$(BIN)/ruff format .
+
+bench: $(STAMP) ## benchmarks: results as JSON under bench/results and a printed table
+	$(BIN)/python bench/run.py $(ARGS)
+
+tensorboard: $(STAMP) ## open TensorBoard on every run under outputs/
+	$(BIN)/tensorboard --logdir outputs --bind_all
+
+clean: ## remove the venv and caches (keeps outputs/ and data/)
+	rm -rf $(VENV) .pytest_cache .ruff_cache .hypothesis build dist src/*.egg-info
+	find . -name __pycache__ -type d -prune -exec rm -rf {} +

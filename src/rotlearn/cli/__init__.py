@@ -1,0 +1,1 @@
+"""Floor 4: command-line entry points (Hydra mains)."""

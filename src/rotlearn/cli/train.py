@@ -1,0 +1,173 @@
+"""`rotlearn-train` (also `python -m rotlearn.train`): train, test, write the run's metrics.json.
+
+Every component comes from the Hydra config with `hydra.utils.instantiate`; every file goes below
+`paths.output_dir` (Hydra's run directory). See conf/train.yaml.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import sys
+import warnings
+from pathlib import Path
+from typing import Any
+
+import hydra
+import lightning.pytorch as pl
+import torch
+from hydra.errors import InstantiationException
+from omegaconf import DictConfig, OmegaConf
+
+from rotlearn.errors import ConfigValueError
+from rotlearn.io import write_json_atomic
+from rotlearn.lit import EpochTimer, RotationRegressor
+from rotlearn.paths import config_dir
+
+__all__ = ["ConfigError", "build", "main", "train"]
+
+log = logging.getLogger("rotlearn")
+
+# Lightning's advice that does not apply: batches are drawn on the device (no loader workers),
+# and scalars are logged once per epoch on purpose.
+for _pattern in (".*does not have many workers.*", ".*smaller than the logging interval.*"):
+    warnings.filterwarnings("ignore", _pattern)
+
+
+class ConfigError(ValueError):
+    """A config value that cannot be used; the message names its full key."""
+
+
+def _instantiate(cfg: DictConfig, key: str, **kwargs: Any) -> Any:
+    """Instantiate the config node `key`, turning a component's complaint into a `ConfigError`."""
+    node = OmegaConf.select(cfg, key)
+    if node is None:
+        raise ConfigError(f"config key {key} is missing")
+    try:
+        return hydra.utils.instantiate(node, **kwargs)
+    except InstantiationException as exc:
+        cause = exc.__cause__
+        while cause is not None and not isinstance(cause, ConfigValueError):
+            cause = cause.__cause__
+        if cause is None:
+            raise
+        raise ConfigError(f"config key {key}.{cause.key}: {cause.message}") from exc
+
+
+def _instantiate_all(cfg: DictConfig, key: str) -> list[Any]:
+    node = OmegaConf.select(cfg, key) or {}
+    return [_instantiate(cfg, f"{key}.{name}") for name in node]
+
+
+def build(cfg: DictConfig) -> tuple[RotationRegressor, pl.LightningDataModule, pl.Trainer]:
+    """Model, datamodule and trainer for a composed config (seeds set first)."""
+    pl.seed_everything(cfg.seed, workers=True, verbose=False)
+    datamodule = _instantiate(cfg, "data")
+    head = _instantiate(cfg, "rep")
+    net = _instantiate(cfg, "net")
+    loss = _instantiate(cfg, "loss")
+    optimizer = _instantiate(cfg, "optim")
+    scheduler = _instantiate(cfg, "scheduler") if OmegaConf.select(cfg, "scheduler") else None
+    model = RotationRegressor(
+        net=net, head=head, loss=loss, optimizer=optimizer, scheduler=scheduler
+    )
+    model.run_config = OmegaConf.to_container(cfg, resolve=True)
+    trainer = _instantiate(
+        cfg,
+        "trainer",
+        callbacks=_instantiate_all(cfg, "callbacks"),
+        logger=_instantiate_all(cfg, "logger") or False,
+    )
+    return model, datamodule, trainer
+
+
+def _flatten(tree: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(tree, dict):
+        out: dict[str, Any] = {}
+        for k, v in tree.items():
+            out.update(_flatten(v, f"{prefix}{k}."))
+        return out
+    value = tree if isinstance(tree, (int, float, str, bool)) or tree is None else str(tree)
+    return {prefix[:-1]: value}
+
+
+def _scalars(metrics: dict[str, Any]) -> dict[str, float]:
+    return {k: float(v) for k, v in metrics.items() if torch.as_tensor(v).numel() == 1}
+
+
+def train(cfg: DictConfig) -> dict[str, Any]:
+    """Fit, test and write `metrics.json` in `cfg.paths.output_dir`; returns those metrics."""
+    run_dir = Path(cfg.paths.output_dir)
+    if (run_dir / "metrics.json").exists() or (run_dir / "checkpoints").exists():
+        raise FileExistsError(f"{run_dir} already holds a run; rotlearn never overwrites one")
+    torch.set_float32_matmul_precision(cfg.get("float32_matmul_precision", "highest"))
+    model, datamodule, trainer = build(cfg)
+
+    trainer.fit(model, datamodule=datamodule)
+    metrics = _scalars(trainer.callback_metrics)
+    if cfg.test_ckpt not in ("last", "best"):
+        raise ConfigError(f"config key test_ckpt: must be 'last' or 'best', got {cfg.test_ckpt!r}")
+    best_path = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
+    ckpt_path = best_path if cfg.test_ckpt == "best" and best_path else None
+    trainer.test(model, datamodule=datamodule, ckpt_path=ckpt_path, verbose=False)
+    metrics.update(_scalars(trainer.callback_metrics))
+
+    timers = [cb for cb in trainer.callbacks if isinstance(cb, EpochTimer)]
+    times = timers[0].epoch_times if timers else []
+    metrics.update(
+        {
+            "epochs": trainer.current_epoch,
+            "global_step": trainer.global_step,
+            "seed": cfg.seed,
+            "data_seed": OmegaConf.select(cfg, "data.seed"),
+            "rep": OmegaConf.select(cfg, "rep.name"),
+            "tested_weights": "best" if ckpt_path else "last",
+            # the first epoch carries one-off start-up costs; the steady state is what compares
+            "epoch_time_s": sum(times[1:]) / len(times[1:]) if len(times) > 1 else math.nan,
+        }
+    )
+    if trainer.checkpoint_callback and trainer.checkpoint_callback.best_model_score is not None:
+        metrics["best/val_err_mean"] = float(trainer.checkpoint_callback.best_model_score)
+    if trainer.is_global_zero:
+        write_json_atomic(run_dir / "metrics.json", metrics)
+        hp_metrics = {f"hp/{k.replace('/', '_')}": v for k, v in metrics.items() if "/err_" in k}
+        params = _flatten(OmegaConf.to_container(cfg, resolve=True))
+        for logger in trainer.loggers:
+            logger.log_hyperparams(params, hp_metrics)
+            logger.finalize("success")
+    return metrics
+
+
+def _report(cfg: DictConfig, metrics: dict[str, Any]) -> None:
+    run_dir = Path(cfg.paths.output_dir)
+    try:
+        shown = run_dir.resolve().relative_to(Path.cwd())
+    except ValueError:
+        shown = run_dir
+    tensorboard = Path(sys.executable).parent / "tensorboard"
+    tb = str(tensorboard) if tensorboard.exists() else "tensorboard"
+    with contextlib.suppress(ValueError):
+        tb = str(Path(tb).relative_to(Path.cwd()))
+    log.info(
+        "test error (%s head, %s weights): mean %.3f deg, median %.3f deg, p90 %.3f deg",
+        metrics.get("rep"),
+        metrics.get("tested_weights"),
+        metrics.get("test/err_mean", math.nan),
+        metrics.get("test/err_median", math.nan),
+        metrics.get("test/err_p90", math.nan),
+    )
+    log.info("run directory: %s (metrics.json, checkpoints/, tensorboard/)", shown)
+    log.info("open TensorBoard: %s --logdir %s", tb, shown)
+
+
+@hydra.main(version_base="1.3", config_path=str(config_dir()), config_name="train")
+def main(cfg: DictConfig) -> float:
+    """Hydra entry point; returns the test median error (for sweepers that optimise)."""
+    metrics = train(cfg)
+    _report(cfg, metrics)
+    return metrics.get("test/err_median", math.nan)
+
+
+if __name__ == "__main__":
+    main()

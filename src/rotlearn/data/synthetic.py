@@ -1,0 +1,169 @@
+"""Synthetic Wahba problem (paper section VI-A, eq. 27): unit vectors u_i and v_i = R u_i + eps_i.
+
+Batches are drawn on the model's device from a generator seeded by (data.seed, split, epoch, batch),
+so a run is reproducible, a resumed run sees the same data, and an lr sweep sees the same data.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import lightning.pytorch as pl
+import numpy as np
+import torch
+from torch import Tensor
+from torch.utils.data import DataLoader
+
+from rotlearn.errors import ConfigValueError
+from rotlearn.geometry import (
+    quat_to_rotmat,
+    random_rotvec_uniform_angle,
+    random_unit_vectors,
+    so3_exp_quat,
+)
+
+__all__ = ["SyntheticWahbaDataModule", "draw_seed", "wahba_batch"]
+
+_SPLITS = {"train": 0, "val": 1, "test": 2}
+
+
+def wahba_batch(
+    batch_size: int,
+    num_matches: int,
+    max_angle: float,
+    sigma: float,
+    *,
+    generator: torch.Generator | None = None,
+    device: torch.device | str | None = None,
+    dtype: torch.dtype = torch.float32,
+) -> dict[str, Tensor]:
+    """One batch of Wahba problems.
+
+    R = Exp(phi a / |a|) with a ~ N(0, I), phi ~ U[0, max_angle); u_i uniform on S^2;
+    v_i = R u_i + eps_i, eps_i ~ N(0, sigma^2 I) (paper eq. 27).
+
+    Returns:
+        {"input": (B, N, 6) rows (u_i, v_i), "R": (B, 3, 3), "q": (B, 4) (x, y, z, w), w >= 0}.
+    """
+    kw = {"generator": generator, "device": device, "dtype": dtype}
+    q = so3_exp_quat(random_rotvec_uniform_angle((batch_size,), max_angle, **kw))
+    R = quat_to_rotmat(q)
+    u = random_unit_vectors((batch_size, num_matches), 3, **kw)
+    noise = torch.randn(u.shape, generator=generator, device=u.device, dtype=dtype)
+    v = u @ R.transpose(-1, -2) + sigma * noise
+    return {"input": torch.cat((u, v), dim=-1), "R": R, "q": q}
+
+
+def draw_seed(*words: int) -> int:
+    """A well-mixed 63-bit seed from a tuple of non-negative integers."""
+    return int(np.random.SeedSequence(list(words)).generate_state(1, np.uint64)[0] >> 1)
+
+
+class SyntheticWahbaDataModule(pl.LightningDataModule):
+    """Synthetic Wahba data (spec section 3), drawn batch by batch on the model's device.
+
+    Training batches are redrawn every epoch (an epoch is `batches_per_epoch` batches). The
+    validation and test sets are fixed by `seed` (drawn on the CPU, so identical on every device)
+    unless `redraw_test`, which redraws them every epoch as the original code did.
+
+    Args:
+        phi_max_deg: maximum rotation angle in degrees, in (0, 180].
+        sigma: standard deviation of the noise on v_i.
+        num_matches: N, the number of matched vector pairs per sample.
+        batch_size: training batch size.
+        batches_per_epoch: training batches per epoch.
+        num_val: validation samples; num_test: test samples.
+        eval_batch_size: batch size of the validation and test loaders.
+        redraw_test: redraw validation and test sets every epoch.
+        seed: the data seed (`data.seed`), independent of the model's `seed`.
+    """
+
+    def __init__(
+        self,
+        phi_max_deg: float = 180.0,
+        sigma: float = 0.01,
+        num_matches: int = 100,
+        batch_size: int = 100,
+        batches_per_epoch: int = 5,
+        num_val: int = 100,
+        num_test: int = 500,
+        eval_batch_size: int = 100,
+        redraw_test: bool = False,
+        seed: int = 0,
+    ) -> None:
+        super().__init__()
+        if not 0.0 < phi_max_deg <= 180.0:
+            raise ConfigValueError(
+                "phi_max_deg", f"must lie in (0, 180] degrees, got {phi_max_deg}"
+            )
+        if sigma < 0:
+            raise ConfigValueError("sigma", f"must be >= 0, got {sigma}")
+        for key, value in (
+            ("num_matches", num_matches),
+            ("batch_size", batch_size),
+            ("batches_per_epoch", batches_per_epoch),
+            ("num_val", num_val),
+            ("num_test", num_test),
+            ("eval_batch_size", eval_batch_size),
+        ):
+            if int(value) != value or value < 1:
+                raise ConfigValueError(key, f"must be a positive integer, got {value}")
+        if seed < 0:
+            raise ConfigValueError("seed", f"must be >= 0, got {seed}")
+        self.phi_max_deg = float(phi_max_deg)
+        self.sigma = float(sigma)
+        self.num_matches = int(num_matches)
+        self.batch_size = int(batch_size)
+        self.batches_per_epoch = int(batches_per_epoch)
+        self.num_val, self.num_test = int(num_val), int(num_test)
+        self.eval_batch_size = int(eval_batch_size)
+        self.redraw_test = bool(redraw_test)
+        self.seed = int(seed)
+
+    # A loader yields draw requests; `on_after_batch_transfer` turns them into data on the device.
+    def _requests(self, split: str, total: int, batch: int) -> DataLoader:
+        sizes = [min(batch, total - start) for start in range(0, total, batch)]
+        requests = [
+            {"draw_split": _SPLITS[split], "draw_index": i, "draw_size": n}
+            for i, n in enumerate(sizes)
+        ]
+        return DataLoader(requests, batch_size=None, shuffle=False, num_workers=0)
+
+    def train_dataloader(self) -> DataLoader:
+        return self._requests("train", self.batches_per_epoch * self.batch_size, self.batch_size)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._requests("val", self.num_val, self.eval_batch_size)
+
+    def test_dataloader(self) -> DataLoader:
+        return self._requests("test", self.num_test, self.eval_batch_size)
+
+    def on_after_batch_transfer(self, batch: Any, dataloader_idx: int) -> Any:
+        if not (isinstance(batch, dict) and "draw_split" in batch):
+            return batch
+        return self.draw(
+            int(batch["draw_split"]), int(batch["draw_index"]), int(batch["draw_size"])
+        )
+
+    def draw(self, split: int, index: int, size: int) -> dict[str, Tensor]:
+        """The batch a request names, on the model's device, in the model's dtype."""
+        trainer = self.trainer
+        module = trainer.lightning_module if trainer is not None else None
+        device = module.device if module is not None else torch.device("cpu")
+        dtype = module.dtype if module is not None else torch.float32
+        epoch = trainer.current_epoch if trainer is not None else 0
+        fixed = split != _SPLITS["train"] and not self.redraw_test
+        seed = draw_seed(self.seed, split, 0 if fixed else epoch + 1, index)
+        gen_device = torch.device("cpu") if fixed else device
+        generator = torch.Generator(device=gen_device).manual_seed(seed)
+        batch = wahba_batch(
+            size,
+            self.num_matches,
+            math.radians(self.phi_max_deg),
+            self.sigma,
+            generator=generator,
+            device=gen_device,
+            dtype=dtype,
+        )
+        return {k: v.to(device, non_blocking=True) for k, v in batch.items()}

@@ -1,0 +1,50 @@
+"""Floor 1, pure math: quaternions (x, y, z, w), SO(3) maps, distances and sampling. Torch only."""
+
+from rotlearn.geometry.distance import (
+    angle,
+    angle_deg,
+    chordal_distance,
+    chordal_distance_sq,
+    quat_chordal_distance,
+)
+from rotlearn.geometry.quaternion import (
+    quat_canonical,
+    quat_inverse,
+    quat_multiply,
+    quat_normalize,
+    quat_to_rotmat,
+    rotmat_to_quat,
+)
+from rotlearn.geometry.sampling import (
+    random_quat,
+    random_rotmat,
+    random_rotmat_uniform_angle,
+    random_rotvec_uniform_angle,
+    random_unit_vectors,
+)
+from rotlearn.geometry.so3 import hat, so3_exp, so3_exp_quat, so3_log, so3_log_quat, vee
+
+__all__ = [
+    "angle",
+    "angle_deg",
+    "chordal_distance",
+    "chordal_distance_sq",
+    "hat",
+    "quat_canonical",
+    "quat_chordal_distance",
+    "quat_inverse",
+    "quat_multiply",
+    "quat_normalize",
+    "quat_to_rotmat",
+    "random_quat",
+    "random_rotmat",
+    "random_rotmat_uniform_angle",
+    "random_rotvec_uniform_angle",
+    "random_unit_vectors",
+    "rotmat_to_quat",
+    "so3_exp",
+    "so3_exp_quat",
+    "so3_log",
+    "so3_log_quat",
+    "vee",
+]

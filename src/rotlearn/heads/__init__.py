@@ -1,0 +1,31 @@
+"""Floor 1: representation heads, stateless maps from a network output to a rotation (`rep=`)."""
+
+from rotlearn.heads.base import (
+    HEADS,
+    RotationHead,
+    RotationPrediction,
+    make_head,
+    register_head,
+)
+from rotlearn.heads.quat import QuatHead
+from rotlearn.heads.sixd import SixDHead, sixd_to_rotmat
+from rotlearn.heads.svd import SVD9DHead, special_orthogonalize
+from rotlearn.heads.symmetric import AHead, a_from_quat, a_from_vec, a_min_eigvec, vec_from_a
+
+__all__ = [
+    "HEADS",
+    "AHead",
+    "QuatHead",
+    "RotationHead",
+    "RotationPrediction",
+    "SVD9DHead",
+    "SixDHead",
+    "a_from_quat",
+    "a_from_vec",
+    "a_min_eigvec",
+    "make_head",
+    "register_head",
+    "sixd_to_rotmat",
+    "special_orthogonalize",
+    "vec_from_a",
+]

@@ -1,0 +1,93 @@
+"""What every representation head returns, and the registry that `rep=` picks from."""
+
+from __future__ import annotations
+
+from torch import Tensor, nn
+
+from rotlearn.geometry import rotmat_to_quat
+
+__all__ = ["HEADS", "RotationHead", "RotationPrediction", "make_head", "register_head"]
+
+
+class RotationPrediction:
+    """A head's output for a batch of shape (...).
+
+    Attributes:
+        R: (..., 3, 3) rotation matrices.
+        raw: (..., out_dim) the network output the head was given.
+        A: (..., 4, 4) symmetric matrices (A head only, paper eq. 8), else None.
+        eigenvalues: (..., 4) ascending eigenvalues of A (A head only), else None.
+    """
+
+    __slots__ = ("A", "R", "_q", "eigenvalues", "raw")
+
+    def __init__(
+        self,
+        R: Tensor,
+        raw: Tensor,
+        q: Tensor | None = None,
+        A: Tensor | None = None,
+        eigenvalues: Tensor | None = None,
+    ) -> None:
+        self.R, self.raw, self._q, self.A, self.eigenvalues = R, raw, q, A, eigenvalues
+
+    @property
+    def q(self) -> Tensor:
+        """(..., 4) unit quaternions (x, y, z, w), w >= 0; derived from R when the head has none."""
+        if self._q is None:
+            self._q = rotmat_to_quat(self.R)
+        return self._q
+
+    def detach(self) -> RotationPrediction:
+        """The same prediction cut from the autograd graph."""
+
+        def cut(t: Tensor | None) -> Tensor | None:
+            return None if t is None else t.detach()
+
+        return RotationPrediction(
+            self.R.detach(), self.raw.detach(), cut(self._q), cut(self.A), cut(self.eigenvalues)
+        )
+
+
+class RotationHead(nn.Module):
+    """A stateless map from a network output (..., out_dim) to a `RotationPrediction`."""
+
+    name: str = ""
+    out_dim: int = 0
+    defines_belief: bool = False  # True where the output parameterises a Bingham density
+
+    def forward(self, raw: Tensor) -> RotationPrediction:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def extra_repr(self) -> str:
+        return f"out_dim={self.out_dim}"
+
+
+HEADS: dict[str, type[RotationHead]] = {}
+
+
+def register_head(cls: type[RotationHead]) -> type[RotationHead]:
+    """Class decorator: make a head available as `rep=<cls.name>`."""
+    if cls.name in HEADS:
+        raise ValueError(f"a head named {cls.name!r} is already registered")
+    HEADS[cls.name] = cls
+    return cls
+
+
+def make_head(name: str, out_dim: int | None = None) -> RotationHead:
+    """The head registered as `name` (the config's `rep.name`).
+
+    Args:
+        name: one of `HEADS`.
+        out_dim: if given (the config's `rep.out_dim`), it must equal the head's output size.
+
+    Raises:
+        KeyError: unknown name; the message lists the allowed ones.
+        ValueError: `out_dim` disagrees with the head.
+    """
+    if name not in HEADS:
+        raise KeyError(f"unknown rep {name!r}; allowed: {', '.join(sorted(HEADS))}")
+    head = HEADS[name]()
+    if out_dim is not None and out_dim != head.out_dim:
+        raise ValueError(f"rep.out_dim={out_dim} but the {name!r} head needs {head.out_dim}")
+    return head

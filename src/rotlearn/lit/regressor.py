@@ -1,0 +1,123 @@
+"""RotationRegressor: net + representation head + loss, with epoch-level error metrics."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from typing import Any
+
+import lightning.pytorch as pl
+import torch
+from torch import Tensor, nn
+from torchmetrics import MeanMetric
+
+from rotlearn.errors import NonFiniteError
+from rotlearn.heads import RotationHead, RotationPrediction
+from rotlearn.metrics import AngularError
+
+__all__ = ["RotationRegressor"]
+
+OptimizerFactory = Callable[[Iterable[nn.Parameter]], torch.optim.Optimizer]
+SchedulerFactory = Callable[[torch.optim.Optimizer], Any]
+
+
+class RotationRegressor(pl.LightningModule):
+    """Regress rotations: `head(net(batch["input"]))`, trained with `loss(prediction, batch)`.
+
+    Logs, once per epoch: train/loss, train/err_*, val/err_*, test/err_* (degrees; mean, median,
+    p10, p90). Every step checks the network output and the loss for NaN/inf and stops with a
+    `NonFiniteError` naming the stage, step and tensor rather than train on garbage.
+
+    Args:
+        net: backbone, (B, ...) input -> (B, head.out_dim).
+        head: representation head (`rep=`).
+        loss: module (prediction, batch) -> scalar.
+        optimizer: partial optimizer taking the parameters (`optim=`).
+        scheduler: optional partial scheduler taking the optimizer (stepped once per epoch).
+    """
+
+    def __init__(
+        self,
+        net: nn.Module,
+        head: RotationHead,
+        loss: nn.Module,
+        optimizer: OptimizerFactory,
+        scheduler: SchedulerFactory | None = None,
+    ) -> None:
+        super().__init__()
+        self.net, self.head, self.loss = net, head, loss
+        self.optimizer_factory, self.scheduler_factory = optimizer, scheduler
+        self.train_loss = MeanMetric()
+        self.train_err, self.val_err, self.test_err = AngularError(), AngularError(), AngularError()
+        self.run_config: dict[str, Any] | None = None  # stored in checkpoints when set
+
+    def forward(self, inputs: Tensor) -> RotationPrediction:
+        return self.head(self.net(inputs))
+
+    def _where(self, stage: str, batch_idx: int) -> str:
+        return f"{stage} step {self.global_step} (epoch {self.current_epoch}, batch {batch_idx})"
+
+    def _check_finite(self, name: str, value: Tensor, batch: dict, stage: str, idx: int) -> None:
+        if bool(torch.isfinite(value).all()):
+            return
+        n_nan, n_inf = int(value.isnan().sum()), int(value.isinf().sum())
+        shape = tuple(value.shape)
+        detail = f"{n_nan} NaN and {n_inf} inf among {value.numel()} entries of shape {shape}"
+        inputs = batch.get("input")
+        cause = (
+            "the input batch is itself non-finite"
+            if inputs is not None and not bool(torch.isfinite(inputs).all())
+            else "the inputs are finite: the weights diverged (try a lower optim.lr)"
+        )
+        raise NonFiniteError(f"non-finite {name} at {self._where(stage, idx)}: {detail}; {cause}")
+
+    def _step(self, batch: dict[str, Tensor], stage: str, batch_idx: int) -> RotationPrediction:
+        raw = self.net(batch["input"])
+        self._check_finite("network output 'raw'", raw, batch, stage, batch_idx)
+        return self.head(raw)
+
+    def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
+        prediction = self._step(batch, "train", batch_idx)
+        loss = self.loss(prediction, batch)
+        self._check_finite("loss", loss, batch, "train", batch_idx)
+        self.train_loss.update(loss.detach())
+        self.train_err.update(prediction.R.detach(), batch["R"])
+        return loss
+
+    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        self.val_err.update(self._step(batch, "val", batch_idx).R, batch["R"])
+
+    def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        self.test_err.update(self._step(batch, "test", batch_idx).R, batch["R"])
+
+    def predict_step(self, batch: dict[str, Tensor], batch_idx: int) -> RotationPrediction:
+        return self._step(batch, "predict", batch_idx).detach()
+
+    def _log_errors(self, stage: str, extra: dict[str, Tensor] | None = None) -> None:
+        metric: AngularError = getattr(self, f"{stage}_err")
+        values = {f"{stage}/{k}": v for k, v in metric.compute().items()}
+        self.log_dict({**values, **(extra or {})}, on_step=False, on_epoch=True)
+        metric.reset()
+
+    def on_train_epoch_end(self) -> None:
+        self._log_errors("train", {"train/loss": self.train_loss.compute()})
+        self.train_loss.reset()
+
+    def on_validation_epoch_end(self) -> None:
+        self._log_errors("val")
+
+    def on_test_epoch_end(self) -> None:
+        self._log_errors("test")
+
+    def configure_optimizers(self) -> Any:
+        optimizer = self.optimizer_factory(self.parameters())
+        if self.scheduler_factory is None:
+            return optimizer
+        scheduler = self.scheduler_factory(optimizer)
+        return {
+            "optimizer": optimizer,
+            "lr_scheduler": {"scheduler": scheduler, "interval": "epoch"},
+        }
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        if self.run_config is not None:
+            checkpoint["rotlearn_config"] = self.run_config
