@@ -7,6 +7,8 @@ from collections.abc import Sequence
 
 from torch import Tensor, nn
 
+from rotlearn.nets.pooling import LinearMaxPool
+
 __all__ = ["PointNet", "mlp"]
 
 
@@ -24,13 +26,14 @@ class PointNet(nn.Module):
     """Shared per-point MLP, global max-pool, then an MLP to the head's `out_dim` numbers.
 
     Per point: in_channels -> 64 -> 128 -> 1024 (PReLU between, none before the pool), max over
-    points, then 1024 -> 256 -> 128 -> out_dim with PReLU. The per-point layers are `nn.Linear`
-    on the last axis, the same map as the original Conv1d(kernel_size=1) stack.
+    points, then 1024 -> 256 -> 128 -> out_dim with PReLU: the original Conv1d(kernel_size=1)
+    stack. The last per-point layer and the pool are one `LinearMaxPool`, whose backward only
+    visits the points the max selected (same values and gradients, about half the step time).
 
     Args:
         out_dim: size of the representation (`${rep.out_dim}`).
         in_channels: features per point (6 for a matched pair (u_i, v_i)).
-        point_channels: widths of the per-point layers.
+        point_channels: widths of the per-point layers (the last one is pooled).
         head_channels: widths of the hidden layers after pooling.
 
     Input (..., N, in_channels) points; output (..., out_dim).
@@ -44,8 +47,11 @@ class PointNet(nn.Module):
         head_channels: Sequence[int] = (256, 128),
     ) -> None:
         super().__init__()
-        self.point_mlp = mlp([in_channels, *point_channels])
-        self.head_mlp = mlp([point_channels[-1], *head_channels, out_dim])
+        *hidden, pooled = point_channels
+        self.point_mlp = nn.Sequential(*mlp([in_channels, *hidden]), nn.PReLU()) if hidden else None
+        self.pool = LinearMaxPool(hidden[-1] if hidden else in_channels, pooled)
+        self.head_mlp = mlp([pooled, *head_channels, out_dim])
 
     def forward(self, points: Tensor) -> Tensor:
-        return self.head_mlp(self.point_mlp(points).amax(dim=-2))
+        features = self.point_mlp(points) if self.point_mlp is not None else points
+        return self.head_mlp(self.pool(features))
