@@ -101,13 +101,13 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     run_dir = Path(cfg.paths.output_dir)
     if (run_dir / "metrics.json").exists() or (run_dir / "checkpoints").exists():
         raise FileExistsError(f"{run_dir} already holds a run; rotlearn never overwrites one")
+    if cfg.test_ckpt not in ("last", "best"):
+        raise ConfigError(f"config key test_ckpt: must be 'last' or 'best', got {cfg.test_ckpt!r}")
     torch.set_float32_matmul_precision(cfg.get("float32_matmul_precision", "highest"))
     model, datamodule, trainer = build(cfg)
 
     trainer.fit(model, datamodule=datamodule)
     metrics = _scalars(trainer.callback_metrics)
-    if cfg.test_ckpt not in ("last", "best"):
-        raise ConfigError(f"config key test_ckpt: must be 'last' or 'best', got {cfg.test_ckpt!r}")
     best_path = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
     ckpt_path = best_path if cfg.test_ckpt == "best" and best_path else None
     trainer.test(model, datamodule=datamodule, ckpt_path=ckpt_path, verbose=False)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from torch import Tensor, nn
 
+from rotlearn.errors import ConfigValueError
 from rotlearn.geometry import rotmat_to_quat
 
 __all__ = ["HEADS", "RotationHead", "RotationPrediction", "make_head", "register_head"]
@@ -82,12 +83,14 @@ def make_head(name: str, out_dim: int | None = None) -> RotationHead:
         out_dim: if given (the config's `rep.out_dim`), it must equal the head's output size.
 
     Raises:
-        KeyError: unknown name; the message lists the allowed ones.
-        ValueError: `out_dim` disagrees with the head.
+        ConfigValueError: unknown `name` (the message lists the allowed ones), or an `out_dim`
+            that disagrees with the head.
     """
     if name not in HEADS:
-        raise KeyError(f"unknown rep {name!r}; allowed: {', '.join(sorted(HEADS))}")
+        raise ConfigValueError("name", f"unknown rep {name!r}; allowed: {', '.join(sorted(HEADS))}")
     head = HEADS[name]()
     if out_dim is not None and out_dim != head.out_dim:
-        raise ValueError(f"rep.out_dim={out_dim} but the {name!r} head needs {head.out_dim}")
+        raise ConfigValueError(
+            "out_dim", f"is {out_dim} but the {name!r} head outputs {head.out_dim}"
+        )
     return head

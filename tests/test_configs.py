@@ -1,0 +1,115 @@
+"""Every option of every config group composes and instantiates (Hydra compose API)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from hydra.errors import MissingConfigException
+from hydra.utils import instantiate
+from lightning.pytorch import Callback, LightningDataModule, Trainer
+from lightning.pytorch.loggers import Logger
+from omegaconf import OmegaConf
+
+from rotlearn.cli.train import ConfigError, build
+from rotlearn.heads import HEADS, RotationHead
+from tests.conftest import config_options
+
+
+def test_groups_have_the_documented_options():
+    assert set(config_options("rep")) >= {"quat", "sixd", "a", "svd9d"}
+    assert set(config_options("rep")) == set(HEADS)
+    assert set(config_options("trainer")) >= {"default", "cpu", "gpu", "ddp", "ddp_cpu"}
+    assert set(config_options("logger")) >= {"tensorboard", "csv", "none"}
+    assert set(config_options("loss")) >= {"chordal", "angular"}
+
+
+@pytest.mark.parametrize("rep", config_options("rep"))
+def test_rep_builds_its_head_and_sizes_the_net(make_cfg, rep):
+    cfg = make_cfg([f"rep={rep}"])
+    head = instantiate(cfg.rep)
+    assert isinstance(head, RotationHead) and head.name == rep
+    assert head.out_dim == cfg.rep.out_dim == cfg.net.out_dim
+    net = instantiate(cfg.net)
+    assert net(torch.randn(3, 20, 6)).shape == (3, head.out_dim)
+
+
+@pytest.mark.parametrize("data", config_options("data"))
+def test_data_option_instantiates(make_cfg, data):
+    dm = instantiate(make_cfg([f"data={data}"]).data)
+    assert isinstance(dm, LightningDataModule)
+    batch = dm.draw(0, 0, 4)
+    assert batch["input"].shape[0] == 4 and batch["R"].shape == (4, 3, 3)
+
+
+@pytest.mark.parametrize("loss", config_options("loss"))
+def test_loss_option_gives_a_scalar(make_cfg, loss):
+    cfg = make_cfg([f"loss={loss}"])
+    head, loss_fn = instantiate(cfg.rep), instantiate(cfg.loss)
+    raw = torch.randn(5, head.out_dim, requires_grad=True)
+    value = loss_fn(head(raw), {"R": head(torch.randn(5, head.out_dim)).R})
+    assert value.ndim == 0 and torch.isfinite(value)
+    value.backward()
+    assert torch.isfinite(raw.grad).all()
+
+
+@pytest.mark.parametrize("optim", config_options("optim"))
+def test_optim_option_is_a_partial_optimizer(make_cfg, optim):
+    cfg = make_cfg([f"optim={optim}", "optim.lr=0.123"])
+    optimizer = instantiate(cfg.optim)([torch.nn.Parameter(torch.zeros(2))])
+    assert isinstance(optimizer, torch.optim.Optimizer)
+    assert optimizer.param_groups[0]["lr"] == pytest.approx(0.123)
+
+
+@pytest.mark.parametrize("trainer", config_options("trainer"))
+def test_trainer_option(make_cfg, trainer):
+    cfg = make_cfg([f"trainer={trainer}"])
+    if cfg.trainer.accelerator == "gpu" and not torch.cuda.is_available():
+        assert cfg.trainer.devices in (1, -1)  # composes; instantiating needs a GPU
+        return
+    assert isinstance(instantiate(cfg.trainer, logger=False, enable_checkpointing=False), Trainer)
+
+
+@pytest.mark.parametrize("logger", config_options("logger"))
+def test_logger_option(make_cfg, logger):
+    loggers = [instantiate(node) for node in make_cfg([f"logger={logger}"]).logger.values()]
+    assert all(isinstance(lg, Logger) for lg in loggers)
+    assert (logger == "none") == (not loggers)
+
+
+@pytest.mark.parametrize("callbacks", config_options("callbacks"))
+def test_callbacks_option(make_cfg, callbacks):
+    built = [instantiate(node) for node in make_cfg([f"callbacks={callbacks}"]).callbacks.values()]
+    assert all(isinstance(cb, Callback) for cb in built)
+
+
+def test_whole_config_builds_model_data_and_trainer(make_cfg):
+    model, datamodule, trainer = build(make_cfg(["trainer=cpu"]))
+    assert model.head.name == "a" and trainer.max_epochs == 50
+    assert isinstance(datamodule, LightningDataModule)
+    assert OmegaConf.select(OmegaConf.create(model.run_config), "rep.name") == "a"
+
+
+def test_unknown_rep_lists_the_allowed_options(make_cfg):
+    with pytest.raises(MissingConfigException) as err:
+        make_cfg(["rep=quaternion"])
+    for name in ("quat", "sixd", "a", "svd9d"):
+        assert name in str(err.value)
+
+
+def test_rep_name_typo_inside_a_config_names_the_key(make_cfg):
+    with pytest.raises(ConfigError, match=r"rep\.name: unknown rep 'quaternion'; allowed: a, "):
+        build(make_cfg(["rep.name=quaternion"]))
+
+
+@pytest.mark.parametrize("bad", [0, -10, 180.5, 360])
+def test_phi_max_outside_range_is_refused_naming_the_key(make_cfg, bad):
+    with pytest.raises(ConfigError, match=r"config key data\.phi_max_deg: must lie in \(0, 180\]"):
+        build(make_cfg([f"data.phi_max_deg={bad}"]))
+
+
+def test_test_ckpt_must_be_last_or_best(make_cfg):
+    from rotlearn.cli.train import train
+
+    cfg = make_cfg(["data=tiny", "trainer.fast_dev_run=true", "test_ckpt=middle"])
+    with pytest.raises(ConfigError, match="test_ckpt"):
+        train(cfg)
