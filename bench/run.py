@@ -1,0 +1,157 @@
+"""rotlearn benchmarks: `make bench [ARGS="epoch heads paper"]`.
+
+- epoch: seconds per epoch of the paper's synthetic setting (5 x 100 training samples, 100 matches,
+  validation on 100), per representation, through the real Lightning pipeline.
+- heads: microseconds per sample of each head's forward and forward+backward at a large batch.
+- paper: the paper's synthetic experiment (lr 5e-4, 50 epochs, phi_max 180) over 3 seeds per
+  representation, beside the numbers of the authors' code (spec section 10; issue 2).
+
+Each benchmark prints a table and writes bench/results/<name>.json. Run it on an idle machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import platform
+import statistics
+import sys
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import torch
+from hydra import compose, initialize_config_dir
+
+from rotlearn.cli.train import train
+from rotlearn.heads import HEADS, make_head
+from rotlearn.io import write_json_atomic
+from rotlearn.paths import config_dir
+
+RESULTS = Path(__file__).resolve().parent / "results"
+QUIET = ["trainer.enable_progress_bar=false", "trainer.enable_model_summary=false"]
+# The authors' code on this machine (issue 2): final test mean error (deg) and seconds per epoch.
+AUTHORS = {"a": ("1.1-1.4", "0.735"), "sixd": ("1.6", "0.71"), "quat": ("6.6-16", "0.71-0.75")}
+
+
+def _machine() -> dict:
+    return {
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "threads": torch.get_num_threads(),
+        "cpu": platform.processor() or platform.machine(),
+    }
+
+
+def _run(overrides: list[str], out: Path) -> dict:
+    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
+        cfg = compose("train", overrides=[f"paths.output_dir={out}", *QUIET, *overrides])
+    return train(cfg)
+
+
+def bench_epoch(reps: list[str], epochs: int = 6) -> dict:
+    rows = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for rep in reps:
+            m = _run([f"rep={rep}", "trainer=cpu", f"trainer.max_epochs={epochs}"], Path(tmp) / rep)
+            rows[rep] = {"epoch_time_s": m["epoch_time_s"], "epochs_timed": epochs - 1}
+    print(f"\nSeconds per epoch (5 x 100 samples + validation on 100; mean of epochs 2-{epochs})")
+    print(f"{'rep':8s} {'rotlearn':>10s} {'authors':>10s}")
+    for rep, row in rows.items():
+        print(f"{rep:8s} {row['epoch_time_s']:10.3f} {AUTHORS.get(rep, ('', '-'))[1]:>10s}")
+    return rows
+
+
+def _time(fn, repeats: int = 5) -> float:
+    fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def bench_heads(batch: int = 131072) -> dict:
+    rows = {}
+    gen = torch.Generator().manual_seed(0)
+    for name in sorted(HEADS):
+        head = make_head(name)
+        raw = torch.randn(batch, head.out_dim, generator=gen)
+
+        def forward(head=head, raw=raw):
+            with torch.no_grad():
+                return head(raw).R
+
+        def backward(head=head, raw=raw):
+            x = raw.clone().requires_grad_(True)
+            head(x).R.sum().backward()
+
+        rows[name] = {
+            "forward_us": 1e6 * _time(forward) / batch,
+            "forward_backward_us": 1e6 * _time(backward) / batch,
+        }
+    print(f"\nHeads, float32, batch {batch}: microseconds per sample")
+    print(f"{'rep':8s} {'forward':>10s} {'fwd+bwd':>10s}")
+    for name, row in rows.items():
+        print(f"{name:8s} {row['forward_us']:10.3f} {row['forward_backward_us']:10.3f}")
+    return {"batch": batch, "heads": rows}
+
+
+def bench_paper(reps: list[str], seeds: list[int]) -> dict:
+    rows: dict[str, list[dict]] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for rep in reps:
+            for seed in seeds:
+                out = Path(tmp) / f"{rep}-{seed}"
+                m = _run([f"rep={rep}", "trainer=cpu", f"seed={seed}", f"data.seed={seed}"], out)
+                rows.setdefault(rep, []).append(
+                    {k: m[k] for k in ("test/err_mean", "test/err_median", "epoch_time_s")}
+                    | {"seed": seed}
+                )
+                print(f"  {rep} seed {seed}: {m['test/err_mean']:.3f} deg", flush=True)
+    print("\nPaper synthetic setting (lr 5e-4, 50 epochs, phi_max 180): final test error, degrees")
+    print(
+        f"{'rep':6s} {'mean err per seed':>26s} {'median of':>10s} {'authors':>9s} {'s/epoch':>8s}"
+    )
+    for rep, runs in rows.items():
+        errs = [r["test/err_mean"] for r in runs]
+        per_seed = " ".join(f"{e:.2f}" for e in errs)
+        epoch = statistics.mean(r["epoch_time_s"] for r in runs)
+        authors = AUTHORS.get(rep, ("-", "-"))[0]
+        print(
+            f"{rep:6s} {per_seed:>26s} {statistics.median(errs):10.2f} {authors:>9s} {epoch:8.3f}"
+        )
+    return {"runs": rows, "authors": AUTHORS}
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawTextHelpFormatter
+    )
+    parser.add_argument("names", nargs="*", default=["epoch", "heads"], help="epoch heads paper")
+    parser.add_argument("--reps", default="a,sixd,quat")
+    parser.add_argument("--seeds", default="1,2,3")
+    args = parser.parse_args(argv)
+    warnings.filterwarnings("ignore")
+    logging.getLogger("lightning").setLevel(logging.ERROR)
+    logging.getLogger("lightning.pytorch").setLevel(logging.ERROR)
+    reps = args.reps.split(",")
+    seeds = [int(s) for s in args.seeds.split(",")]
+    benches = {
+        "epoch": lambda: bench_epoch(reps),
+        "heads": bench_heads,
+        "paper": lambda: bench_paper(reps, seeds),
+    }
+    unknown = set(args.names) - set(benches)
+    if unknown:
+        sys.exit(f"unknown benchmark(s) {sorted(unknown)}; choose from {sorted(benches)}")
+    for name in args.names:
+        result = {"machine": _machine(), "result": benches[name]()}
+        path = write_json_atomic(RESULTS / f"{name}.json", result)
+        print(f"-> {path.relative_to(Path.cwd()) if path.is_relative_to(Path.cwd()) else path}")
+
+
+if __name__ == "__main__":
+    main()
