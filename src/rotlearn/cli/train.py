@@ -103,7 +103,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         raise FileExistsError(f"{run_dir} already holds a run; rotlearn never overwrites one")
     if cfg.test_ckpt not in ("last", "best"):
         raise ConfigError(f"config key test_ckpt: must be 'last' or 'best', got {cfg.test_ckpt!r}")
-    torch.set_float32_matmul_precision(cfg.get("float32_matmul_precision", "highest"))
+    torch.set_float32_matmul_precision(cfg.float32_matmul_precision)
     model, datamodule, trainer = build(cfg)
 
     trainer.fit(model, datamodule=datamodule)
