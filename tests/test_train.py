@@ -51,6 +51,16 @@ def test_run_directory_holds_config_events_checkpoints_and_metrics(make_cfg):
     assert len(events.Scalars("val/err_mean")) == 2  # once per epoch
 
 
+@pytest.mark.parametrize("logger", ["csv", "[tensorboard,csv]"])
+def test_every_logger_gets_scalars_and_hyperparameters(make_cfg, logger):
+    cfg = make_cfg([*FAST, "trainer.max_epochs=1", f"logger={logger}"])
+    train(cfg)
+    run = Path(cfg.paths.output_dir)
+    rows = (run / "csv" / "metrics.csv").read_text().splitlines()
+    assert "val/err_mean" in rows[0] and len(rows) >= 2
+    assert "optim.lr" in (run / "csv" / "hparams.yaml").read_text()
+
+
 def test_a_run_directory_is_never_reused(make_cfg):
     cfg = make_cfg([*FAST, "trainer.fast_dev_run=true"])
     train(cfg)

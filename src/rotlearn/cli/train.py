@@ -18,6 +18,7 @@ import hydra
 import lightning.pytorch as pl
 import torch
 from hydra.errors import InstantiationException
+from lightning.pytorch.loggers import TensorBoardLogger
 from omegaconf import DictConfig, OmegaConf
 
 from rotlearn.errors import ConfigValueError
@@ -134,7 +135,10 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         hp_metrics = {f"hp/{k.replace('/', '_')}": v for k, v in metrics.items() if "/err_" in k}
         params = _flatten(OmegaConf.to_container(cfg, resolve=True))
         for logger in trainer.loggers:
-            logger.log_hyperparams(params, hp_metrics)
+            if isinstance(logger, TensorBoardLogger):  # its hparams tab shows these metrics
+                logger.log_hyperparams(params, hp_metrics)
+            else:
+                logger.log_hyperparams(params)
             logger.finalize("success")
     return metrics
 
