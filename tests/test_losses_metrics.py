@@ -1,0 +1,151 @@
+"""Losses (paper eqs. 17-18) and the epoch-level angular error metric."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from rotlearn.geometry import quat_chordal_distance, rotmat_to_quat
+from rotlearn.heads import HEADS, make_head
+from rotlearn.losses import AngularLoss, ChordalLoss
+from rotlearn.metrics import AngularError
+
+F64 = torch.float64
+
+
+def gen(seed: int) -> torch.Generator:
+    return torch.Generator().manual_seed(seed)
+
+
+def scipy_rotmats(seed: int, shape: tuple[int, ...]) -> torch.Tensor:
+    n = math.prod(shape)
+    mats = Rotation.random(n, random_state=seed).as_matrix()
+    return torch.from_numpy(mats).reshape(*shape, 3, 3)
+
+
+def scipy_angle(R1: torch.Tensor, R2: torch.Tensor) -> np.ndarray:
+    """|Log(R1^T R2)| in radians from scipy (independent reference), flattened, float64."""
+    r1 = Rotation.from_matrix(R1.detach().double().reshape(-1, 3, 3).numpy())
+    r2 = Rotation.from_matrix(R2.detach().double().reshape(-1, 3, 3).numpy())
+    return (r1.inv() * r2).magnitude()
+
+
+def predict(name: str, shape: tuple[int, ...], seed: int):
+    head = make_head(name)
+    raw = torch.randn((*shape, head.out_dim), generator=gen(seed), dtype=F64)
+    return head(raw.requires_grad_())
+
+
+@pytest.mark.parametrize("shape", [(8,), (2, 5)], ids=str)
+@pytest.mark.parametrize("name", sorted(HEADS))
+def test_chordal_loss_is_mean_squared_frobenius(name, shape):
+    pred = predict(name, shape, seed=len(name))
+    R_true = scipy_rotmats(1, shape)
+    loss = ChordalLoss()(pred, {"R": R_true})
+    assert loss.shape == ()
+    expected = ((pred.R - R_true) ** 2).sum((-1, -2)).mean()
+    torch.testing.assert_close(loss, expected, atol=1e-12, rtol=0)
+    # 8 sin^2(t/2) with scipy's angles
+    t = scipy_angle(pred.R, R_true)
+    assert abs(loss.item() - np.mean(8 * np.sin(t / 2) ** 2)) < 1e-10
+    loss.backward()
+    assert torch.isfinite(pred.raw.grad).all() and pred.raw.grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("name", ["quat", "a"])
+def test_chordal_loss_equals_quaternion_chordal_form(name):
+    # for quaternion heads: 2 d^2 (4 - d^2), d = min(|q - q*|, |q + q*|) (paper footnote 3)
+    pred = predict(name, (64,), seed=3)
+    R_true = scipy_rotmats(4, (64,))
+    d = quat_chordal_distance(pred.q, rotmat_to_quat(R_true))
+    expected = (2 * d**2 * (4 - d**2)).mean()
+    torch.testing.assert_close(ChordalLoss()(pred, {"R": R_true}), expected, atol=1e-12, rtol=0)
+
+
+@pytest.mark.parametrize("shape", [(8,), (2, 5)], ids=str)
+@pytest.mark.parametrize("name", sorted(HEADS))
+def test_angular_loss_is_mean_squared_angle(name, shape):
+    pred = predict(name, shape, seed=5 + len(name))
+    R_true = scipy_rotmats(6, shape)
+    loss = AngularLoss()(pred, {"R": R_true})
+    assert loss.shape == ()
+    assert abs(loss.item() - np.mean(scipy_angle(pred.R, R_true) ** 2)) < 1e-10
+    loss.backward()
+    assert torch.isfinite(pred.raw.grad).all()
+
+
+def test_losses_vanish_at_the_target_and_know_the_angle():
+    R = scipy_rotmats(7, (16,))
+    pred = make_head("svd9d")(R.reshape(16, 9))
+    assert ChordalLoss()(pred, {"R": R}).item() < 1e-20
+    assert AngularLoss()(pred, {"R": R}).item() < 1e-20
+    # rotate the target by known angles about known axes
+    theta = torch.linspace(0.0, math.pi, 16, dtype=F64)
+    axis = torch.nn.functional.normalize(torch.randn(16, 3, generator=gen(8), dtype=F64), dim=-1)
+    delta = torch.from_numpy(Rotation.from_rotvec((theta[:, None] * axis).numpy()).as_matrix())
+    target = {"R": R @ delta}
+    assert abs(AngularLoss()(pred, target).item() - theta.square().mean().item()) < 1e-9
+    chordal = (8 * torch.sin(theta / 2) ** 2).mean().item()
+    assert abs(ChordalLoss()(pred, target).item() - chordal) < 1e-12
+
+
+def reference_stats(deg: np.ndarray) -> dict[str, float]:
+    return {
+        "err_mean": float(np.mean(deg)),
+        "err_median": float(np.median(deg)),
+        "err_p10": float(np.percentile(deg, 10, method="linear")),
+        "err_p90": float(np.percentile(deg, 90, method="linear")),
+    }
+
+
+def assert_stats(result: dict[str, torch.Tensor], expected: dict[str, float], atol: float):
+    assert set(result) == set(expected)
+    for key, value in expected.items():
+        assert result[key].shape == ()
+        assert abs(result[key].item() - value) <= atol, (key, result[key].item(), value)
+
+
+def test_angular_error_metric_matches_numpy():
+    metric = AngularError()
+    angles = []
+    # several batches of different sizes and shapes; 2 + 7 + 6 = 15 samples, so the percentiles
+    # fall between samples and the interpolation rule matters
+    for seed, shape in [(10, (2,)), (11, (7,)), (12, (2, 3))]:
+        R_pred, R_true = scipy_rotmats(seed, shape), scipy_rotmats(seed + 100, shape)
+        metric.update(R_pred, R_true)
+        angles.append(np.degrees(scipy_angle(R_pred, R_true)))
+    deg = np.concatenate(angles)
+    assert deg.size == 15
+    expected = reference_stats(deg)
+    # the interpolated percentiles are not just the nearest samples
+    assert not np.isclose(expected["err_p10"], deg).any()
+    assert_stats(metric.compute(), expected, atol=1e-8)
+
+
+def test_angular_error_metric_float32_inputs():
+    metric = AngularError()
+    R_pred, R_true = scipy_rotmats(13, (50,)), scipy_rotmats(14, (50,))
+    metric.update(R_pred.float(), R_true.float())
+    deg = np.degrees(scipy_angle(R_pred, R_true))
+    # float32 angle: ~1e-6 rad of rounding, i.e. ~1e-4 degrees
+    result = metric.compute()
+    assert all(v.dtype == F64 for v in result.values())
+    assert_stats(result, reference_stats(deg), atol=1e-3)
+
+
+def test_angular_error_metric_reset():
+    metric = AngularError()
+    metric.update(scipy_rotmats(15, (10,)), scipy_rotmats(16, (10,)))
+    first = metric.compute()
+    metric.reset()
+    assert len(metric.errors) == 0
+    R_pred, R_true = scipy_rotmats(17, (9,)), scipy_rotmats(18, (9,))
+    metric.update(R_pred, R_true)
+    expected = reference_stats(np.degrees(scipy_angle(R_pred, R_true)))
+    result = metric.compute()
+    assert_stats(result, expected, atol=1e-8)
+    assert result["err_mean"].item() != pytest.approx(first["err_mean"].item())
