@@ -12,6 +12,7 @@ Each benchmark prints a table and writes bench/results/<name>.json. Run it on an
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import platform
 import statistics
@@ -45,9 +46,12 @@ def _machine() -> dict:
 
 
 def _run(overrides: list[str], out: Path) -> dict:
+    """Train one config; its metrics.json plus the epoch time from timing.json."""
     with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
         cfg = compose("train", overrides=[f"paths.output_dir={out}", *QUIET, *overrides])
-    return train(cfg)
+    metrics = train(cfg)
+    timing = json.loads((out / "timing.json").read_text())
+    return {**metrics, "epoch_time_s": timing["epoch_time_s"]}
 
 
 def bench_epoch(reps: list[str], epochs: int = 6) -> dict:

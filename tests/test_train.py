@@ -39,7 +39,9 @@ def test_run_directory_holds_config_events_checkpoints_and_metrics(make_cfg):
     assert {p.name for p in (run / "checkpoints").iterdir()} == {"best.ckpt", "last.ckpt"}
     assert list((run / "tensorboard").glob("events.out.tfevents.*"))
     assert metrics["epochs"] == 2 and metrics["global_step"] == 4
-    assert metrics["epoch_time_s"] > 0 and metrics["seed"] == 0 and metrics["data_seed"] == 0
+    assert metrics["seed"] == 0 and metrics["data_seed"] == 0
+    timing = json.loads((run / "timing.json").read_text())
+    assert len(timing["epoch_times_s"]) == 2 and timing["epoch_time_s"] > 0
     checkpoint = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False)
     assert checkpoint["rotlearn_config"]["rep"]["name"] == "sixd"
 
@@ -59,6 +61,20 @@ def test_every_logger_gets_scalars_and_hyperparameters(make_cfg, logger):
     rows = (run / "csv" / "metrics.csv").read_text().splitlines()
     assert "val/err_mean" in rows[0] and len(rows) >= 2
     assert "optim.lr" in (run / "csv" / "hparams.yaml").read_text()
+
+
+def test_same_config_and_seeds_give_identical_metrics(make_cfg, tmp_path):
+    overrides = ["rep=a", *FAST, "trainer.max_epochs=3", "seed=7", "data.seed=11"]
+    texts = []
+    for name in ("first", "second"):
+        cfg = make_cfg(overrides, run_dir=tmp_path / name)
+        train(cfg)
+        texts.append((Path(cfg.paths.output_dir) / "metrics.json").read_text())
+    assert texts[0] == texts[1]
+    assert json.loads(texts[0])["seed"] == 7 and json.loads(texts[0])["data_seed"] == 11
+    other_seed = make_cfg([*overrides[:-1], "data.seed=12"], run_dir=tmp_path / "third")
+    train(other_seed)
+    assert (tmp_path / "third" / "metrics.json").read_text() != texts[0]
 
 
 def test_a_run_directory_is_never_reused(make_cfg):
@@ -127,6 +143,20 @@ def test_multirun_gives_each_job_its_own_directory_and_metrics(tmp_path):
         seen.add((metrics["rep"], saved.optim.lr))
         assert (job / "checkpoints" / "last.ckpt").exists()
     assert len(seen) == 8
+
+
+def test_a_failing_job_keeps_the_others_and_is_listed(tmp_path):
+    sweep = tmp_path / "sweep"
+    args = ["-m", "data.phi_max_deg=90,270,45", "trainer.max_epochs=1", f"hydra.sweep.dir={sweep}"]
+    result = _cli([*args, *FAST], tmp_path)
+    assert result.returncode != 0  # the sweep reports the failure...
+    summary = json.loads((sweep / "jobs.json").read_text())
+    assert (summary["completed"], summary["failed"]) == (2, 1)
+    failed = [job for job in summary["jobs"] if job["status"] == "FAILED"]
+    assert failed[0]["num"] == 1 and "data.phi_max_deg" in failed[0]["error"]
+    for num in (0, 2):  # ...and the other jobs' results are all there
+        assert json.loads((sweep / str(num) / "metrics.json").read_text())["epochs"] == 1
+        assert json.loads((sweep / str(num) / "status.json").read_text())["status"] == "COMPLETED"
 
 
 def test_a_head_learns_the_wahba_problem(make_cfg):

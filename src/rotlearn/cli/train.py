@@ -97,6 +97,16 @@ def _scalars(metrics: dict[str, Any]) -> dict[str, float]:
     return {k: float(v) for k, v in metrics.items() if torch.as_tensor(v).numel() == 1}
 
 
+def _timing(trainer: pl.Trainer) -> dict[str, Any]:
+    timers = [cb for cb in trainer.callbacks if isinstance(cb, EpochTimer)]
+    times = timers[0].epoch_times if timers else []
+    steady = times[1:]  # the first epoch carries one-off start-up costs
+    return {
+        "epoch_times_s": times,
+        "epoch_time_s": sum(steady) / len(steady) if steady else math.nan,
+    }
+
+
 def train(cfg: DictConfig) -> dict[str, Any]:
     """Fit, test and write `metrics.json` in `cfg.paths.output_dir`; returns those metrics."""
     run_dir = Path(cfg.paths.output_dir)
@@ -114,8 +124,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     trainer.test(model, datamodule=datamodule, ckpt_path=ckpt_path, verbose=False)
     metrics.update(_scalars(trainer.callback_metrics))
 
-    timers = [cb for cb in trainer.callbacks if isinstance(cb, EpochTimer)]
-    times = timers[0].epoch_times if timers else []
+    metrics = {k: v for k, v in metrics.items() if not k.startswith("time/")}
     metrics.update(
         {
             "epochs": trainer.current_epoch,
@@ -124,13 +133,14 @@ def train(cfg: DictConfig) -> dict[str, Any]:
             "data_seed": OmegaConf.select(cfg, "data.seed"),
             "rep": OmegaConf.select(cfg, "rep.name"),
             "tested_weights": "best" if ckpt_path else "last",
-            # the first epoch carries one-off start-up costs; the steady state is what compares
-            "epoch_time_s": sum(times[1:]) / len(times[1:]) if len(times) > 1 else math.nan,
         }
     )
     if trainer.checkpoint_callback and trainer.checkpoint_callback.best_model_score is not None:
         metrics["best/val_err_mean"] = float(trainer.checkpoint_callback.best_model_score)
     if trainer.is_global_zero:
+        # metrics.json holds only what the config and seeds determine (identical on a rerun);
+        # wall-clock times go beside it.
+        write_json_atomic(run_dir / "timing.json", _timing(trainer))
         write_json_atomic(run_dir / "metrics.json", metrics)
         hp_metrics = {f"hp/{k.replace('/', '_')}": v for k, v in metrics.items() if "/err_" in k}
         params = _flatten(OmegaConf.to_container(cfg, resolve=True))
