@@ -21,12 +21,13 @@ from hydra.errors import InstantiationException
 from lightning.pytorch.loggers import TensorBoardLogger
 from omegaconf import DictConfig, OmegaConf
 
+from rotlearn.checkpoint import resolve_checkpoint
 from rotlearn.errors import ConfigValueError
 from rotlearn.io import write_json_atomic
 from rotlearn.lit import EpochTimer, RotationRegressor
 from rotlearn.paths import config_dir
 
-__all__ = ["ConfigError", "build", "main", "train"]
+__all__ = ["ConfigError", "build", "main", "resume_arguments", "train"]
 
 log = logging.getLogger("rotlearn")
 
@@ -110,14 +111,25 @@ def _timing(trainer: pl.Trainer) -> dict[str, Any]:
 def train(cfg: DictConfig) -> dict[str, Any]:
     """Fit, test and write `metrics.json` in `cfg.paths.output_dir`; returns those metrics."""
     run_dir = Path(cfg.paths.output_dir)
-    if (run_dir / "metrics.json").exists() or (run_dir / "checkpoints").exists():
-        raise FileExistsError(f"{run_dir} already holds a run; rotlearn never overwrites one")
+    resume = cfg.get("ckpt_path")
+    if (run_dir / "metrics.json").exists():
+        raise FileExistsError(
+            f"{run_dir} holds a finished run (metrics.json); it is never rewritten"
+        )
+    if resume:
+        resume = str(resolve_checkpoint(resume))
+        log.info("resuming from %s", resume)
+    elif (run_dir / "checkpoints").exists():
+        raise FileExistsError(
+            f"{run_dir} already holds a run; rotlearn never overwrites one (to continue it: "
+            f"ckpt_path={run_dir})"
+        )
     if cfg.test_ckpt not in ("last", "best"):
         raise ConfigError(f"config key test_ckpt: must be 'last' or 'best', got {cfg.test_ckpt!r}")
     torch.set_float32_matmul_precision(cfg.float32_matmul_precision)
     model, datamodule, trainer = build(cfg)
 
-    trainer.fit(model, datamodule=datamodule)
+    trainer.fit(model, datamodule=datamodule, ckpt_path=resume or None, weights_only=True)
     metrics = _scalars(trainer.callback_metrics)
     best_path = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
     ckpt_path = best_path if cfg.test_ckpt == "best" and best_path else None
@@ -175,12 +187,54 @@ def _report(cfg: DictConfig, metrics: dict[str, Any]) -> None:
     log.info("open TensorBoard: %s --logdir %s", tb, shown)
 
 
+def _newest_run(root: Path) -> Path:
+    runs = sorted(p.parent.parent for p in root.glob("*/checkpoints/last.ckpt"))
+    if not runs:
+        raise SystemExit(f"rotlearn-train: ckpt_path=last, but no run under {root} has a last.ckpt")
+    return runs[-1]  # run directories are named by their start time
+
+
+def resume_arguments(argv: list[str], runs_root: Path = Path("outputs/runs")) -> list[str]:
+    """Rewrite a command line with `ckpt_path=...` so that Hydra continues that run in its own
+    directory with its own overrides: `[saved overrides, new overrides, ckpt_path=<file>,
+    hydra.run.dir=<run dir>]`. Other command lines are returned unchanged."""
+    values = [a.split("=", 1)[1] for a in argv if a.startswith("ckpt_path=")]
+    if not values or values[-1] in ("", "null", "None"):
+        return argv
+    if "-m" in argv or "--multirun" in argv:
+        raise SystemExit("rotlearn-train: ckpt_path resumes one run; it cannot be used with -m")
+    if values[-1] == "last":
+        ckpt = resolve_checkpoint(_newest_run(runs_root))
+    else:
+        try:
+            ckpt = resolve_checkpoint(values[-1])
+        except FileNotFoundError as exc:
+            raise SystemExit(f"rotlearn-train: ckpt_path: {exc}") from None
+    run_dir = ckpt.parent.parent if ckpt.parent.name == "checkpoints" else ckpt.parent
+    saved = run_dir / ".hydra" / "overrides.yaml"
+    if not saved.is_file():
+        raise SystemExit(f"rotlearn-train: ckpt_path: {run_dir} is not a rotlearn run (no {saved})")
+    previous = [o for o in OmegaConf.load(saved) if not str(o).startswith("ckpt_path=")]
+    new = [a for a in argv if not a.startswith("ckpt_path=")]
+    return [
+        *map(str, previous),
+        *new,
+        f"ckpt_path={ckpt.resolve()}",
+        f"hydra.run.dir={run_dir.resolve()}",
+    ]
+
+
 @hydra.main(version_base="1.3", config_path=str(config_dir()), config_name="train")
-def main(cfg: DictConfig) -> float:
-    """Hydra entry point; returns the test median error (for sweepers that optimise)."""
+def _hydra_main(cfg: DictConfig) -> float:
     metrics = train(cfg)
     _report(cfg, metrics)
     return metrics.get("test/err_median", math.nan)
+
+
+def main() -> float:
+    """Entry point of `rotlearn-train`; returns the test median error (for sweepers)."""
+    sys.argv[1:] = resume_arguments(sys.argv[1:])
+    return _hydra_main()
 
 
 if __name__ == "__main__":

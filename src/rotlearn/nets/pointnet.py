@@ -47,6 +47,7 @@ class PointNet(nn.Module):
         head_channels: Sequence[int] = (256, 128),
     ) -> None:
         super().__init__()
+        self.in_channels = in_channels
         *hidden, pooled = point_channels
         self.point_mlp = nn.Sequential(*mlp([in_channels, *hidden]), nn.PReLU()) if hidden else None
         self.pool = LinearMaxPool(hidden[-1] if hidden else in_channels, pooled)

@@ -1,0 +1,149 @@
+"""The inference API: `rotlearn.load(ckpt)` -> a `Predictor` giving rotations and their uncertainty.
+
+import rotlearn
+predictor = rotlearn.load("outputs/runs/<run>/checkpoints/best.ckpt")  # or the run directory
+estimate = predictor(points)        # (B, N, 6) matched pairs (u_i, v_i) for the point network
+estimate.R, estimate.q              # (B, 3, 3) and (B, 4) quaternions (x, y, z, w), w >= 0
+estimate.dispersion, estimate.dt    # A head only: Bingham dispersion (B, 3) and DT score (B,)
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
+from torch import Tensor, nn
+
+from rotlearn.checkpoint import load_checkpoint
+from rotlearn.heads import RotationHead, RotationPrediction
+
+__all__ = ["Predictor", "RotationEstimate", "load"]
+
+
+@dataclass(frozen=True)
+class RotationEstimate:
+    """What a `Predictor` returns for a batch of B inputs.
+
+    Attributes:
+        R: (B, 3, 3) rotation matrices.
+        q: (B, 4) unit quaternions (x, y, z, w), w >= 0.
+        dispersion: (B, 3) Bingham dispersion coefficients (l1 - l4, l1 - l3, l1 - l2) <= 0
+            (A head only; more negative = more concentrated belief), else None.
+        dt: (B,) dispersion-thresholding score tr(Lambda) = 3 l1 - l2 - l3 - l4 (paper eq. 26;
+            A head only; lower = more confident), else None.
+        keep: (B,) bool, True where the OOD score passes the checkpoint's calibrated threshold,
+            or None when the checkpoint carries no threshold.
+    """
+
+    R: Tensor
+    q: Tensor
+    dispersion: Tensor | None = None
+    dt: Tensor | None = None
+    keep: Tensor | None = None
+
+
+def _uncertainty(prediction: RotationPrediction) -> tuple[Tensor | None, Tensor | None]:
+    if prediction.eigenvalues is None:
+        return None, None
+    l1, l2, l3, l4 = prediction.eigenvalues.unbind(-1)
+    dispersion = torch.stack((l1 - l4, l1 - l3, l1 - l2), dim=-1)
+    return dispersion, dispersion.sum(-1)
+
+
+class Predictor:
+    """A trained network and head, in evaluation mode, that validate what they are given.
+
+    Args:
+        net: the backbone; head: the representation head.
+        config: the run's resolved config (as saved in the checkpoint).
+        ood: optional {"score": "dt", "threshold": float} calibrated on the training set.
+        device: where to run.
+    """
+
+    def __init__(
+        self,
+        net: nn.Module,
+        head: RotationHead,
+        config: dict[str, Any] | None = None,
+        ood: dict[str, Any] | None = None,
+        device: str | torch.device = "cpu",
+    ) -> None:
+        self.device = torch.device(device)
+        self.net = net.to(self.device).eval()
+        self.head = head.to(self.device).eval()
+        self.config = config or {}
+        self.ood = ood
+        self.dtype = next(net.parameters()).dtype
+        self.in_channels = getattr(net, "in_channels", None)
+
+    def _validate(self, inputs: Any) -> Tensor:
+        if isinstance(inputs, np.ndarray):
+            if not np.issubdtype(inputs.dtype, np.floating):
+                raise TypeError(
+                    f"inputs must hold floating-point numbers, got dtype {inputs.dtype}"
+                )
+            inputs = torch.from_numpy(inputs)
+        if not isinstance(inputs, Tensor):
+            raise TypeError(
+                f"inputs must be a torch.Tensor or numpy array, got {type(inputs).__name__}"
+            )
+        if not inputs.is_floating_point():
+            raise TypeError(f"inputs must be floating point (float32/float64), got {inputs.dtype}")
+        if inputs.ndim < 2 or (
+            self.in_channels is not None and inputs.shape[-1] != self.in_channels
+        ):
+            width = self.in_channels if self.in_channels is not None else "C"
+            raise ValueError(
+                f"inputs must have shape (B, N, {width}) or (N, {width}) (N points, each "
+                f"{width} numbers), got {tuple(inputs.shape)}"
+            )
+        if inputs.shape[-2] == 0:
+            raise ValueError(f"inputs hold no points: shape {tuple(inputs.shape)}")
+        finite = torch.isfinite(inputs).flatten(1) if inputs.ndim > 2 else torch.isfinite(inputs)
+        if not bool(finite.all()):
+            bad = (
+                "the input" if inputs.ndim == 2 else f"sample {int((~finite.all(-1)).nonzero()[0])}"
+            )
+            raise ValueError(f"inputs contain NaN or Inf (first at {bad})")
+        return inputs.to(self.device, self.dtype)
+
+    @torch.no_grad()
+    def __call__(self, inputs: Any) -> RotationEstimate:
+        """Estimate rotations for (B, N, C) inputs (or one (N, C) input, as a batch of one)."""
+        x = self._validate(inputs)
+        if x.ndim == 2:
+            x = x.unsqueeze(0)
+        raw = self.net(x)
+        if not bool(torch.isfinite(raw).all()):
+            raise FloatingPointError("the network output is not finite for these inputs")
+        prediction = self.head(raw)
+        dispersion, dt = _uncertainty(prediction)
+        keep = None
+        if self.ood is not None and dt is not None and self.ood.get("score") == "dt":
+            keep = dt < float(self.ood["threshold"])
+        return RotationEstimate(
+            R=prediction.R, q=prediction.q, dispersion=dispersion, dt=dt, keep=keep
+        )
+
+
+def load(ckpt_path: str | os.PathLike, device: str | torch.device = "cpu") -> Predictor:
+    """Load a rotlearn checkpoint (or a run directory's last one) as a `Predictor`.
+
+    Reads with `torch.load(weights_only=True)`: a checkpoint carrying pickled code is refused
+    (`rotlearn.checkpoint.UnsafeCheckpointError`). The network and head are rebuilt from the
+    config saved in the checkpoint.
+    """
+    checkpoint = load_checkpoint(ckpt_path, map_location="cpu")
+    config = checkpoint.get("rotlearn_config")
+    if not config:
+        raise ValueError(f"{ckpt_path} is not a rotlearn checkpoint (no saved config)")
+    cfg = OmegaConf.create(config)
+    net, head = instantiate(cfg.net), instantiate(cfg.rep)
+    state = checkpoint["state_dict"]
+    net.load_state_dict({k[len("net.") :]: v for k, v in state.items() if k.startswith("net.")})
+    return Predictor(net, head, config, ood=checkpoint.get("rotlearn_ood"), device=device)

@@ -1,0 +1,183 @@
+"""Safe checkpoint loading, the Predictor API and rotlearn-predict."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import rotlearn
+from rotlearn.checkpoint import UnsafeCheckpointError, load_checkpoint
+from rotlearn.cli.predict import main as predict_main
+from rotlearn.cli.predict import read_point_pairs
+from rotlearn.cli.train import build, train
+from rotlearn.geometry import quat_to_rotmat
+from tests.conftest import SMALL_NET
+
+FAST = ["data=tiny", "trainer=cpu", "trainer.enable_progress_bar=false", *SMALL_NET]
+
+
+@pytest.fixture(scope="module")
+def trained_runs(tmp_path_factory) -> dict[str, Path]:
+    """One finished tiny run per head kind (with and without a Bingham belief)."""
+    from hydra import compose, initialize_config_dir
+
+    from rotlearn.paths import config_dir
+
+    runs = {}
+    for rep in ("a", "sixd"):
+        out = tmp_path_factory.mktemp(rep)
+        with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
+            cfg = compose("train", [f"paths.output_dir={out}", f"rep={rep}", *FAST,
+                                    "trainer.max_epochs=1", "logger=none"])  # fmt: skip
+        train(cfg)
+        runs[rep] = out
+    return runs
+
+
+def _points(n: int = 3, generator_seed: int = 0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(generator_seed)
+    return torch.randn(n, 16, 6, generator=g)
+
+
+def test_predictor_reproduces_the_trained_model(trained_runs, make_cfg):
+    run = trained_runs["a"]
+    predictor = rotlearn.load(run)  # a run directory means its last.ckpt
+    cfg = make_cfg(["rep=a", *FAST])
+    model, _, _ = build(cfg)
+    model.load_state_dict(load_checkpoint(run)["state_dict"])
+    model.eval()
+    x = _points()
+    with torch.no_grad():
+        expected = model(x)
+    estimate = predictor(x)
+    assert torch.allclose(estimate.R, expected.R, atol=1e-6)
+    assert torch.allclose(quat_to_rotmat(estimate.q), estimate.R, atol=1e-5)
+    assert (estimate.q[:, 3] >= 0).all()
+    assert (estimate.dispersion <= 0).all() and torch.allclose(
+        estimate.dt, estimate.dispersion.sum(-1)
+    )
+    assert estimate.keep is None  # this checkpoint carries no calibrated OOD threshold
+
+
+def test_heads_without_a_belief_give_no_dispersion(trained_runs):
+    estimate = rotlearn.load(trained_runs["sixd"] / "checkpoints" / "best.ckpt")(_points())
+    assert estimate.R.shape == (3, 3, 3) and estimate.dispersion is None and estimate.dt is None
+
+
+def test_a_single_input_is_a_batch_of_one(trained_runs):
+    estimate = rotlearn.load(trained_runs["a"])(_points(1)[0].numpy())
+    assert estimate.R.shape == (1, 3, 3)
+
+
+class _Payload:
+    """Unpickling this runs code: it creates the file named in `marker`."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        return (Path.touch, (self.marker,))
+
+
+def test_a_checkpoint_carrying_code_is_refused_and_not_run(trained_runs, tmp_path):
+    marker = tmp_path / "pwned"
+    checkpoint = load_checkpoint(trained_runs["a"])
+    checkpoint["extra"] = _Payload(marker)
+    evil = tmp_path / "evil.ckpt"
+    torch.save(checkpoint, evil)
+    with pytest.raises(UnsafeCheckpointError, match=r"refusing to load .*evil\.ckpt"):
+        rotlearn.load(evil)
+    assert not marker.exists()
+    torch.load(evil, weights_only=False)  # the payload is real: a full unpickler runs it
+    assert marker.exists()
+
+
+def test_missing_or_foreign_checkpoints_are_named(tmp_path):
+    with pytest.raises(FileNotFoundError, match="no checkpoint"):
+        rotlearn.load(tmp_path / "nothing.ckpt")
+    foreign = tmp_path / "foreign.ckpt"
+    torch.save({"state_dict": {}}, foreign)
+    with pytest.raises(ValueError, match="not a rotlearn checkpoint"):
+        rotlearn.load(foreign)
+
+
+BAD_INPUTS = {
+    "NaN": lambda: _points().index_put_(
+        (torch.tensor([1]), torch.tensor([2])), torch.tensor(np.nan)
+    ),
+    "Inf": lambda: _points().index_put_(
+        (torch.tensor([0]), torch.tensor([0])), torch.tensor(np.inf)
+    ),
+    "too few dims": lambda: torch.randn(6),
+    "wrong width": lambda: torch.randn(2, 16, 5),
+    "no points": lambda: torch.randn(2, 0, 6),
+    "integers": lambda: torch.ones(2, 16, 6, dtype=torch.int64),
+    "booleans": lambda: torch.ones(2, 16, 6, dtype=torch.bool),
+    "complex": lambda: torch.randn(2, 16, 6, dtype=torch.complex64),
+    "numpy ints": lambda: np.ones((2, 16, 6), dtype=np.int32),
+    "a list": lambda: [[0.0] * 6] * 16,
+    "a string": lambda: "points.txt",
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_INPUTS))
+def test_bad_inputs_are_refused_with_a_reason(trained_runs, case):
+    predictor = rotlearn.load(trained_runs["a"])
+    with pytest.raises((TypeError, ValueError)) as err:
+        predictor(BAD_INPUTS[case]())
+    assert len(str(err.value)) > 20
+
+
+@settings(
+    max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    shape=st.lists(st.integers(0, 7), min_size=0, max_size=4),
+    dtype=st.sampled_from([torch.float16, torch.float32, torch.float64, torch.int32, torch.uint8]),
+    poison=st.sampled_from([None, np.nan, np.inf, -np.inf, 1e30]),
+)
+def test_fuzzed_inputs_give_rotations_or_a_clear_refusal(trained_runs, shape, dtype, poison):
+    predictor = rotlearn.load(trained_runs["a"])
+    x = torch.randn(*shape).to(dtype) if shape else torch.randn(()).to(dtype)
+    if poison is not None and x.numel() and x.is_floating_point():
+        x.view(-1)[0] = poison
+    try:
+        estimate = predictor(x)
+    except (TypeError, ValueError, FloatingPointError) as exc:
+        assert str(exc)
+        return
+    assert torch.isfinite(estimate.R).all() and torch.isfinite(estimate.q).all()
+    det = torch.linalg.det(estimate.R.double())
+    assert torch.allclose(det, torch.ones_like(det), atol=1e-4)
+
+
+def test_predict_command_reads_text_and_npy_pairs(trained_runs, tmp_path, capsys):
+    points = _points(1)[0].numpy()
+    text = tmp_path / "pairs.txt"
+    text.write_text("# ux uy uz vx vy vz\n" + "\n".join(" ".join(map(str, r)) for r in points))
+    npy = tmp_path / "pairs.npy"
+    np.save(npy, points)
+    assert np.allclose(read_point_pairs(text), read_point_pairs(npy), atol=1e-6)
+    assert predict_main([str(trained_runs["a"]), str(text), "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert len(result["q_xyzw"]) == 4 and result["dt_score"] <= 0 and len(result["dispersion"]) == 3
+    assert predict_main([str(trained_runs["a"]), str(npy)]) == 0
+    assert "uncertainty: DT score" in capsys.readouterr().out
+
+
+def test_predict_command_names_the_bad_line(trained_runs, tmp_path, capsys):
+    bad = tmp_path / "bad.txt"
+    bad.write_text("0 0 1 0 0 1\n0 1 0 0 1\n")
+    assert predict_main([str(trained_runs["a"]), str(bad)]) == 2
+    assert f"{bad}:2: expected 6 numbers" in capsys.readouterr().err
+    bad.write_text("0 0 1 0 0 one\n")
+    assert predict_main([str(trained_runs["a"]), str(bad)]) == 2
+    assert f"{bad}:1: not a number" in capsys.readouterr().err
+    assert predict_main([str(trained_runs["a"]), os.fspath(tmp_path / "absent.txt")]) == 2
