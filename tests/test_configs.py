@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
+import dataclasses
+import inspect
+
 import pytest
 import torch
 from hydra.errors import MissingConfigException
-from hydra.utils import instantiate
+from hydra.utils import get_object, instantiate
 from lightning.pytorch import Callback, LightningDataModule, Trainer
 from lightning.pytorch.loggers import Logger
 from omegaconf import OmegaConf
 
+from rotlearn.cli.schemas import SCHEMAS, validate
 from rotlearn.cli.train import ConfigError, build
 from rotlearn.heads import HEADS, RotationHead
 from tests.conftest import config_options
@@ -87,6 +91,50 @@ def test_whole_config_builds_model_data_and_trainer(make_cfg):
     assert model.head.name == "a" and trainer.max_epochs == 50
     assert isinstance(datamodule, LightningDataModule)
     assert OmegaConf.select(OmegaConf.create(model.run_config), "rep.name") == "a"
+
+
+@pytest.mark.parametrize("group", sorted(SCHEMAS))
+def test_every_option_of_a_schema_group_validates(make_cfg, group):
+    for option in config_options(group):
+        validate(make_cfg([f"{group}={option}"]))
+
+
+@pytest.mark.parametrize(
+    "schema", [s for group in SCHEMAS.values() for s in group.values()], ids=lambda s: s.__name__
+)
+def test_schemas_match_their_targets_signatures(schema):
+    target = get_object(schema._target_)
+    if inspect.isclass(target):
+        target = target.__init__
+    params = {
+        name: p.default
+        for name, p in inspect.signature(target).parameters.items()
+        if name != "self" and p.kind is p.POSITIONAL_OR_KEYWORD
+    }
+    fields = {f.name: f.default for f in dataclasses.fields(schema) if f.name != "_target_"}
+    assert fields.keys() == params.keys()
+    for name, default in params.items():
+        if default is not inspect.Parameter.empty and default is not None:
+            assert fields[name] == default, name
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        (
+            "+data.phi_maxdeg=3",
+            r"data\.phi_maxdeg: unknown \(did you mean data\.phi_max_deg\?\); allowed: ",
+        ),
+        ("data.phi_max_deg=abc", r"data\.phi_max_deg: expected float, got 'abc'"),
+        ("data.num_matches=2.5", r"data\.num_matches: expected int, got 2\.5"),
+        ("data.redraw_test=maybe", r"data\.redraw_test: expected bool"),
+        ("rep.out_dim=7", r"rep\.out_dim: is 7 but the 'a' head outputs 10"),
+        ("+loss.weight=2", r"loss\.weight: unknown; allowed: _target_"),
+    ],
+)
+def test_misspelt_keys_and_wrong_types_fail_before_training(make_cfg, override, message):
+    with pytest.raises(ConfigError, match=message):
+        build(make_cfg([override]))
 
 
 def test_unknown_rep_lists_the_allowed_options(make_cfg):

@@ -22,6 +22,7 @@ from lightning.pytorch.loggers import TensorBoardLogger
 from omegaconf import DictConfig, OmegaConf
 
 from rotlearn.checkpoint import resolve_checkpoint
+from rotlearn.cli.schemas import ConfigError, validate
 from rotlearn.errors import ConfigValueError
 from rotlearn.io import write_json_atomic
 from rotlearn.lit import EpochTimer, RotationRegressor
@@ -35,10 +36,6 @@ log = logging.getLogger("rotlearn")
 # and scalars are logged once per epoch on purpose.
 for _pattern in (".*does not have many workers.*", ".*smaller than the logging interval.*"):
     warnings.filterwarnings("ignore", _pattern)
-
-
-class ConfigError(ValueError):
-    """A config value that cannot be used; the message names its full key."""
 
 
 def _instantiate(cfg: DictConfig, key: str, **kwargs: Any) -> Any:
@@ -63,7 +60,8 @@ def _instantiate_all(cfg: DictConfig, key: str) -> list[Any]:
 
 
 def build(cfg: DictConfig) -> tuple[RotationRegressor, pl.LightningDataModule, pl.Trainer]:
-    """Model, datamodule and trainer for a composed config (seeds set first)."""
+    """Model, datamodule and trainer for a composed config (validated, seeds set first)."""
+    validate(cfg)
     pl.seed_everything(cfg.seed, workers=True, verbose=False)
     datamodule = _instantiate(cfg, "data")
     head = _instantiate(cfg, "rep")

@@ -1,0 +1,108 @@
+"""Structured-config schemas (dataclasses) for the `rep`, `data` and `loss` nodes.
+
+`validate(cfg)` checks a composed config against them before anything is built, so that a
+misspelt key or a value of the wrong type stops the run at once with the full key, what was
+expected and the allowed keys. A node whose `_target_` has no schema here (a user's own class)
+is left to its constructor.
+"""
+
+from __future__ import annotations
+
+import difflib
+from dataclasses import dataclass, fields
+
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import ValidationError
+
+from rotlearn.errors import ConfigValueError
+from rotlearn.heads import make_head
+
+__all__ = ["SCHEMAS", "ConfigError", "validate"]
+
+
+class ConfigError(ValueError):
+    """A config value that cannot be used; the message names its full key."""
+
+
+@dataclass
+class RepConfig:
+    """`rep=`: a representation head from the registry (`rotlearn.heads.HEADS`)."""
+
+    _target_: str = "rotlearn.heads.make_head"
+    name: str = "a"
+    out_dim: int = 10
+
+
+@dataclass
+class SyntheticWahbaConfig:
+    """`data=synthetic` / `data=tiny`: `rotlearn.data.SyntheticWahbaDataModule`."""
+
+    _target_: str = "rotlearn.data.SyntheticWahbaDataModule"
+    phi_max_deg: float = 180.0
+    sigma: float = 0.01
+    num_matches: int = 100
+    batch_size: int = 100
+    batches_per_epoch: int = 5
+    num_val: int = 100
+    num_test: int = 500
+    eval_batch_size: int = 100
+    redraw_test: bool = False
+    seed: int = 0
+
+
+@dataclass
+class ChordalLossConfig:
+    _target_: str = "rotlearn.losses.ChordalLoss"
+
+
+@dataclass
+class AngularLossConfig:
+    _target_: str = "rotlearn.losses.AngularLoss"
+
+
+SCHEMAS: dict[str, dict[str, type]] = {
+    "rep": {RepConfig._target_: RepConfig},
+    "data": {SyntheticWahbaConfig._target_: SyntheticWahbaConfig},
+    "loss": {c._target_: c for c in (ChordalLossConfig, AngularLossConfig)},
+}
+
+
+def _check_node(cfg: DictConfig, key: str) -> None:
+    node = OmegaConf.select(cfg, key)
+    if node is None:
+        raise ConfigError(f"config key {key} is missing")
+    if not isinstance(node, DictConfig) or "_target_" not in node:
+        raise ConfigError(f"config key {key} must be a mapping with a _target_, got {node!r}")
+    schema = SCHEMAS[key].get(node._target_)
+    if schema is None:
+        return
+    allowed = [f.name for f in fields(schema)]
+    for name in node:
+        if name not in allowed:
+            close = difflib.get_close_matches(str(name), allowed, n=1)
+            hint = f" (did you mean {key}.{close[0]}?)" if close else ""
+            raise ConfigError(
+                f"config key {key}.{name}: unknown{hint}; allowed: {', '.join(allowed)}"
+            )
+    try:
+        OmegaConf.merge(OmegaConf.structured(schema), node)
+    except ValidationError as exc:
+        field = next(f for f in fields(schema) if f.name == exc.key)
+        value = OmegaConf.to_container(node, resolve=True)[exc.key]
+        raise ConfigError(
+            f"config key {key}.{exc.key}: expected {field.type}, got {value!r}"
+        ) from None
+
+
+def validate(cfg: DictConfig) -> None:
+    """Check the `rep`, `data` and `loss` nodes of a composed config against their schemas.
+
+    Raises:
+        ConfigError: naming the full key, and the allowed keys or the expected type.
+    """
+    for key in SCHEMAS:
+        _check_node(cfg, key)
+    try:  # the registry knows the names and sizes; heads are stateless and cheap to make
+        make_head(cfg.rep.name, cfg.rep.out_dim)
+    except ConfigValueError as exc:
+        raise ConfigError(f"config key rep.{exc.key}: {exc.message}") from None
