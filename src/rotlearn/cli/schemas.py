@@ -102,6 +102,8 @@ def validate(cfg: DictConfig) -> None:
     """
     for key in SCHEMAS:
         _check_node(cfg, key)
+    if cfg.get("test_ckpt", "last") not in ("last", "best"):
+        raise ConfigError(f"config key test_ckpt: must be 'last' or 'best', got {cfg.test_ckpt!r}")
     try:  # the registry knows the names and sizes; heads are stateless and cheap to make
         make_head(cfg.rep.name, cfg.rep.out_dim)
     except ConfigValueError as exc:

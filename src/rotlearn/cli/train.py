@@ -108,6 +108,7 @@ def _timing(trainer: pl.Trainer) -> dict[str, Any]:
 
 def train(cfg: DictConfig) -> dict[str, Any]:
     """Fit, test and write `metrics.json` in `cfg.paths.output_dir`; returns those metrics."""
+    validate(cfg)
     run_dir = Path(cfg.paths.output_dir)
     resume = cfg.get("ckpt_path")
     if (run_dir / "metrics.json").exists():
@@ -122,8 +123,6 @@ def train(cfg: DictConfig) -> dict[str, Any]:
             f"{run_dir} already holds a run; rotlearn never overwrites one (to continue it: "
             f"ckpt_path={run_dir})"
         )
-    if cfg.test_ckpt not in ("last", "best"):
-        raise ConfigError(f"config key test_ckpt: must be 'last' or 'best', got {cfg.test_ckpt!r}")
     torch.set_float32_matmul_precision(cfg.float32_matmul_precision)
     model, datamodule, trainer = build(cfg)
 
@@ -131,7 +130,9 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     metrics = _scalars(trainer.callback_metrics)
     best_path = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
     ckpt_path = best_path if cfg.test_ckpt == "best" and best_path else None
-    trainer.test(model, datamodule=datamodule, ckpt_path=ckpt_path, verbose=False)
+    trainer.test(
+        model, datamodule=datamodule, ckpt_path=ckpt_path, verbose=False, weights_only=True
+    )
     metrics.update(_scalars(trainer.callback_metrics))
 
     metrics = {k: v for k, v in metrics.items() if not k.startswith("time/")}
