@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed
 ARGS   ?=
 
 .DEFAULT_GOAL := help
-.PHONY: help venv train test test-full lint format bench tensorboard clean
+.PHONY: help venv train test test-full lint format bench reproduce-cpu tensorboard clean
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-12s %s\n", $$1, $$2}'
@@ -40,6 +40,13 @@ format: $(STAMP) ## apply ruff fixes and formatting
 
 bench: $(STAMP) ## benchmarks: results as JSON under bench/results and a printed table
 	$(BIN)/python bench/run.py $(ARGS)
+
+reproduce-cpu: $(STAMP) ## paper Figs. 3 and 4 sized for this CPU (about 20 min), each with its report
+	$(BIN)/rotlearn-train -m experiment=synthetic_lr_cpu trainer.enable_progress_bar=false \
+		hydra.sweep.dir=outputs/reproduce-cpu/synthetic_lr_cpu
+	$(BIN)/rotlearn-train -m experiment=synthetic_phi_max_cpu trainer.enable_progress_bar=false \
+		hydra.sweep.dir=outputs/reproduce-cpu/synthetic_phi_max_cpu
+	@echo "reports: outputs/reproduce-cpu/*/report.md"
 
 tensorboard: $(STAMP) ## open TensorBoard on every run under outputs/
 	$(BIN)/tensorboard --logdir outputs --bind_all

@@ -30,7 +30,11 @@ class AngularError(Metric):
     def update(self, R_pred: Tensor, R_true: Tensor) -> None:
         self.errors.append(angle_deg(R_pred.detach(), R_true).flatten().to(torch.float64))
 
+    def values(self) -> Tensor:
+        """(n,) every error seen since the last reset, in degrees (float64)."""
+        return dim_zero_cat(self.errors)
+
     def compute(self) -> dict[str, Tensor]:
-        errors = dim_zero_cat(self.errors)
+        errors = self.values()
         p10, median, p90 = torch.quantile(errors, errors.new_tensor([0.1, 0.5, 0.9]))
         return {"err_mean": errors.mean(), "err_median": median, "err_p10": p10, "err_p90": p90}

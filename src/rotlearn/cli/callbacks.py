@@ -13,7 +13,7 @@ from omegaconf import DictConfig
 
 from rotlearn.io import write_json_atomic
 
-__all__ = ["JobStatusCallback", "summarise_jobs"]
+__all__ = ["JobStatusCallback", "ReportCallback", "summarise_jobs"]
 
 log = logging.getLogger("rotlearn")
 
@@ -64,3 +64,18 @@ class JobStatusCallback(Callback):
             log.info(
                 "sweep so far: %d completed, %d failed", summary["completed"], summary["failed"]
             )
+
+
+class ReportCallback(Callback):
+    """Runs `rotlearn-report` on the sweep directory when a multirun ends. (Hydra skips this when
+    a job failed; `rotlearn-report <dir>` then makes the same report, failures listed.)"""
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        from rotlearn.cli.report import make_report
+
+        try:
+            files = make_report(config.hydra.sweep.dir)
+        except FileNotFoundError as exc:
+            log.warning("no report: %s", exc)
+            return
+        log.info("report: %s", files["report"])

@@ -152,6 +152,8 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         # metrics.json holds only what the config and seeds determine (identical on a rerun);
         # wall-clock times go beside it.
         write_json_atomic(run_dir / "timing.json", _timing(trainer))
+        if model.test_errors is not None:  # per-sample errors, for box plots (paper Fig. 4)
+            write_json_atomic(run_dir / "test_errors.json", model.test_errors.tolist())
         write_json_atomic(run_dir / "metrics.json", metrics)
         hp_metrics = {f"hp/{k.replace('/', '_')}": v for k, v in metrics.items() if "/err_" in k}
         params = _flatten(OmegaConf.to_container(cfg, resolve=True))

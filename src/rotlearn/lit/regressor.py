@@ -51,6 +51,7 @@ class RotationRegressor(pl.LightningModule):
         self.train_loss = MeanMetric()
         self.train_err, self.val_err, self.test_err = AngularError(), AngularError(), AngularError()
         self.run_config: dict[str, Any] | None = None  # stored in checkpoints when set
+        self.test_errors: Tensor | None = None  # per-sample test errors (degrees) of the last test
 
     def forward(self, inputs: Tensor) -> RotationPrediction:
         return self.head(self.net(inputs))
@@ -108,6 +109,7 @@ class RotationRegressor(pl.LightningModule):
         self._log_errors("val")
 
     def on_test_epoch_end(self) -> None:
+        self.test_errors = self.test_err.values().cpu()
         self._log_errors("test")
 
     def configure_optimizers(self) -> Any:

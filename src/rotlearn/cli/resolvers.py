@@ -1,0 +1,38 @@
+"""OmegaConf resolvers used by the configs (registered on import of `rotlearn.cli`)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from omegaconf import OmegaConf
+
+__all__ = ["loguniform_trial", "register_resolvers"]
+
+
+def loguniform_trial(trial: int, trials: int, seed: int, low: float, high: float) -> float:
+    """The value of trial `trial` of `trials` in a reproducible log-uniform sweep over [low, high).
+
+    Stratified: the log range is cut into `trials` equal slices, a seed-fixed permutation gives each
+    trial its own slice, and a seed-fixed uniform draw places it inside. So every sweep covers the
+    range evenly, each value is log-uniform, and a trial gets the same value in every sweep with
+    the same seed (whatever else is swept beside it).
+    """
+    trial, trials, seed = int(trial), int(trials), int(seed)
+    low, high = float(low), float(high)
+    if not 0 <= trial < trials:
+        raise ValueError(f"trial must lie in [0, {trials}), got {trial}")
+    if not 0 < low < high:
+        raise ValueError(f"need 0 < low < high, got [{low}, {high})")
+    slot = np.random.default_rng([seed, trials]).permutation(trials)[trial]
+    offset = np.random.default_rng([seed, trials, trial]).random()
+    log_low, log_high = math.log(low), math.log(high)
+    return float(math.exp(log_low + (slot + offset) / trials * (log_high - log_low)))
+
+
+def register_resolvers() -> None:
+    """Make `${rl.loguniform:trial,trials,seed,low,high}` available to every config."""
+    OmegaConf.register_new_resolver("rl.loguniform", loguniform_trial, replace=True)
+
+
+register_resolvers()

@@ -1,0 +1,120 @@
+"""Experiment and sweep configs, the lr resolver and rotlearn-report."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+
+from rotlearn.cli.report import collect_runs, make_report
+from rotlearn.cli.report import main as report_main
+from rotlearn.cli.resolvers import loguniform_trial
+from rotlearn.cli.schemas import validate
+from tests.conftest import config_options
+from tests.test_train import FAST, _cli
+
+
+@pytest.mark.parametrize("experiment", config_options("experiment"))
+def test_every_experiment_composes_and_validates(make_cfg, experiment):
+    cfg = make_cfg([f"experiment={experiment}"])
+    validate(cfg)
+    assert cfg.trainer.max_epochs >= 1 and OmegaConf.select(cfg, "data.phi_max_deg") == 180.0
+
+
+@pytest.mark.parametrize("sweep", config_options("sweep"))
+def test_every_sweep_composes(make_cfg, sweep):
+    validate(make_cfg([f"sweep={sweep}"]))
+
+
+def test_cpu_variants_are_smaller_than_the_paper_settings(make_cfg):
+    for name in ("synthetic_lr", "synthetic_phi_max"):
+        paper, cpu = make_cfg([f"experiment={name}"]), make_cfg([f"experiment={name}_cpu"])
+        assert cpu.trainer.max_epochs < paper.trainer.max_epochs
+    assert make_cfg(["experiment=synthetic_lr"]).trials == 25
+
+
+def test_lr_trials_are_reproducible_and_cover_the_range_log_uniformly():
+    low, high, n = 1e-4, 1e-3, 40
+    values = [loguniform_trial(t, n, 0, low, high) for t in range(n)]
+    assert values == [loguniform_trial(t, n, 0, low, high) for t in range(n)]
+    assert values != [loguniform_trial(t, n, 1, low, high) for t in range(n)]
+    assert all(low <= v < high for v in values)
+    # stratified: each of the n equal slices of the log range holds exactly one trial
+    slices = [math.floor((math.log(v) - math.log(low)) / math.log(high / low) * n) for v in values]
+    assert sorted(slices) == list(range(n))
+    # and each trial's value is log-uniform over seeds: the mean of log10(lr) is the midpoint
+    draws = np.log10([loguniform_trial(3, 5, seed, low, high) for seed in range(2000)])
+    assert abs(draws.mean() - (-3.5)) < 5 * (1 / math.sqrt(12)) / math.sqrt(2000)
+
+
+@pytest.mark.parametrize(
+    ("trial", "trials", "low", "high"), [(5, 5, 1, 2), (-1, 5, 1, 2), (0, 5, 2, 1)]
+)
+def test_lr_resolver_refuses_bad_arguments(trial, trials, low, high):
+    with pytest.raises(ValueError):
+        loguniform_trial(trial, trials, 0, low, high)
+
+
+def _fabricate_sweep(root: Path, make_cfg) -> None:
+    """Six jobs (quat, a x phi_max 10, 180 x one trial... ) with one failed job, as files only."""
+    rng = np.random.default_rng(0)
+    jobs = [(rep, phi) for rep in ("quat", "a") for phi in (10.0, 180.0)] + [("sixd", 180.0)]
+    for num, (rep, phi) in enumerate(jobs):
+        run = root / str(num)
+        cfg = make_cfg([f"rep={rep}", f"data.phi_max_deg={phi}"], run_dir=run)
+        (run / ".hydra").mkdir(parents=True)
+        OmegaConf.save(cfg, run / ".hydra" / "config.yaml")
+        (run / ".hydra" / "overrides.yaml").write_text(f"- rep={rep}\n- data.phi_max_deg={phi}\n")
+        if rep == "sixd":
+            status = {"num": num, "status": "FAILED", "error": "ValueError: boom"}
+            (run / "status.json").write_text(json.dumps(status))
+            continue
+        scale = 10.0 if rep == "quat" else 1.0
+        errors = (scale * rng.lognormal(0, 0.5, 50)).tolist()
+        (run / "test_errors.json").write_text(json.dumps(errors))
+        metrics = {
+            "test/err_mean": float(np.mean(errors)),
+            "test/err_median": float(np.median(errors)),
+        }
+        (run / "metrics.json").write_text(json.dumps(metrics))
+        (run / "status.json").write_text(json.dumps({"num": num, "status": "COMPLETED"}))
+        (run / "csv").mkdir()
+        rows = ["epoch,step,train/err_mean,val/err_mean"]
+        rows += [f"{e},{e},{90 / (e + 1) * scale},{80 / (e + 1) * scale}" for e in range(5)]
+        (run / "csv" / "metrics.csv").write_text("\n".join(rows))
+
+
+def test_report_on_a_fabricated_sweep_writes_every_file(tmp_path, make_cfg):
+    sweep = tmp_path / "sweep"
+    _fabricate_sweep(sweep, make_cfg)
+    files = make_report(sweep)
+    assert set(files) == {"summary", "report", "curves", "phi_max_box"}
+    assert all(path.stat().st_size > 0 for path in files.values())
+    runs = collect_runs(sweep)
+    assert len(runs) == 5 and (runs["status"] == "FAILED").sum() == 1
+    report = (sweep / "report.md").read_text()
+    assert "4 completed, 1 failed" in report and "ValueError: boom" in report
+    quat_row = next(line for line in report.splitlines() if line.startswith("| quat | 2 |"))
+    a_row = next(line for line in report.splitlines() if line.startswith("| a | 2 |"))
+    assert float(quat_row.split("|")[4]) > 5 * float(a_row.split("|")[4])  # medians as fabricated
+    assert "phi_max 10 | phi_max 180" in report
+
+
+def test_report_on_an_empty_directory_says_so(tmp_path, capsys):
+    assert report_main([str(tmp_path)]) == 2
+    assert "no runs under" in capsys.readouterr().err
+
+
+def test_an_experiment_sweep_ends_with_its_report(tmp_path):
+    sweep = tmp_path / "sweep"
+    args = ["-m", "experiment=synthetic_phi_max_cpu", "hydra.sweeper.params.rep='a,quat'",
+            "trainer.max_epochs=1", f"hydra.sweep.dir={sweep}", *FAST]  # fmt: skip
+    result = _cli(args, tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert len(list(sweep.glob("*/metrics.json"))) == 6
+    report = (sweep / "report.md").read_text()
+    assert "6 completed, 0 failed" in report and (sweep / "phi_max_box.png").exists()
