@@ -3,6 +3,7 @@
 - epoch: seconds per epoch of the paper's synthetic setting (5 x 100 training samples, 100 matches,
   validation on 100), per representation, through the real Lightning pipeline.
 - heads: microseconds per sample of each head's forward and forward+backward at a large batch.
+- bingham: log N(Lambda) and its gradient per sample (bench/bingham.py).
 - paper: the paper's synthetic experiment (lr 5e-4, 50 epochs, phi_max 180) over 3 seeds per
   representation, beside the numbers of the authors' code (spec section 10; issue 2).
 
@@ -12,6 +13,7 @@ Each benchmark prints a table and writes bench/results/<name>.json. Run it on an
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import logging
 import platform
@@ -130,11 +132,23 @@ def bench_paper(reps: list[str], seeds: list[int]) -> dict:
     return {"runs": rows, "authors": AUTHORS}
 
 
+SCRIPTS = {"bingham": "bingham.py", "rep_layers": "rep_layers.py"}  # benchmarks with their own CLI
+
+
+def _run_script(name: str) -> None:
+    path = Path(__file__).resolve().parent / SCRIPTS[name]
+    spec = importlib.util.spec_from_file_location(f"bench_{name}", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    module.main([])
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawTextHelpFormatter
     )
-    parser.add_argument("names", nargs="*", default=["epoch", "heads"], help="epoch heads paper")
+    default = ["epoch", "heads", *(n for n, f in SCRIPTS.items() if (RESULTS.parent / f).exists())]
+    parser.add_argument("names", nargs="*", default=default, help="epoch heads bingham paper ...")
     parser.add_argument("--reps", default="a,sixd,quat")
     parser.add_argument("--seeds", default="1,2,3")
     args = parser.parse_args(argv)
@@ -148,10 +162,15 @@ def main(argv: list[str] | None = None) -> None:
         "heads": bench_heads,
         "paper": lambda: bench_paper(reps, seeds),
     }
-    unknown = set(args.names) - set(benches)
+    unknown = set(args.names) - set(benches) - set(SCRIPTS)
     if unknown:
-        sys.exit(f"unknown benchmark(s) {sorted(unknown)}; choose from {sorted(benches)}")
+        sys.exit(
+            f"unknown benchmark(s) {sorted(unknown)}; choose from {sorted([*benches, *SCRIPTS])}"
+        )
     for name in args.names:
+        if name in SCRIPTS:
+            _run_script(name)
+            continue
         result = {"machine": _machine(), "result": benches[name]()}
         path = write_json_atomic(RESULTS / f"{name}.json", result)
         print(f"-> {path.relative_to(Path.cwd()) if path.is_relative_to(Path.cwd()) else path}")

@@ -13,7 +13,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from rotlearn.cli.train import build, train
+from rotlearn.cli.train import ConfigError, build, train
 from rotlearn.errors import NonFiniteError
 from tests.conftest import SMALL_NET, config_options
 
@@ -30,6 +30,25 @@ def test_fast_dev_run_for_every_rep(make_cfg, rep):
     assert json.loads((Path(cfg.paths.output_dir) / "metrics.json").read_text()) == pytest.approx(
         metrics, nan_ok=True
     )
+
+
+@pytest.mark.parametrize("loss", ["chordal", "bingham"])
+def test_a_head_reports_how_well_dt_ranks_its_errors(make_cfg, loss):
+    metrics = train(make_cfg(["rep=a", f"loss={loss}", *FAST, "trainer.max_epochs=1"]))
+    assert -1.0 <= metrics["test/dt_spearman"] <= 1.0
+    assert "test/dt_spearman" not in train(
+        make_cfg(
+            ["rep=sixd", *FAST, "trainer.max_epochs=1"],
+            run_dir=Path(make_cfg().paths.output_dir) / "6d",
+        )
+    )
+
+
+def test_bingham_loss_is_refused_for_heads_without_a_belief(make_cfg):
+    with pytest.raises(
+        ConfigError, match=r"loss\.rep: loss=bingham needs a head that defines a belief"
+    ):
+        build(make_cfg(["rep=quat", "loss=bingham"]))
 
 
 def test_run_directory_holds_config_events_checkpoints_and_metrics(make_cfg):

@@ -19,6 +19,7 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 from torch import Tensor, nn
 
+from rotlearn.bingham import dispersion_from_eigenvalues
 from rotlearn.checkpoint import load_checkpoint
 from rotlearn.heads import RotationHead, RotationPrediction
 
@@ -50,9 +51,8 @@ class RotationEstimate:
 def _uncertainty(prediction: RotationPrediction) -> tuple[Tensor | None, Tensor | None]:
     if prediction.eigenvalues is None:
         return None, None
-    l1, l2, l3, l4 = prediction.eigenvalues.unbind(-1)
-    dispersion = torch.stack((l1 - l4, l1 - l3, l1 - l2), dim=-1)
-    return dispersion, dispersion.sum(-1)
+    dispersion = dispersion_from_eigenvalues(prediction.eigenvalues)
+    return dispersion, dispersion.sum(-1)  # the DT score, paper eq. 26
 
 
 class Predictor:

@@ -1,13 +1,14 @@
-"""Rotation losses (paper eqs. 16-18). Each takes (prediction, batch) and returns a scalar mean."""
+"""Rotation losses (paper eqs. 17-19). Each takes (prediction, batch) and returns a scalar mean."""
 
 from __future__ import annotations
 
 from torch import Tensor, nn
 
+from rotlearn.bingham import BinghamNLLLoss
 from rotlearn.geometry import angle, chordal_distance_sq
 from rotlearn.heads import RotationPrediction
 
-__all__ = ["AngularLoss", "ChordalLoss"]
+__all__ = ["AngularLoss", "BinghamNLLLoss", "ChordalLoss"]
 
 
 class ChordalLoss(nn.Module):

@@ -60,10 +60,18 @@ class AngularLossConfig:
     _target_: str = "rotlearn.losses.AngularLoss"
 
 
+@dataclass
+class BinghamLossConfig:
+    """`loss=bingham`: `rotlearn.bingham.BinghamNLLLoss`; `rep` is interpolated from `rep.name`."""
+
+    _target_: str = "rotlearn.bingham.BinghamNLLLoss"
+    rep: str | None = None
+
+
 SCHEMAS: dict[str, dict[str, type]] = {
     "rep": {RepConfig._target_: RepConfig},
     "data": {SyntheticWahbaConfig._target_: SyntheticWahbaConfig},
-    "loss": {c._target_: c for c in (ChordalLossConfig, AngularLossConfig)},
+    "loss": {c._target_: c for c in (ChordalLossConfig, AngularLossConfig, BinghamLossConfig)},
 }
 
 

@@ -10,9 +10,11 @@ import lightning.pytorch as pl
 import numpy as np
 import torch
 from torch import Tensor, nn
-from torchmetrics import MeanMetric
+from torchmetrics import MeanMetric, SpearmanCorrCoef
 
+from rotlearn.bingham import dispersion_from_eigenvalues
 from rotlearn.errors import NonFiniteError
+from rotlearn.geometry import angle_deg
 from rotlearn.heads import RotationHead, RotationPrediction
 from rotlearn.metrics import AngularError
 
@@ -50,6 +52,8 @@ class RotationRegressor(pl.LightningModule):
         self.optimizer_factory, self.scheduler_factory = optimizer, scheduler
         self.train_loss = MeanMetric()
         self.train_err, self.val_err, self.test_err = AngularError(), AngularError(), AngularError()
+        # heads with a belief: does the DT score (paper eq. 26) rank the test errors?
+        self.test_dt_spearman = SpearmanCorrCoef()
         self.run_config: dict[str, Any] | None = None  # stored in checkpoints when set
         self.test_errors: Tensor | None = None  # per-sample test errors (degrees) of the last test
 
@@ -90,7 +94,12 @@ class RotationRegressor(pl.LightningModule):
         self.val_err.update(self._step(batch, "val", batch_idx).R, batch["R"])
 
     def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
-        self.test_err.update(self._step(batch, "test", batch_idx).R, batch["R"])
+        prediction = self._step(batch, "test", batch_idx)
+        self.test_err.update(prediction.R, batch["R"])
+        if prediction.eigenvalues is not None:
+            dt = dispersion_from_eigenvalues(prediction.eigenvalues).sum(-1)
+            errors = angle_deg(prediction.R, batch["R"])
+            self.test_dt_spearman.update(dt.flatten().double(), errors.flatten().double())
 
     def predict_step(self, batch: dict[str, Tensor], batch_idx: int) -> RotationPrediction:
         return self._step(batch, "predict", batch_idx).detach()
@@ -111,6 +120,10 @@ class RotationRegressor(pl.LightningModule):
     def on_test_epoch_end(self) -> None:
         self.test_errors = self.test_err.values().cpu()
         self._log_errors("test")
+        if self.test_dt_spearman.update_count:
+            rho = self.test_dt_spearman.compute()
+            self.log("test/dt_spearman", rho, on_step=False, on_epoch=True)
+            self.test_dt_spearman.reset()
 
     def configure_optimizers(self) -> Any:
         optimizer = self.optimizer_factory(self.parameters())
