@@ -8,12 +8,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from rotlearn.cli.report import collect_runs, make_report
 from rotlearn.cli.report import main as report_main
 from rotlearn.cli.resolvers import loguniform_trial
 from rotlearn.cli.schemas import validate
+from rotlearn.paths import config_dir
 from tests.conftest import config_options
 from tests.test_train import FAST, _cli
 
@@ -118,3 +120,42 @@ def test_an_experiment_sweep_ends_with_its_report(tmp_path):
     assert len(list(sweep.glob("*/metrics.json"))) == 6
     report = (sweep / "report.md").read_text()
     assert "6 completed, 0 failed" in report and (sweep / "phi_max_box.png").exists()
+
+
+def test_joblib_launcher_runs_jobs_in_parallel_processes(tmp_path):
+    sweep = tmp_path / "sweep"
+    args = ["-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", "rep=a,sixd",
+            "trainer.max_epochs=1", f"hydra.sweep.dir={sweep}", *FAST]  # fmt: skip
+    result = _cli(args, tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    summary = json.loads((sweep / "jobs.json").read_text())
+    assert summary["completed"] == 2 and (sweep / "report.md").exists()
+
+
+def test_slurm_launcher_config_composes(make_cfg):
+    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
+        cfg = compose(
+            "train", ["hydra/launcher=slurm", "paths.output_dir=x"], return_hydra_config=True
+        )
+    assert cfg.hydra.launcher._target_.endswith("SlurmLauncher")
+    assert cfg.hydra.launcher.timeout_min == 240
+
+
+@pytest.mark.slow
+def test_submitit_local_runs_a_two_job_sweep(tmp_path):
+    sweep = tmp_path / "sweep"
+    args = ["-m", "hydra/launcher=submitit_local", "hydra.launcher.timeout_min=10", "rep=a,quat",
+            "trainer.max_epochs=1", f"hydra.sweep.dir={sweep}", *FAST]  # fmt: skip
+    result = _cli(args, tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert len(list(sweep.glob("*/metrics.json"))) == 2
+
+
+@pytest.mark.slow
+def test_ddp_cpu_trains_in_two_processes(tmp_path):
+    run = tmp_path / "run"
+    args = ["trainer=ddp_cpu", "trainer.max_epochs=2", f"hydra.run.dir={run}", *FAST]
+    result = _cli(args, tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["epochs"] == 2 and 0.0 <= metrics["test/err_mean"] <= 180.0
