@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed
 ARGS   ?=
 
 .DEFAULT_GOAL := help
-.PHONY: help venv train test test-full lint format bench reproduce-cpu tensorboard clean
+.PHONY: help venv train test test-full lint format bench reproduce-cpu demo-data tensorboard clean
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-12s %s\n", $$1, $$2}'
@@ -47,6 +47,9 @@ reproduce-cpu: $(STAMP) ## paper Figs. 3 and 4 sized for this CPU (about 20 min)
 	$(BIN)/rotlearn-train -m experiment=synthetic_phi_max_cpu trainer.enable_progress_bar=false \
 		hydra.sweep.dir=outputs/reproduce-cpu/synthetic_phi_max_cpu
 	@echo "reports: outputs/reproduce-cpu/*/report.md"
+
+demo-data: $(STAMP) ## write small datasets in the real layouts under data/demo
+	$(BIN)/rotlearn-make-demo-data --out data/demo
 
 tensorboard: $(STAMP) ## open TensorBoard on every run under outputs/
 	$(BIN)/tensorboard --logdir outputs --bind_all

@@ -32,3 +32,11 @@ def make_cfg(tmp_path: Path) -> Callable[..., DictConfig]:
             return compose(config_name="train", overrides=[f"paths.output_dir={out}", *overrides])
 
     return _make
+
+
+@pytest.fixture(scope="session")
+def demo_data(tmp_path_factory) -> dict[str, Path]:
+    """Small demo datasets in the real layouts, written once per test session."""
+    from rotlearn.data.demo import write_shapenet_demo
+
+    return write_shapenet_demo(tmp_path_factory.mktemp("demo"), num_train=6, num_test=3, points=96)

@@ -38,9 +38,11 @@ def test_rep_builds_its_head_and_sizes_the_net(make_cfg, rep):
 
 
 @pytest.mark.parametrize("data", config_options("data"))
-def test_data_option_instantiates(make_cfg, data):
-    dm = instantiate(make_cfg([f"data={data}"]).data)
+def test_data_option_instantiates(make_cfg, demo_data, data):
+    roots = {"shapenet": [f"data.root={demo_data['pts']}"]}  # datasets read the demo copies
+    dm = instantiate(make_cfg([f"data={data}", *roots.get(data, [])]).data)
     assert isinstance(dm, LightningDataModule)
+    dm.setup("fit")
     batch = dm.draw(0, 0, 4)
     assert batch["input"].shape[0] == 4 and batch["R"].shape == (4, 3, 3)
 

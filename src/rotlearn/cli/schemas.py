@@ -51,6 +51,26 @@ class SyntheticWahbaConfig:
 
 
 @dataclass
+class ShapeNetConfig:
+    """`data=shapenet`: `rotlearn.data.ShapeNetDataModule`."""
+
+    _target_: str = "rotlearn.data.ShapeNetDataModule"
+    root: str = "data/shapenet"
+    format: str = "pts"
+    synset: str = "02691156"
+    num_train: int = 2290
+    num_test: int = 400
+    point_fraction: float = 0.5
+    num_points: int = 1024
+    rotations_per_cloud: int = 10
+    iterations_per_epoch: int = 200
+    test_rotations: int = 100
+    num_val: int = 20
+    seed: int = 0
+    cache_dir: str | None = None
+
+
+@dataclass
 class ChordalLossConfig:
     _target_: str = "rotlearn.losses.ChordalLoss"
 
@@ -70,7 +90,7 @@ class BinghamLossConfig:
 
 SCHEMAS: dict[str, dict[str, type]] = {
     "rep": {RepConfig._target_: RepConfig},
-    "data": {SyntheticWahbaConfig._target_: SyntheticWahbaConfig},
+    "data": {c._target_: c for c in (SyntheticWahbaConfig, ShapeNetConfig)},
     "loss": {c._target_: c for c in (ChordalLossConfig, AngularLossConfig, BinghamLossConfig)},
 }
 

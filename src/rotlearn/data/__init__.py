@@ -1,5 +1,15 @@
 """Floor 2: LightningDataModules, dataset readers and demo-data writers."""
 
-from rotlearn.data.synthetic import SyntheticWahbaDataModule, draw_seed, wahba_batch
+from rotlearn.data.draws import DrawDataModule, draw_seed
+from rotlearn.data.shapenet import ShapeNetDataModule, read_point_file, sample_meshes
+from rotlearn.data.synthetic import SyntheticWahbaDataModule, wahba_batch
 
-__all__ = ["SyntheticWahbaDataModule", "draw_seed", "wahba_batch"]
+__all__ = [
+    "DrawDataModule",
+    "ShapeNetDataModule",
+    "SyntheticWahbaDataModule",
+    "draw_seed",
+    "read_point_file",
+    "sample_meshes",
+    "wahba_batch",
+]

@@ -1,20 +1,17 @@
 """Synthetic Wahba problem (paper section VI-A, eq. 27): unit vectors u_i and v_i = R u_i + eps_i.
 
-Batches are drawn on the model's device from a generator seeded by (data.seed, split, epoch, batch),
-so a run is reproducible, a resumed run sees the same data, and an lr sweep sees the same data.
+Batches are drawn on the model's device (see `rotlearn.data.draws`).
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any
 
-import lightning.pytorch as pl
-import numpy as np
 import torch
 from torch import Tensor
 from torch.utils.data import DataLoader
 
+from rotlearn.data.draws import DrawDataModule, draw_seed
 from rotlearn.errors import ConfigValueError
 from rotlearn.geometry import (
     quat_to_rotmat,
@@ -24,8 +21,6 @@ from rotlearn.geometry import (
 )
 
 __all__ = ["SyntheticWahbaDataModule", "draw_seed", "wahba_batch"]
-
-_SPLITS = {"train": 0, "val": 1, "test": 2}
 
 
 def wahba_batch(
@@ -55,12 +50,7 @@ def wahba_batch(
     return {"input": torch.cat((u, v), dim=-1), "R": R, "q": q}
 
 
-def draw_seed(*words: int) -> int:
-    """A well-mixed 63-bit seed from a tuple of non-negative integers."""
-    return int(np.random.SeedSequence(list(words)).generate_state(1, np.uint64)[0] >> 1)
-
-
-class SyntheticWahbaDataModule(pl.LightningDataModule):
+class SyntheticWahbaDataModule(DrawDataModule):
     """Synthetic Wahba data (spec section 3), drawn batch by batch on the model's device.
 
     Training batches are redrawn every epoch (an epoch is `batches_per_epoch` batches). The
@@ -121,49 +111,29 @@ class SyntheticWahbaDataModule(pl.LightningDataModule):
         self.redraw_test = bool(redraw_test)
         self.seed = int(seed)
 
-    # A loader yields draw requests; `on_after_batch_transfer` turns them into data on the device.
-    def _requests(self, split: str, total: int, batch: int) -> DataLoader:
-        sizes = [min(batch, total - start) for start in range(0, total, batch)]
-        requests = [
-            {"draw_split": _SPLITS[split], "draw_index": i, "draw_size": n}
-            for i, n in enumerate(sizes)
-        ]
-        return DataLoader(requests, batch_size=None, shuffle=False, num_workers=0)
+    @staticmethod
+    def _sizes(total: int, batch: int) -> list[int]:
+        return [min(batch, total - start) for start in range(0, total, batch)]
 
     def train_dataloader(self) -> DataLoader:
-        return self._requests("train", self.batches_per_epoch * self.batch_size, self.batch_size)
+        return self.requests("train", [self.batch_size] * self.batches_per_epoch)
 
     def val_dataloader(self) -> DataLoader:
-        return self._requests("val", self.num_val, self.eval_batch_size)
+        return self.requests("val", self._sizes(self.num_val, self.eval_batch_size))
 
     def test_dataloader(self) -> DataLoader:
-        return self._requests("test", self.num_test, self.eval_batch_size)
-
-    def on_after_batch_transfer(self, batch: Any, dataloader_idx: int) -> Any:
-        if not (isinstance(batch, dict) and "draw_split" in batch):
-            return batch
-        return self.draw(
-            int(batch["draw_split"]), int(batch["draw_index"]), int(batch["draw_size"])
-        )
+        return self.requests("test", self._sizes(self.num_test, self.eval_batch_size))
 
     def draw(self, split: int, index: int, size: int) -> dict[str, Tensor]:
         """The batch a request names, on the model's device, in the model's dtype."""
-        trainer = self.trainer
-        module = trainer.lightning_module if trainer is not None else None
-        device = module.device if module is not None else torch.device("cpu")
-        dtype = module.dtype if module is not None else torch.float32
-        epoch = trainer.current_epoch if trainer is not None else 0
-        fixed = split != _SPLITS["train"] and not self.redraw_test
-        seed = draw_seed(self.seed, split, 0 if fixed else epoch + 1, index)
-        gen_device = torch.device("cpu") if fixed else device
-        generator = torch.Generator(device=gen_device).manual_seed(seed)
+        generator, device, dtype = self.generator(split, index)
         batch = wahba_batch(
             size,
             self.num_matches,
             math.radians(self.phi_max_deg),
             self.sigma,
             generator=generator,
-            device=gen_device,
+            device=generator.device,
             dtype=dtype,
         )
         return {k: v.to(device, non_blocking=True) for k, v in batch.items()}

@@ -1,0 +1,211 @@
+"""ShapeNet airplanes (paper Fig. 5, spec section 4): point clouds under random rotations.
+
+Reads either the 6D paper's prepared clouds, `<root>/train/*.pts` and `<root>/test/*.pts` (or
+`.xyz`: one "x y z" point per line), or ShapeNetCore v2 meshes,
+`<root>/<synset>/<model_id>/models/model_normalized.obj`, sampled once with trimesh to a fixed
+number of surface points and cached as `.npy` beside a manifest (with a progress bar).
+
+Training: each step takes one training cloud (drawn by the data seed) under `rotations_per_cloud`
+rotations C = Exp(phi), phi ~ N(0, I); input rows are (x_i, C x_i). Test: every held-out cloud
+under `test_rotations` fixed, seeded rotations.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+from torch.utils.data import DataLoader
+
+from rotlearn.data.draws import SPLITS, DrawDataModule
+from rotlearn.errors import ConfigValueError
+from rotlearn.geometry import quat_to_rotmat, so3_exp_quat
+from rotlearn.io import write_text_atomic
+
+__all__ = ["AIRPLANE_SYNSET", "ShapeNetDataModule", "read_point_file", "sample_meshes"]
+
+AIRPLANE_SYNSET = "02691156"
+POINT_SUFFIXES = (".pts", ".xyz")
+
+
+def read_point_file(path: str | os.PathLike) -> np.ndarray:
+    """Points of a `.pts`/`.xyz` file: (N, 3) float32, one "x y z" line each.
+
+    Raises:
+        ValueError: naming the file and line of the first malformed row.
+    """
+    path = Path(path)
+    rows = []
+    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+        words = line.split()
+        if not words:
+            continue
+        if len(words) < 3:
+            raise ValueError(f"{path}:{lineno}: expected 'x y z', got {line.strip()!r}")
+        try:
+            rows.append([float(w) for w in words[:3]])
+        except ValueError:
+            raise ValueError(f"{path}:{lineno}: not a number in {line.strip()!r}") from None
+    if not rows:
+        raise ValueError(f"{path}: no points")
+    return np.asarray(rows, dtype=np.float32)
+
+
+def sample_meshes(paths: list[Path], num_points: int, cache: Path, seed: int = 0) -> np.ndarray:
+    """Surface samples of meshes, (M, num_points, 3) float32, cached in `cache` (.npy + .json).
+
+    The cache is reused only if its manifest lists the same files, point count and seed.
+    """
+    manifest = {"files": [str(p) for p in paths], "num_points": num_points, "seed": seed}
+    array_path, manifest_path = cache.with_suffix(".npy"), cache.with_suffix(".json")
+    fresh = manifest_path.is_file() and json.loads(manifest_path.read_text()) == manifest
+    if fresh and array_path.is_file():
+        return np.load(array_path)
+    import trimesh
+    from tqdm import tqdm
+
+    clouds = np.empty((len(paths), num_points, 3), dtype=np.float32)
+    for i, path in enumerate(tqdm(paths, desc="sampling ShapeNet meshes", unit="mesh")):
+        mesh = trimesh.load(path, force="mesh")
+        if mesh.faces.shape[0] == 0:
+            raise ValueError(f"{path}: the mesh has no faces")
+        points, _ = trimesh.sample.sample_surface(mesh, num_points, seed=seed + i)
+        clouds[i] = points
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    tmp = array_path.with_name(f".{array_path.name}.tmp.npy")
+    np.save(tmp, clouds)
+    os.replace(tmp, array_path)
+    write_text_atomic(manifest_path, json.dumps(manifest))
+    return clouds
+
+
+class ShapeNetDataModule(DrawDataModule):
+    """ShapeNet clouds under random rotations (spec section 4).
+
+    Args:
+        root: dataset root (layout in the module docstring and data/README.md).
+        format: "pts" (the 6D paper's clouds) or "mesh" (ShapeNetCore v2 meshes).
+        synset: ShapeNet category for "mesh" (airplanes by default).
+        num_train, num_test: clouds per split (paper: 2290 / 400); fewer are used if fewer exist.
+        point_fraction: for "pts", the leading fraction of each file's points used (paper: 0.5).
+        num_points: for "mesh", surface points sampled per mesh.
+        rotations_per_cloud: rotations of the one cloud in each training step (paper: 10).
+        iterations_per_epoch: training steps per epoch (paper: 200).
+        test_rotations: fixed rotations per held-out cloud (paper: 100).
+        num_val: held-out clouds also used, with the same fixed rotations, for per-epoch
+            validation (monitoring; the test split is never used for training).
+        seed: the data seed.
+        cache_dir: where sampled meshes are cached (default: <root>/.rotlearn_cache).
+    """
+
+    def __init__(
+        self,
+        root: str,
+        format: str = "pts",
+        synset: str = AIRPLANE_SYNSET,
+        num_train: int = 2290,
+        num_test: int = 400,
+        point_fraction: float = 0.5,
+        num_points: int = 1024,
+        rotations_per_cloud: int = 10,
+        iterations_per_epoch: int = 200,
+        test_rotations: int = 100,
+        num_val: int = 20,
+        seed: int = 0,
+        cache_dir: str | None = None,
+    ) -> None:
+        super().__init__()
+        if format not in ("pts", "mesh"):
+            raise ConfigValueError("format", f"must be 'pts' or 'mesh', got {format!r}")
+        if not 0.0 < point_fraction <= 1.0:
+            raise ConfigValueError("point_fraction", f"must lie in (0, 1], got {point_fraction}")
+        for key, value in (
+            ("num_train", num_train),
+            ("num_test", num_test),
+            ("num_points", num_points),
+            ("rotations_per_cloud", rotations_per_cloud),
+            ("iterations_per_epoch", iterations_per_epoch),
+            ("test_rotations", test_rotations),
+        ):
+            if int(value) != value or value < 1:
+                raise ConfigValueError(key, f"must be a positive integer, got {value}")
+        self.root, self.format, self.synset = Path(root), format, synset
+        self.num_train, self.num_test = int(num_train), int(num_test)
+        self.point_fraction, self.num_points = float(point_fraction), int(num_points)
+        self.rotations_per_cloud = int(rotations_per_cloud)
+        self.iterations_per_epoch = int(iterations_per_epoch)
+        self.test_rotations, self.num_val = int(test_rotations), int(num_val)
+        self.seed = int(seed)
+        self.cache_dir = Path(cache_dir) if cache_dir else self.root / ".rotlearn_cache"
+        self.clouds: dict[int, list[Tensor]] = {}
+
+    def _load_pts(self, split: str, limit: int) -> list[Tensor]:
+        folder = self.root / split
+        files = sorted(p for p in folder.glob("*") if p.suffix in POINT_SUFFIXES)[:limit]
+        if not files:
+            raise FileNotFoundError(
+                f"no {'/'.join(POINT_SUFFIXES)} files in {folder} (data.root={self.root}, "
+                "data.format=pts expects <root>/train and <root>/test)"
+            )
+        clouds = []
+        for path in files:
+            points = read_point_file(path)
+            keep = max(1, int(len(points) * self.point_fraction))
+            clouds.append(torch.from_numpy(points[:keep]))
+        return clouds
+
+    def _load_meshes(self) -> tuple[list[Tensor], list[Tensor]]:
+        folder = self.root / self.synset
+        paths = sorted(folder.glob("*/models/model_normalized.obj"))
+        if not paths:
+            raise FileNotFoundError(
+                f"no meshes {folder}/<model_id>/models/model_normalized.obj "
+                f"(data.root={self.root}, data.synset={self.synset})"
+            )
+        order = np.random.default_rng(self.seed).permutation(len(paths))
+        train = [paths[i] for i in order[: self.num_train]]
+        test = [paths[i] for i in order[self.num_train : self.num_train + self.num_test]]
+        if not test:
+            raise ValueError(f"{folder} holds {len(paths)} meshes: none left for the test split")
+        cache = self.cache_dir / f"{self.synset}_{self.num_points}_seed{self.seed}"
+        clouds = torch.from_numpy(sample_meshes(train + test, self.num_points, cache, self.seed))
+        return list(clouds[: len(train)]), list(clouds[len(train) :])
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.clouds:
+            return
+        if self.format == "pts":
+            train = self._load_pts("train", self.num_train)
+            test = self._load_pts("test", self.num_test)
+        else:
+            train, test = self._load_meshes()
+        self.clouds = {SPLITS["train"]: train, SPLITS["val"]: test[: self.num_val],
+                       SPLITS["test"]: test}  # fmt: skip
+
+    def train_dataloader(self) -> DataLoader:
+        return self.requests("train", [self.rotations_per_cloud] * self.iterations_per_epoch)
+
+    def val_dataloader(self) -> DataLoader:
+        return self.requests("val", [self.test_rotations] * len(self.clouds[SPLITS["val"]]))
+
+    def test_dataloader(self) -> DataLoader:
+        return self.requests("test", [self.test_rotations] * len(self.clouds[SPLITS["test"]]))
+
+    def draw(self, split: int, index: int, size: int) -> dict[str, Tensor]:
+        """One cloud under `size` rotations: {"input": (size, N, 6), "R", "q"}."""
+        generator, device, dtype = self.generator(split, index)
+        clouds = self.clouds[split]
+        if split == SPLITS["train"]:  # which cloud, from the same seeded stream
+            pick = torch.randint(len(clouds), (), generator=generator, device=generator.device)
+            cloud = clouds[int(pick)]
+        else:
+            cloud = clouds[index]
+        phi = torch.randn(size, 3, generator=generator, device=generator.device, dtype=dtype)
+        q = so3_exp_quat(phi)
+        R = quat_to_rotmat(q).to(device)
+        x = cloud.to(device, dtype).expand(size, -1, -1)
+        return {"input": torch.cat((x, x @ R.transpose(-1, -2)), dim=-1), "R": R, "q": q.to(device)}

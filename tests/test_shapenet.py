@@ -1,0 +1,91 @@
+"""ShapeNet: the 6D paper's .pts clouds and ShapeNetCore meshes, read from the demo copies."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from rotlearn.cli.train import train
+from rotlearn.data import ShapeNetDataModule, read_point_file, sample_meshes
+from rotlearn.geometry import quat_to_rotmat
+from tests.conftest import SMALL_NET
+
+TRAIN, VAL, TEST = 0, 1, 2
+
+
+def _module(root, **kw) -> ShapeNetDataModule:
+    dm = ShapeNetDataModule(str(root), **{"rotations_per_cloud": 4, "test_rotations": 5, **kw})
+    dm.setup("fit")
+    return dm
+
+
+def test_point_files_are_read_and_bad_lines_named(tmp_path):
+    good = tmp_path / "a.pts"
+    good.write_text("0 0 1\n1 2 3 extra\n\n-1e-3 4 5\n")
+    assert np.allclose(read_point_file(good), [[0, 0, 1], [1, 2, 3], [-1e-3, 4, 5]])
+    bad = tmp_path / "b.xyz"
+    bad.write_text("0 0 1\n0 1\n")
+    with pytest.raises(ValueError, match=r"b\.xyz:2: expected 'x y z'"):
+        read_point_file(bad)
+    bad.write_text("0 0 one\n")
+    with pytest.raises(ValueError, match=r"b\.xyz:1: not a number"):
+        read_point_file(bad)
+
+
+def test_pts_layout_gives_clouds_under_exact_rotations(demo_data):
+    dm = _module(demo_data["pts"], num_val=2)
+    assert len(dm.clouds[TRAIN]) == 6 and len(dm.clouds[TEST]) == 3 and len(dm.clouds[VAL]) == 2
+    assert dm.clouds[TRAIN][0].shape == (96, 3)  # point_fraction 0.5 of the file's 192 points
+    batch = dm.draw(TRAIN, 0, 4)
+    x, y = batch["input"][..., :3], batch["input"][..., 3:]
+    assert batch["input"].shape == (4, 96, 6)
+    assert torch.allclose(y, x @ batch["R"].transpose(-1, -2), atol=1e-6)
+    assert torch.allclose(quat_to_rotmat(batch["q"]), batch["R"], atol=1e-6)
+    assert len(list(dm.test_dataloader())) == 3
+
+
+def test_training_draws_change_with_the_epoch_and_test_draws_do_not(demo_data):
+    def at_epoch(epoch):
+        dm = _module(demo_data["pts"])
+        dm.trainer = SimpleNamespace(current_epoch=epoch, lightning_module=None)
+        return dm
+
+    assert not torch.allclose(
+        at_epoch(0).draw(TRAIN, 1, 4)["R"], at_epoch(1).draw(TRAIN, 1, 4)["R"]
+    )
+    assert torch.equal(at_epoch(0).draw(TRAIN, 1, 4)["R"], at_epoch(0).draw(TRAIN, 1, 4)["R"])
+    assert torch.equal(at_epoch(0).draw(TEST, 2, 5)["R"], at_epoch(7).draw(TEST, 2, 5)["R"])
+
+
+def test_meshes_are_sampled_once_and_cached(demo_data, tmp_path):
+    dm = _module(demo_data["mesh"], format="mesh", num_train=6, num_test=3, num_points=64,
+                 cache_dir=str(tmp_path))  # fmt: skip
+    assert dm.clouds[TRAIN][0].shape == (64, 3) and len(dm.clouds[TEST]) == 3
+    cache = next(tmp_path.glob("*.npy"))
+    stamp = cache.stat().st_mtime_ns
+    again = _module(demo_data["mesh"], format="mesh", num_train=6, num_test=3, num_points=64,
+                    cache_dir=str(tmp_path))  # fmt: skip
+    assert cache.stat().st_mtime_ns == stamp
+    assert torch.equal(again.clouds[TEST][1], dm.clouds[TEST][1])
+    paths = sorted(demo_data["mesh"].glob("*/*/models/model_normalized.obj"))[:2]
+    other = sample_meshes(paths, 32, tmp_path / "other", seed=1)
+    assert other.shape == (2, 32, 3) and np.isfinite(other).all()
+
+
+def test_a_missing_dataset_names_the_root(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"data\.root="):
+        _module(tmp_path)
+    with pytest.raises(FileNotFoundError, match=r"data\.synset="):
+        _module(tmp_path, format="mesh")
+
+
+def test_shapenet_trains_end_to_end(make_cfg, demo_data):
+    cfg = make_cfg(["data=shapenet", f"data.root={demo_data['pts']}", "data.iterations_per_epoch=3",
+                    "data.test_rotations=4", "data.rotations_per_cloud=4", "trainer=cpu",
+                    "trainer.max_epochs=1", "trainer.enable_progress_bar=false", "logger=none",
+                    *SMALL_NET])  # fmt: skip
+    metrics = train(cfg)
+    assert metrics["global_step"] == 3 and 0.0 <= metrics["test/err_mean"] <= 180.0
