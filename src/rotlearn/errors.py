@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-__all__ = ["ConfigValueError", "NonFiniteError"]
+__all__ = ["ConfigValueError", "NonFiniteError", "require_positive_ints"]
 
 
 class ConfigValueError(ValueError):
@@ -16,3 +16,10 @@ class ConfigValueError(ValueError):
 
 class NonFiniteError(FloatingPointError):
     """A tensor holds NaN or inf during training or evaluation."""
+
+
+def require_positive_ints(**values: float) -> None:
+    """Raise `ConfigValueError` naming the first key whose value is not a positive integer."""
+    for key, value in values.items():
+        if isinstance(value, bool) or int(value) != value or value < 1:
+            raise ConfigValueError(key, f"must be a positive integer, got {value}")

@@ -22,7 +22,7 @@ from torch import Tensor
 from torch.utils.data import DataLoader
 
 from rotlearn.data.draws import SPLITS, DrawDataModule
-from rotlearn.errors import ConfigValueError
+from rotlearn.errors import ConfigValueError, require_positive_ints
 from rotlearn.geometry import quat_to_rotmat, so3_exp_quat
 from rotlearn.io import write_text_atomic
 
@@ -123,16 +123,14 @@ class ShapeNetDataModule(DrawDataModule):
             raise ConfigValueError("format", f"must be 'pts' or 'mesh', got {format!r}")
         if not 0.0 < point_fraction <= 1.0:
             raise ConfigValueError("point_fraction", f"must lie in (0, 1], got {point_fraction}")
-        for key, value in (
-            ("num_train", num_train),
-            ("num_test", num_test),
-            ("num_points", num_points),
-            ("rotations_per_cloud", rotations_per_cloud),
-            ("iterations_per_epoch", iterations_per_epoch),
-            ("test_rotations", test_rotations),
-        ):
-            if int(value) != value or value < 1:
-                raise ConfigValueError(key, f"must be a positive integer, got {value}")
+        require_positive_ints(
+            num_train=num_train,
+            num_test=num_test,
+            num_points=num_points,
+            rotations_per_cloud=rotations_per_cloud,
+            iterations_per_epoch=iterations_per_epoch,
+            test_rotations=test_rotations,
+        )
         self.root, self.format, self.synset = Path(root), format, synset
         self.num_train, self.num_test = int(num_train), int(num_test)
         self.point_fraction, self.num_points = float(point_fraction), int(num_points)

@@ -12,7 +12,7 @@ from torch import Tensor
 from torch.utils.data import DataLoader
 
 from rotlearn.data.draws import DrawDataModule, draw_seed
-from rotlearn.errors import ConfigValueError
+from rotlearn.errors import ConfigValueError, require_positive_ints
 from rotlearn.geometry import (
     quat_to_rotmat,
     random_rotvec_uniform_angle,
@@ -89,16 +89,14 @@ class SyntheticWahbaDataModule(DrawDataModule):
             )
         if sigma < 0:
             raise ConfigValueError("sigma", f"must be >= 0, got {sigma}")
-        for key, value in (
-            ("num_matches", num_matches),
-            ("batch_size", batch_size),
-            ("batches_per_epoch", batches_per_epoch),
-            ("num_val", num_val),
-            ("num_test", num_test),
-            ("eval_batch_size", eval_batch_size),
-        ):
-            if int(value) != value or value < 1:
-                raise ConfigValueError(key, f"must be a positive integer, got {value}")
+        require_positive_ints(
+            num_matches=num_matches,
+            batch_size=batch_size,
+            batches_per_epoch=batches_per_epoch,
+            num_val=num_val,
+            num_test=num_test,
+            eval_batch_size=eval_batch_size,
+        )
         if seed < 0:
             raise ConfigValueError("seed", f"must be >= 0, got {seed}")
         self.phi_max_deg = float(phi_max_deg)
