@@ -163,3 +163,27 @@ def test_test_ckpt_must_be_last_or_best(make_cfg):
     cfg = make_cfg(["data=tiny", "trainer.fast_dev_run=true", "test_ckpt=middle"])
     with pytest.raises(ConfigError, match="test_ckpt"):
         train(cfg)
+
+
+def test_the_a_head_uses_the_fast_solver_and_eigh_stays_selectable(make_cfg):
+    fast, eigh = instantiate(make_cfg([]).rep), instantiate(make_cfg(["rep.solver=eigh"]).rep)
+    assert (fast.solver, eigh.solver) == ("fast", "eigh")
+    raw = torch.randn(64, 10, dtype=torch.float64)
+    assert torch.allclose(fast(raw).R, eigh(raw).R, atol=1e-9)
+    raw = torch.zeros(
+        3, 10, dtype=torch.float64, requires_grad=True
+    )  # A = 0: all eigenvalues equal
+    fast(raw).R.sum().backward()
+    assert torch.isfinite(raw.grad).all()
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (["rep.solver=qr"], r"rep\.solver: must be one of fast, eigh, got 'qr'"),
+        (["rep=quat", "+rep.solver=fast"], r"rep\.solver: only the 'a' head has a solver"),
+    ],
+)
+def test_bad_solver_choices_name_the_key(make_cfg, overrides, message):
+    with pytest.raises(ConfigError, match=message):
+        build(make_cfg(overrides))

@@ -118,6 +118,7 @@ BAD_INPUTS = {
     "too few dims": lambda: torch.randn(6),
     "wrong width": lambda: torch.randn(2, 16, 5),
     "no points": lambda: torch.randn(2, 0, 6),
+    "no samples": lambda: torch.randn(0, 16, 6),
     "integers": lambda: torch.ones(2, 16, 6, dtype=torch.int64),
     "booleans": lambda: torch.ones(2, 16, 6, dtype=torch.bool),
     "complex": lambda: torch.randn(2, 16, 6, dtype=torch.complex64),

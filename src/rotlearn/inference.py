@@ -102,8 +102,10 @@ class Predictor:
                 f"inputs must have shape (B, N, {width}) or (N, {width}) (N points, each "
                 f"{width} numbers), got {tuple(inputs.shape)}"
             )
-        if inputs.shape[-2] == 0:
-            raise ValueError(f"inputs hold no points: shape {tuple(inputs.shape)}")
+        if inputs.numel() == 0:
+            raise ValueError(
+                f"inputs are empty (no samples or no points): shape {tuple(inputs.shape)}"
+            )
         finite = torch.isfinite(inputs).flatten(1) if inputs.ndim > 2 else torch.isfinite(inputs)
         if not bool(finite.all()):
             bad = (

@@ -31,6 +31,7 @@ class RepConfig:
     _target_: str = "rotlearn.heads.make_head"
     name: str = "a"
     out_dim: int = 10
+    solver: str | None = None  # the A head's eigensolver: fast or eigh
 
 
 @dataclass
@@ -133,6 +134,6 @@ def validate(cfg: DictConfig) -> None:
     if cfg.get("test_ckpt", "last") not in ("last", "best"):
         raise ConfigError(f"config key test_ckpt: must be 'last' or 'best', got {cfg.test_ckpt!r}")
     try:  # the registry knows the names and sizes; heads are stateless and cheap to make
-        make_head(cfg.rep.name, cfg.rep.out_dim)
+        make_head(cfg.rep.name, cfg.rep.out_dim, cfg.rep.get("solver"))
     except ConfigValueError as exc:
         raise ConfigError(f"config key rep.{exc.key}: {exc.message}") from None

@@ -1,4 +1,5 @@
-"""Floor 1, pure math: quaternions (x, y, z, w), SO(3) maps, distances and sampling. Torch only."""
+"""Floor 1, pure math: quaternions (x, y, z, w), SO(3) maps, distances, sampling and the symmetric
+4x4 eigensolver of the A representation. Torch only."""
 
 from rotlearn.geometry.distance import (
     angle,
@@ -7,6 +8,7 @@ from rotlearn.geometry.distance import (
     chordal_distance_sq,
     quat_chordal_distance,
 )
+from rotlearn.geometry.eigen4 import sym4_eigh_min, validate_sym4
 from rotlearn.geometry.quaternion import (
     quat_canonical,
     quat_inverse,
@@ -46,5 +48,7 @@ __all__ = [
     "so3_exp_quat",
     "so3_log",
     "so3_log_quat",
+    "sym4_eigh_min",
+    "validate_sym4",
     "vee",
 ]

@@ -75,12 +75,13 @@ def register_head(cls: type[RotationHead]) -> type[RotationHead]:
     return cls
 
 
-def make_head(name: str, out_dim: int | None = None) -> RotationHead:
+def make_head(name: str, out_dim: int | None = None, solver: str | None = None) -> RotationHead:
     """The head registered as `name` (the config's `rep.name`).
 
     Args:
         name: one of `HEADS`.
         out_dim: if given (the config's `rep.out_dim`), it must equal the head's output size.
+        solver: the eigensolver of the A head (`rep.solver`: fast or eigh); other heads have none.
 
     Raises:
         ConfigValueError: unknown `name` (the message lists the allowed ones), or an `out_dim`
@@ -88,7 +89,9 @@ def make_head(name: str, out_dim: int | None = None) -> RotationHead:
     """
     if name not in HEADS:
         raise ConfigValueError("name", f"unknown rep {name!r}; allowed: {', '.join(sorted(HEADS))}")
-    head = HEADS[name]()
+    if solver is not None and name != "a":
+        raise ConfigValueError("solver", f"only the 'a' head has a solver; rep={name} has none")
+    head = HEADS[name]() if solver is None else HEADS[name](solver=solver)
     if out_dim is not None and out_dim != head.out_dim:
         raise ConfigValueError(
             "out_dim", f"is {out_dim} but the {name!r} head outputs {head.out_dim}"

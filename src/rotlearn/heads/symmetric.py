@@ -10,10 +10,13 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from rotlearn.geometry import quat_canonical, quat_to_rotmat
+from rotlearn.errors import ConfigValueError
+from rotlearn.geometry import quat_canonical, quat_to_rotmat, sym4_eigh_min
 from rotlearn.heads.base import RotationHead, RotationPrediction, register_head
 
-__all__ = ["AHead", "a_from_quat", "a_from_vec", "a_min_eigvec", "vec_from_a"]
+__all__ = ["SOLVERS", "AHead", "a_from_quat", "a_from_vec", "a_min_eigvec", "vec_from_a"]
+
+SOLVERS = ("fast", "eigh")  # rep.solver: rotlearn.geometry.sym4_eigh_min, or torch.linalg.eigh
 
 # Row-major upper triangle of a 4x4 matrix: a00 a01 a02 a03 a11 a12 a13 a22 a23 a33 (eq. 8).
 _TRIU_ROWS, _TRIU_COLS = torch.triu_indices(4, 4)
@@ -53,21 +56,25 @@ def a_from_quat(q: Tensor) -> Tensor:
     return eye - q.unsqueeze(-1) * q.unsqueeze(-2)
 
 
-def a_min_eigvec(A: Tensor) -> tuple[Tensor, Tensor]:
+def a_min_eigvec(A: Tensor, solver: str = "fast") -> tuple[Tensor, Tensor]:
     """Eigenvalues and the minimum eigenvector of symmetric 4x4 matrices (paper eqs. 9, 11).
-
-    Uses `torch.linalg.eigh`; its backward is the implicit-function gradient of eq. (9) but is
-    NaN where eigenvalues coincide (l1 == l2, A = cI).
 
     Args:
         A: (..., 4, 4) symmetric matrices.
+        solver: "fast" (`rotlearn.geometry.sym4_eigh_min`: batched Jacobi with the analytic
+            gradient of eq. 9, finite where eigenvalues coincide) or "eigh" (`torch.linalg.eigh`,
+            whose backward is NaN where eigenvalues coincide, e.g. A = cI).
 
     Returns:
         eigenvalues (..., 4) in ascending order, and q (..., 4), the unit eigenvector of the
         smallest one as a quaternion (x, y, z, w) with canonical sign (w >= 0).
     """
-    eigenvalues, eigenvectors = torch.linalg.eigh(A)
-    return eigenvalues, quat_canonical(eigenvectors[..., 0])
+    if solver == "fast":
+        return sym4_eigh_min(A, check=False)
+    if solver == "eigh":
+        eigenvalues, eigenvectors = torch.linalg.eigh(A)
+        return eigenvalues, quat_canonical(eigenvectors[..., 0])
+    raise ValueError(f"solver must be one of {SOLVERS}, got {solver!r}")
 
 
 @register_head
@@ -78,7 +85,16 @@ class AHead(RotationHead):
     out_dim = 10
     defines_belief = True
 
+    def __init__(self, solver: str = "fast") -> None:
+        super().__init__()
+        if solver not in SOLVERS:
+            raise ConfigValueError("solver", f"must be one of {', '.join(SOLVERS)}, got {solver!r}")
+        self.solver = solver
+
+    def extra_repr(self) -> str:
+        return f"out_dim={self.out_dim}, solver={self.solver}"
+
     def forward(self, raw: Tensor) -> RotationPrediction:
         A = a_from_vec(raw)
-        eigenvalues, q = a_min_eigvec(A)
+        eigenvalues, q = a_min_eigvec(A, self.solver)
         return RotationPrediction(R=quat_to_rotmat(q), raw=raw, q=q, A=A, eigenvalues=eigenvalues)

@@ -1,0 +1,517 @@
+"""rotlearn.geometry.eigen4: the batched Jacobi eigensolver for symmetric 4x4 matrices.
+
+Reference: float64 `torch.linalg.eigh` of the very matrix the solver sees (the float32 input is
+upcast, so the reference is exact to ~1e-16 for it). "No worse than eigh" compares, case by case,
+the solver's largest error over the batch with that of `torch.linalg.eigh` run in the same dtype,
+allowing a factor 1.5 on errors that are already at rounding level (a few ulps), where the maxima
+of two correct methods differ by chance.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from rotlearn.geometry import (
+    angle_deg,
+    quat_canonical,
+    quat_multiply,
+    quat_to_rotmat,
+    random_quat,
+    random_unit_vectors,
+    so3_exp_quat,
+)
+from rotlearn.geometry.eigen4 import (
+    _CHUNK_PER_THREAD,
+    DEFAULT_ROUNDS,
+    EIGH_BELOW,
+    _canonical_sign,
+    sym4_eigh_min,
+    validate_sym4,
+)
+from rotlearn.heads import a_from_quat, a_from_vec
+
+F32, F64 = torch.float32, torch.float64
+DTYPES = [F32, F64]
+EPS = {F32: torch.finfo(F32).eps, F64: torch.finfo(F64).eps}
+N = 20000  # matrices per accuracy case
+
+
+def gen(seed: int) -> torch.Generator:
+    return torch.Generator().manual_seed(seed)
+
+
+def sym_randn(n: int, seed: int) -> torch.Tensor:
+    x = torch.randn(n, 4, 4, generator=gen(seed), dtype=F64)
+    return (x + x.mT) / 2
+
+
+def rotated_diag(eigenvalues: torch.Tensor, seed: int) -> torch.Tensor:
+    """Q diag(eigenvalues) Q^T with Haar-random orthogonal Q: (n, 4) -> (n, 4, 4), float64."""
+    x = torch.randn(eigenvalues.shape[0], 4, 4, generator=gen(seed), dtype=F64)
+    Q, _ = torch.linalg.qr(x)
+    return (Q * eigenvalues.unsqueeze(-2)) @ Q.mT
+
+
+def quat_left_right(p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Matrices of q -> p (x) q and q -> q (x) p (Hamilton, scalar last), each (..., 4, 4)."""
+    eye = torch.eye(4, dtype=p.dtype).expand(*p.shape[:-1], 4, 4)
+    pe = p.unsqueeze(-2).expand_as(eye)
+    left = quat_multiply(pe, eye).mT  # column k = p (x) e_k
+    right = quat_multiply(eye, pe).mT  # column k = e_k (x) p
+    return left, right
+
+
+def wahba_a(n: int, seed: int, sigma: float = 0.01, matches: int = 20) -> torch.Tensor:
+    """Paper eq. 5: A = sum_i (|u_i|^2 + |v_i|^2) I + 2 Omega_l(v_i^) Omega_r(u_i^), float64."""
+    g = gen(seed)  # the synthetic data of paper eq. 27 (as rotlearn.data.synthetic.wahba_batch)
+    q_true = random_quat((n,), generator=g, dtype=F64)
+    u = random_unit_vectors((n, matches), generator=g, dtype=F64)
+    noise = torch.randn(u.shape, generator=g, dtype=F64)
+    v = u @ quat_to_rotmat(q_true).mT + sigma * noise
+    zero = torch.zeros(*u.shape[:-1], 1, dtype=F64)
+    left_v, _ = quat_left_right(torch.cat((v, zero), -1))
+    _, right_u = quat_left_right(torch.cat((u, zero), -1))
+    sq = (u.square().sum(-1) + v.square().sum(-1))[..., None, None]
+    A = (sq * torch.eye(4, dtype=F64) + 2 * left_v @ right_u).sum(-3)
+    return A, q_true
+
+
+def clustered_a(n: int, seed: int, spread: float = 0.05, k: int = 10) -> torch.Tensor:
+    """-sum_k q_k q_k^T for k unit quaternions clustered (rotation angle ~spread) around one."""
+    g = gen(seed)
+    centre = random_quat((n, 1), generator=g, dtype=F64)
+    jitter = so3_exp_quat(spread * torch.randn(n, k, 3, generator=g, dtype=F64))
+    qs = quat_multiply(centre.expand(n, k, 4), jitter)
+    return -(qs.unsqueeze(-1) * qs.unsqueeze(-2)).sum(-3)
+
+
+def case_matrices(name: str) -> torch.Tensor:
+    """(N, 4, 4) float64 matrices of one accuracy case."""
+    if name == "gauss":
+        return sym_randn(N, 1)
+    if name == "i_minus_qqT":
+        return a_from_quat(random_quat((N,), generator=gen(2), dtype=F64))
+    if name == "i_minus_qqT_noise":
+        return a_from_quat(random_quat((N,), generator=gen(3), dtype=F64)) + 1e-3 * sym_randn(N, 4)
+    if name == "wahba":
+        return wahba_a(N, 5)[0]
+    if name == "clustered":
+        return clustered_a(N, 6)
+    if name == "scaled_1e-6":
+        return 1e-6 * sym_randn(N, 7)
+    if name == "scaled_1e6":
+        return 1e6 * sym_randn(N, 8)
+    if name == "near_degenerate":  # l2 - l1 = 1e-6 (l4 - l1)
+        r = torch.rand(N, 1, generator=gen(9), dtype=F64)
+        lam = torch.cat((torch.zeros(N, 1, dtype=F64), torch.full((N, 1), 1e-6, dtype=F64)), -1)
+        lam = torch.cat((lam, 0.1 + 0.9 * r, torch.ones(N, 1, dtype=F64)), -1)
+        return rotated_diag(lam, 10)
+    raise KeyError(name)
+
+
+CASES = [
+    "gauss",
+    "i_minus_qqT",
+    "i_minus_qqT_noise",
+    "wahba",
+    "clustered",
+    "scaled_1e-6",
+    "scaled_1e6",
+    "near_degenerate",
+]
+
+
+def errors(A64: torch.Tensor, eigenvalues: torch.Tensor, q: torch.Tensor) -> dict[str, float]:
+    """Largest errors over the batch against float64 eigh of A64 (the matrices as solved).
+
+    eig: max_i |l_i - l_i*| / ||A||_2. residual: |A q - l1 q| / ||A||_2. angle: rotation angle
+    between R(q) and R(q*) in degrees, over the matrices with l2* - l1* >= 0.01 (l4* - l1*)
+    (elsewhere q is ill-determined and the residual is the meaningful measure).
+    """
+    L, V = torch.linalg.eigh(A64)
+    norm = L.abs().amax(-1)
+    lam, q = eigenvalues.to(F64), q.to(F64)
+    eig = ((lam - L).abs().amax(-1) / norm).max().item()
+    resid = (A64 @ q.unsqueeze(-1)).squeeze(-1) - lam[..., :1] * q
+    residual = (resid.norm(dim=-1) / norm).max().item()
+    separated = (L[..., 1] - L[..., 0]) >= 0.01 * (L[..., 3] - L[..., 0])
+    ang = angle_deg(quat_to_rotmat(q[separated]), quat_to_rotmat(V[separated][..., 0]))
+    return {"eig": eig, "residual": residual, "angle": ang.max().item() if ang.numel() else 0.0}
+
+
+# ---------------------------------------------------------------------------------------------
+# accuracy
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def case_data() -> dict[str, torch.Tensor]:
+    return {name: case_matrices(name) for name in CASES}
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("case", CASES)
+def test_no_worse_than_eigh(case_data, case, dtype):
+    A = case_data[case].to(dtype)
+    A64 = A.to(F64)
+    eigenvalues, q = sym4_eigh_min(A, check=False)
+    assert eigenvalues.dtype == dtype and q.dtype == dtype
+    ours = errors(A64, eigenvalues, q)
+    L, V = torch.linalg.eigh(A)
+    ref = errors(A64, L, quat_canonical(V[..., 0]))
+    floor = 4 * EPS[dtype]  # rounding of the error measurement itself
+    assert ours["residual"] <= 1.5 * ref["residual"] + floor, (ours, ref)
+    if dtype == F32:  # in float64 the reference IS eigh: only the residual and the bounds below
+        assert ours["eig"] <= 1.5 * ref["eig"] + floor, (ours, ref)
+        assert ours["angle"] <= 1.5 * ref["angle"] + 1e-5, (ours, ref)
+
+
+# Documented bounds (module docstring of eigen4): float32 angle <= 1e-3 deg, eigenvalues within
+# 1e-6 ||A||_2; float64 angle <= 1e-9 deg, eigenvalues within 1e-14 ||A||_2; residual likewise.
+BOUNDS = {
+    F32: {"angle": 1e-3, "eig": 1e-6, "residual": 2e-6},
+    F64: {"angle": 1e-9, "eig": 1e-14, "residual": 1e-14},
+}
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("case", CASES)
+def test_absolute_bounds(case_data, case, dtype):
+    A = case_data[case].to(dtype)
+    eigenvalues, q = sym4_eigh_min(A, check=False)
+    ours = errors(A.to(F64), eigenvalues, q)
+    for key, bound in BOUNDS[dtype].items():
+        assert ours[key] <= bound, (key, ours)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_wahba_recovers_the_rotation(dtype):
+    A, q_true = wahba_a(2000, 11, sigma=0.0)
+    _, q = sym4_eigh_min(A.to(dtype))
+    err = angle_deg(quat_to_rotmat(q.to(F64)), quat_to_rotmat(q_true))
+    assert err.max() <= (1e-3 if dtype == F32 else 1e-9)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_exactly_degenerate_l1_eq_l2(dtype):
+    """l1 == l2: q is any unit vector of the eigenplane; check A q = l1 q and finiteness."""
+    lam = torch.tensor(
+        [[-1.0, -1.0, 0.5, 2.0], [3.0, 3.0, 3.0, 4.0], [0.0, 0.0, 0.0, 0.0]], dtype=F64
+    )
+    A = torch.cat((rotated_diag(lam.repeat(100, 1), 12), torch.diag_embed(lam)), 0).to(dtype)
+    eigenvalues, q = sym4_eigh_min(A)
+    assert torch.isfinite(eigenvalues).all() and torch.isfinite(q).all()
+    norm = eigenvalues.abs().amax(-1).clamp_min(1.0)
+    resid = (A @ q.unsqueeze(-1)).squeeze(-1) - eigenvalues[..., :1] * q
+    assert (resid.norm(dim=-1) / norm).max() <= 50 * EPS[dtype]
+    torch.testing.assert_close(q.norm(dim=-1), torch.ones(len(q), dtype=dtype))
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_eigenvalues_ascending_and_match_eigh(dtype):
+    A = sym_randn(1000, 13).to(dtype)
+    eigenvalues, _ = sym4_eigh_min(A)
+    assert (eigenvalues[..., 1:] >= eigenvalues[..., :-1]).all()
+    L = torch.linalg.eigh(A.to(F64)).eigenvalues
+    tol = 2e-6 if dtype == F32 else 1e-14
+    assert ((eigenvalues.to(F64) - L).abs() / L.abs().amax(-1, keepdim=True)).max() <= tol
+
+
+@pytest.mark.parametrize("shape", [(), (5,), (2, 3), (0,), (3, 0, 2)])
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_batch_shapes(shape, dtype):
+    A = sym_randn(max(math.prod(shape), 1), 14)[: math.prod(shape)].reshape(*shape, 4, 4)
+    A = A.to(dtype)
+    eigenvalues, q = sym4_eigh_min(A)
+    assert eigenvalues.shape == (*shape, 4) and q.shape == (*shape, 4)
+    L, V = torch.linalg.eigh(A)
+    tol = 1e-5 if dtype == F32 else 1e-12
+    torch.testing.assert_close(eigenvalues, L, atol=tol, rtol=tol)
+    torch.testing.assert_close(q, quat_canonical(V[..., 0]), atol=10 * tol, rtol=0)
+
+
+def test_chunked_batch_matches_small_batches():
+    """Batches above the chunk size are solved chunk by chunk: same numbers as one by one."""
+    chunk = _CHUNK_PER_THREAD * torch.get_num_threads()
+    A = sym_randn(2 * chunk + 100, 15).to(F32)
+    eigenvalues, q = sym4_eigh_min(A, check=False)
+    for part in (slice(0, 7), slice(chunk - 4, chunk + 6), slice(2 * chunk + 90, 2 * chunk + 100)):
+        l_part, q_part = sym4_eigh_min(A[part], method="jacobi")
+        assert torch.equal(l_part, eigenvalues[part]) and torch.equal(q_part, q[part])
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_methods_agree_and_auto_switches(dtype):
+    """method="eigh" (LAPACK forward, same backward) and "jacobi" agree; "auto" picks eigh for
+    batches below EIGH_BELOW, where its per-call cost is lower, and jacobi above."""
+    A = sym_randn(EIGH_BELOW, 34).to(dtype)
+    l_j, q_j = sym4_eigh_min(A, method="jacobi")
+    l_e, q_e = sym4_eigh_min(A, method="eigh")
+    tol = 1e-5 if dtype == F32 else 1e-12
+    torch.testing.assert_close(l_j, l_e, atol=tol, rtol=tol)
+    torch.testing.assert_close(q_j, q_e, atol=1e-3 if dtype == F32 else 1e-9, rtol=0)
+    l_a, q_a = sym4_eigh_min(A, method="auto")
+    assert torch.equal(l_a, l_j) and torch.equal(q_a, q_j)
+    l_a, q_a = sym4_eigh_min(A[:-1], method="auto")
+    assert torch.equal(l_a, l_e[:-1]) and torch.equal(q_a, q_e[:-1])
+
+
+@pytest.mark.parametrize("method", ["jacobi", "eigh"])
+def test_both_methods_share_the_finite_backward(method):
+    A = a_from_quat(random_quat((6,), generator=gen(35), dtype=F64)).requires_grad_()
+    eigenvalues, q = sym4_eigh_min(A, method=method)
+    (grad,) = torch.autograd.grad(q.sum() + eigenvalues.sum(), A)
+    assert torch.isfinite(grad).all()
+    theta = torch.randn(3, 10, generator=gen(36), dtype=F64).requires_grad_()
+    assert torch.autograd.gradcheck(lambda t: sym4_eigh_min(a_from_vec(t), method=method), (theta,))
+
+
+def test_unknown_method_raises():
+    with pytest.raises(ValueError, match="method"):
+        sym4_eigh_min(torch.eye(4), method="qr")
+
+
+@pytest.mark.parametrize("method", ["jacobi", "eigh"])
+def test_reads_the_upper_triangle_only(method):
+    A = sym_randn(1500, 37)
+    garbage = A + torch.randn(1500, 4, 4, generator=gen(38), dtype=F64).tril(-1)
+    l1, q1 = sym4_eigh_min(A, method=method)
+    l2, q2 = sym4_eigh_min(garbage, method=method, check=False)
+    assert torch.equal(l1, l2) and torch.equal(q1, q2)
+
+
+def test_non_contiguous_input():
+    A = sym_randn(64, 16)
+    strided = A.transpose(-1, -2).contiguous().transpose(-1, -2)[::2]  # same values, odd strides
+    l1, q1 = sym4_eigh_min(strided)
+    l2, q2 = sym4_eigh_min(A[::2].contiguous())
+    assert torch.equal(l1, l2) and torch.equal(q1, q2)
+
+
+# ---------------------------------------------------------------------------------------------
+# sign convention
+# ---------------------------------------------------------------------------------------------
+
+
+def test_canonical_sign_is_quat_canonical():
+    """The fused sign rule equals quat_canonical, ties (w = 0, ...) and the zero vector included."""
+    q = torch.randn(4096, 4, generator=gen(17))
+    q[::2, 3] = 0.0
+    q[::4, 0] = 0.0
+    q[::8, 1] = 0.0
+    q[::16, 2] = 0.0
+    q[1::16] = -0.0
+    q[3::32] = torch.tensor([0.0, 0.0, -1.0, 0.0])
+    for dtype in DTYPES:
+        qd = q.to(dtype)
+        sign = _canonical_sign(qd.t().contiguous()).t()
+        assert torch.equal(qd * sign, quat_canonical(qd))
+
+
+def test_output_sign_is_canonical():
+    A = torch.cat((sym_randn(500, 18), a_from_quat(torch.eye(4, dtype=F64))))  # w = 0 ties
+    _, q = sym4_eigh_min(A)
+    assert torch.equal(q, quat_canonical(q))
+    assert (q[..., 3] >= 0).all()
+
+
+# ---------------------------------------------------------------------------------------------
+# gradients
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("output", [0, 1], ids=["eigenvalues", "q"])
+def test_gradcheck_through_a_from_vec(output):
+    theta = torch.randn(4, 10, generator=gen(19), dtype=F64).requires_grad_()
+    assert torch.autograd.gradcheck(lambda t: sym4_eigh_min(a_from_vec(t))[output], (theta,))
+
+
+def test_gradcheck_both_outputs():
+    theta = torch.randn(3, 10, generator=gen(20), dtype=F64).requires_grad_()
+    assert torch.autograd.gradcheck(lambda t: sym4_eigh_min(a_from_vec(t)), (theta,))
+
+
+def test_gradient_matches_eigh_and_is_symmetric():
+    A = sym_randn(256, 21).requires_grad_()
+    g_l = torch.randn(256, 4, generator=gen(22), dtype=F64)
+    g_q = torch.randn(256, 4, generator=gen(23), dtype=F64)
+    eigenvalues, q = sym4_eigh_min(A)
+    (grad,) = torch.autograd.grad((eigenvalues * g_l).sum() + (q * g_q).sum(), A)
+    A2 = A.detach().requires_grad_()
+    L, V = torch.linalg.eigh(A2)
+    (ref,) = torch.autograd.grad((L * g_l).sum() + (quat_canonical(V[..., 0]) * g_q).sum(), A2)
+    ref = (ref + ref.mT) / 2  # eigh's gradient, symmetrised
+    torch.testing.assert_close(grad, ref, atol=1e-9, rtol=1e-9)
+    assert torch.equal(grad, grad.mT)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("kind", ["l1_eq_l2", "c_identity", "zero", "i_minus_qqT", "near_l1_eq_l2"])
+def test_gradient_finite_where_eigenvalues_coincide(kind, dtype):
+    q0 = random_quat((8,), generator=gen(24), dtype=F64)
+    if kind == "l1_eq_l2":
+        lam = torch.tensor([1.0, 1.0, 2.0, 3.0], dtype=F64).expand(8, 4)
+        A = torch.cat((rotated_diag(lam, 25), torch.diag_embed(lam)))
+    elif kind == "c_identity":
+        A = torch.eye(4, dtype=F64) * torch.tensor([2.0, -3.0, 1e-6, 1e6], dtype=F64)[:, None, None]
+    elif kind == "zero":
+        A = torch.zeros(3, 4, 4, dtype=F64)
+    elif kind == "i_minus_qqT":
+        A = a_from_quat(q0)
+    else:  # l2 - l1 = 1e-12 ||A||, far below gap_eps
+        lam = torch.tensor([0.0, 1e-12, 0.5, 1.0], dtype=F64).expand(8, 4)
+        A = rotated_diag(lam, 26)
+    A = A.to(dtype).requires_grad_()
+    eigenvalues, q = sym4_eigh_min(A)
+    loss = (q * torch.arange(1.0, 5.0, dtype=dtype)).sum() + eigenvalues.square().sum()
+    (grad,) = torch.autograd.grad(loss, A)
+    assert torch.isfinite(grad).all()
+    # The clamp bounds the q-gradient by |g_q| / (gap_eps ||A||_2) (+ the eigenvalue part).
+    norm = eigenvalues.detach().abs().amax(-1)
+    bound = torch.where(norm > 0, 30.0 / (1e-6 * norm), torch.full_like(norm, 30.0))
+    bound = bound + 2 * eigenvalues.detach().abs().sum(-1)
+    assert (grad.flatten(-2).norm(dim=-1) <= 1.01 * bound).all()
+
+
+def test_gap_eps_sets_the_clamp():
+    """Near l1 = l2 the q-gradient scales as 1 / gap_eps once the gap falls below the clamp."""
+    lam = torch.tensor([[0.0, 1e-12, 0.5, 1.0]], dtype=F64)
+    A = rotated_diag(lam, 27).requires_grad_()
+    g = torch.tensor([[0.3, -0.5, 0.2, 0.7]], dtype=F64)
+    norms = []
+    for eps in (1e-4, 1e-6):
+        (grad,) = torch.autograd.grad((sym4_eigh_min(A, gap_eps=eps)[1] * g).sum(), A)
+        norms.append(grad.norm().item())
+    assert norms[1] == pytest.approx(100 * norms[0], rel=1e-4)
+
+
+def test_eigh_backward_is_nan_where_ours_is_finite():
+    """Why the custom backward exists: eigh's gradient is NaN/Inf for A = I - q q^T (l2 = l3)."""
+    A = a_from_quat(random_quat((4,), generator=gen(28), dtype=F64)).requires_grad_()
+    L, V = torch.linalg.eigh(A)
+    (ref,) = torch.autograd.grad(quat_canonical(V[..., 0]).sum() + L.sum(), A)
+    eigenvalues, q = sym4_eigh_min(A)
+    (grad,) = torch.autograd.grad(q.sum() + eigenvalues.sum(), A)
+    assert not torch.isfinite(ref).all()
+    assert torch.isfinite(grad).all()
+
+
+def test_first_order_only():
+    """The backward is once-differentiable: with create_graph the gradient is a constant."""
+    A = sym_randn(2, 29).requires_grad_()
+    _, q = sym4_eigh_min(A)
+    (grad,) = torch.autograd.grad(q.sum(), A, create_graph=True)
+    assert torch.isfinite(grad).all() and not grad.requires_grad
+
+
+# ---------------------------------------------------------------------------------------------
+# bad input
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("poison", "word"),
+    [("nan", "NaN"), ("inf", "Inf"), ("asym", "not symmetric")],
+)
+def test_check_names_problem_and_first_index(poison, word):
+    A = sym_randn(6, 30).reshape(2, 3, 4, 4).clone()
+    for index in ((1, 2), (1, 0)):  # the first offending index in row-major order is (1, 0)
+        if poison == "nan":
+            A[index][2, 1] = math.nan
+        elif poison == "inf":
+            A[index][0, 0] = -math.inf
+        else:
+            A[index][0, 3] += 1e-4 * A[index].abs().max()
+    with pytest.raises(ValueError, match=re.escape(word)) as info:
+        sym4_eigh_min(A)
+    assert "(1, 0)" in str(info.value)
+    with pytest.raises(ValueError, match=re.escape("(1, 0)")):
+        validate_sym4(A)
+    # With the check off there is no check: the Jacobi solver just propagates NaN/Inf.
+    eigenvalues, _ = sym4_eigh_min(A, check=False, method="jacobi")
+    assert eigenvalues.shape == (2, 3, 4)
+
+
+def test_check_tolerates_rounding_asymmetry():
+    A = sym_randn(5, 31)
+    A[2, 0, 1] *= 1 + 1e-9
+    validate_sym4(A)
+    sym4_eigh_min(A)
+
+
+def test_check_reports_the_first_of_mixed_problems():
+    A = sym_randn(5, 32)
+    A[3, 1, 1] = math.nan
+    A[1, 0, 2] += 1.0
+    with pytest.raises(ValueError, match=r"\(1,\).*not symmetric"):
+        sym4_eigh_min(A)
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        torch.zeros(3, 3),
+        torch.zeros(2, 4, 3),
+        torch.zeros(4),
+        torch.zeros(2, 4, 4, dtype=torch.float16),
+    ],
+)
+def test_wrong_shape_or_dtype_raises_even_without_check(bad):
+    with pytest.raises(ValueError, match="expected"):
+        sym4_eigh_min(bad, check=False)
+
+
+def test_rounds_must_be_positive():
+    with pytest.raises(ValueError, match="rounds"):
+        sym4_eigh_min(torch.eye(4), rounds=0)
+
+
+def test_default_round_counts():
+    assert DEFAULT_ROUNDS == {F32: 12, F64: 14}
+
+
+# ---------------------------------------------------------------------------------------------
+# properties
+# ---------------------------------------------------------------------------------------------
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    entries=st.lists(
+        st.floats(min_value=-1e3, max_value=1e3, allow_nan=False, width=64),
+        min_size=10,
+        max_size=10,
+    ),
+    dtype=st.sampled_from(DTYPES),
+)
+def test_property_eigenpair(entries, dtype):
+    A = a_from_vec(torch.tensor(entries, dtype=F64)).to(dtype)
+    eigenvalues, q = sym4_eigh_min(A)
+    L = torch.linalg.eigh(A.to(F64)).eigenvalues
+    norm = max(L.abs().max().item(), 1e-300)
+    assert (eigenvalues[1:] >= eigenvalues[:-1]).all()
+    assert ((eigenvalues.to(F64) - L).abs().max() / norm) <= 30 * EPS[dtype]
+    assert abs(q.to(F64).norm().item() - 1) <= 10 * EPS[dtype]
+    resid = A.to(F64) @ q.to(F64) - eigenvalues[0].to(F64) * q.to(F64)
+    assert resid.norm().item() / norm <= 30 * EPS[dtype]
+    assert torch.equal(q, quat_canonical(q))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_cuda_matches_cpu(dtype):
+    A = sym_randn(5000, 33).to(dtype)
+    l_cpu, q_cpu = sym4_eigh_min(A)
+    A_cuda = A.cuda().requires_grad_()
+    l_gpu, q_gpu = sym4_eigh_min(A_cuda)
+    tol = 1e-5 if dtype == F32 else 1e-12
+    torch.testing.assert_close(l_gpu.cpu(), l_cpu, atol=tol, rtol=tol)
+    torch.testing.assert_close(q_gpu.cpu(), q_cpu, atol=100 * tol, rtol=0)
+    (grad,) = torch.autograd.grad(q_gpu.sum() + l_gpu.sum(), A_cuda)
+    assert grad.is_cuda and torch.isfinite(grad).all()
