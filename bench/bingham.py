@@ -15,14 +15,13 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import statistics
-import time
 from pathlib import Path
 
 import torch
 
 from rotlearn.bingham import log_normalizer, nll, sample
 from rotlearn.io import write_json_atomic
+from timing import median_seconds
 
 RESULTS = Path(__file__).resolve().parent / "results"
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
@@ -37,16 +36,6 @@ def _machine() -> dict:
         "cores": os.cpu_count(),
         "load_average_1min_at_start": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
     }
-
-
-def _median_s(fn, repeats: int) -> float:
-    fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
 
 
 def _inputs(batch: int, dtype: torch.dtype, seed: int = 0):
@@ -83,10 +72,10 @@ def bench_one(batch: int, dtype: torch.dtype, repeats: int) -> dict:
 
     drawn = mats.shape[0] * per_matrix
     return {
-        "logN_us": 1e6 * _median_s(forward, repeats) / batch,
-        "logN_grad_us": 1e6 * _median_s(forward_backward, repeats) / batch,
-        "nll_grad_us": 1e6 * _median_s(likelihood, repeats) / batch,
-        "sample_us": 1e6 * _median_s(draw, repeats) / drawn,
+        "logN_us": 1e6 * median_seconds(forward, repeats) / batch,
+        "logN_grad_us": 1e6 * median_seconds(forward_backward, repeats) / batch,
+        "nll_grad_us": 1e6 * median_seconds(likelihood, repeats) / batch,
+        "sample_us": 1e6 * median_seconds(draw, repeats) / drawn,
     }
 
 

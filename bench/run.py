@@ -20,7 +20,6 @@ import platform
 import statistics
 import sys
 import tempfile
-import time
 import warnings
 from pathlib import Path
 
@@ -31,6 +30,7 @@ from rotlearn.cli.train import train
 from rotlearn.heads import HEADS, make_head
 from rotlearn.io import write_json_atomic
 from rotlearn.paths import config_dir
+from timing import median_seconds
 
 RESULTS = Path(__file__).resolve().parent / "results"
 QUIET = ["trainer.enable_progress_bar=false", "trainer.enable_model_summary=false"]
@@ -69,16 +69,6 @@ def bench_epoch(reps: list[str], epochs: int = 6) -> dict:
     return rows
 
 
-def _time(fn, repeats: int = 5) -> float:
-    fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
-
-
 def bench_heads(batch: int = 131072) -> dict:
     rows = {}
     gen = torch.Generator().manual_seed(0)
@@ -95,8 +85,8 @@ def bench_heads(batch: int = 131072) -> dict:
             head(x).R.sum().backward()
 
         rows[name] = {
-            "forward_us": 1e6 * _time(forward) / batch,
-            "forward_backward_us": 1e6 * _time(backward) / batch,
+            "forward_us": 1e6 * median_seconds(forward) / batch,
+            "forward_backward_us": 1e6 * median_seconds(backward) / batch,
         }
     print(f"\nHeads, float32, batch {batch}: microseconds per sample")
     print(f"{'rep':8s} {'forward':>10s} {'fwd+bwd':>10s}")

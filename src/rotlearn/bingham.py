@@ -72,7 +72,7 @@ import torch
 from torch import Tensor, nn
 from torch.autograd.function import once_differentiable
 
-from rotlearn.errors import ConfigValueError
+from rotlearn.errors import ConfigValueError, batch_index
 from rotlearn.geometry import quat_canonical, rotmat_to_quat
 from rotlearn.heads import HEADS, RotationPrediction
 
@@ -125,19 +125,11 @@ def _eigh(A: Tensor, eigenvectors: bool = True) -> tuple[Tensor, Tensor | None]:
 # ----------------------------------------------------------------------------------- validation
 
 
-def _index(flat: int, shape: torch.Size) -> tuple[int, ...]:
-    out = []
-    for size in reversed(shape):
-        out.append(flat % size)
-        flat //= size
-    return tuple(reversed(out))
-
-
 def _raise_first(bad: Tensor, what: str) -> None:
     """Raise ValueError naming the first True of `bad` (batch-shaped), if any (one argmax)."""
     if bad.numel() and bool(bad.any()):
         flat = int(bad.reshape(-1).to(torch.uint8).argmax())
-        raise ValueError(f"{what} at batch index {_index(flat, bad.shape)}")
+        raise ValueError(f"{what} at batch index {batch_index(flat, tuple(bad.shape))}")
 
 
 def _float_dtype(t: Tensor, name: str) -> None:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-__all__ = ["ConfigValueError", "NonFiniteError", "require_positive_ints"]
+__all__ = ["ConfigValueError", "NonFiniteError", "batch_index", "require_positive_ints"]
 
 
 class ConfigValueError(ValueError):
@@ -23,3 +23,12 @@ def require_positive_ints(**values: float) -> None:
     for key, value in values.items():
         if isinstance(value, bool) or int(value) != value or value < 1:
             raise ConfigValueError(key, f"must be a positive integer, got {value}")
+
+
+def batch_index(flat: int, shape: tuple[int, ...]) -> tuple[int, ...]:
+    """The multi-index, in a batch of `shape`, of the `flat`-th element in row-major order."""
+    index = []
+    for size in reversed(shape):
+        index.append(flat % size)
+        flat //= size
+    return tuple(reversed(index))

@@ -53,6 +53,8 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
+from rotlearn.errors import batch_index
+
 __all__ = ["DEFAULT_GAP_EPS", "DEFAULT_ROUNDS", "EIGH_BELOW", "sym4_eigh_min", "validate_sym4"]
 
 DEFAULT_GAP_EPS = 1e-6
@@ -182,14 +184,6 @@ def _canonical_sign(q: Tensor) -> Tensor:
     return torch.sign(key)  # (1, B)
 
 
-def _batch_index(flat: int, shape: torch.Size) -> tuple[int, ...]:
-    index = []
-    for size in reversed(shape):
-        index.append(flat % size)
-        flat //= size
-    return tuple(reversed(index))
-
-
 def validate_sym4(A: Tensor, rtol: float = 1e-6) -> None:
     """Raise ValueError unless A is a batch of finite symmetric 4x4 float32/float64 matrices.
 
@@ -236,7 +230,7 @@ def validate_sym4(A: Tensor, rtol: float = 1e-6) -> None:
             f"= {rtol * float(scale[first]):.3g}"
         )
     raise ValueError(
-        f"A at batch index {_batch_index(first, batch)} (first of {int(bad.sum())} bad "
+        f"A at batch index {batch_index(first, batch)} (first of {int(bad.sum())} bad "
         f"matrices of {flat.shape[0]}): {'; '.join(problems)}"
     )
 
