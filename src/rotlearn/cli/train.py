@@ -107,8 +107,9 @@ def _timing(trainer: pl.Trainer) -> dict[str, Any]:
 
 
 def train(cfg: DictConfig) -> dict[str, Any]:
-    """Fit, test and write `metrics.json` in `cfg.paths.output_dir`; returns those metrics."""
-    validate(cfg)
+    """Fit, test and write `metrics.json` in `cfg.paths.output_dir`; returns those metrics.
+
+    The config is validated by `build`, before anything is trained."""
     run_dir = Path(cfg.paths.output_dir)
     resume = cfg.get("ckpt_path")
     if (run_dir / "metrics.json").exists():

@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader
 
-from rotlearn.data.draws import DrawDataModule, draw_seed
+from rotlearn.data.draws import DrawDataModule
 from rotlearn.errors import ConfigValueError, require_positive_ints
 from rotlearn.geometry import (
     quat_to_rotmat,
@@ -20,7 +20,7 @@ from rotlearn.geometry import (
     so3_exp_quat,
 )
 
-__all__ = ["SyntheticWahbaDataModule", "draw_seed", "wahba_batch"]
+__all__ = ["SyntheticWahbaDataModule", "wahba_batch"]
 
 
 def wahba_batch(
