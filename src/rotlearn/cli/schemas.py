@@ -9,7 +9,7 @@ is left to its constructor.
 from __future__ import annotations
 
 import difflib
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ValidationError
@@ -72,6 +72,54 @@ class ShapeNetConfig:
 
 
 @dataclass
+class ImagePairConfig:
+    """Keys shared by the image-pair datamodules (`rotlearn.data.ImagePairDataModule`)."""
+
+    batch_size: int = 32
+    eval_batch_size: int = 64
+    num_workers: int = 2
+    corrupt_fraction: float = 0.0
+    num_val: int = 64
+    mean: float = 0.0
+    std: float = 1.0
+    seed: int = 0
+    cache_dir: str | None = None
+
+
+@dataclass
+class KittiConfig(ImagePairConfig):
+    """`data=kitti`: `rotlearn.data.KittiOdometryDataModule`."""
+
+    _target_: str = "rotlearn.data.KittiOdometryDataModule"
+    root: str = "data/kitti"
+    train_sequences: list[str] = field(
+        default_factory=lambda: ["00", "02", "05", "06", "07", "08", "09", "10"]
+    )
+    test_sequences: list[str] = field(default_factory=lambda: ["00"])
+    camera: str = "image_2"
+    delta: int = 1
+    image_size: int = 224
+    pair_channels: int = 6
+
+
+@dataclass
+class MAVConfig(ImagePairConfig):
+    """`data=mav`: `rotlearn.data.MAVDataModule`."""
+
+    _target_: str = "rotlearn.data.MAVDataModule"
+    root: str = "data/mav"
+    train_scenes: list[str] = field(default_factory=lambda: ["outdoor"])
+    test_scenes: list[str] = field(default_factory=lambda: ["outdoor"])
+    test_fraction: float = 0.1
+    pose_tolerance_ms: float = 30.0
+    resize: int = 256
+    image_size: int = 224
+    pair_channels: int = 2
+    mean: float = 0.45
+    std: float = 0.25
+
+
+@dataclass
 class ChordalLossConfig:
     _target_: str = "rotlearn.losses.ChordalLoss"
 
@@ -91,7 +139,7 @@ class BinghamLossConfig:
 
 SCHEMAS: dict[str, dict[str, type]] = {
     "rep": {RepConfig._target_: RepConfig},
-    "data": {c._target_: c for c in (SyntheticWahbaConfig, ShapeNetConfig)},
+    "data": {c._target_: c for c in (SyntheticWahbaConfig, ShapeNetConfig, KittiConfig, MAVConfig)},
     "loss": {c._target_: c for c in (ChordalLossConfig, AngularLossConfig, BinghamLossConfig)},
 }
 

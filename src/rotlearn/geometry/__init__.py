@@ -24,7 +24,15 @@ from rotlearn.geometry.sampling import (
     random_rotvec_uniform_angle,
     random_unit_vectors,
 )
-from rotlearn.geometry.so3 import hat, so3_exp, so3_exp_quat, so3_log, so3_log_quat, vee
+from rotlearn.geometry.so3 import (
+    hat,
+    relative_rotation,
+    so3_exp,
+    so3_exp_quat,
+    so3_log,
+    so3_log_quat,
+    vee,
+)
 
 __all__ = [
     "angle",
@@ -43,6 +51,7 @@ __all__ = [
     "random_rotmat_uniform_angle",
     "random_rotvec_uniform_angle",
     "random_unit_vectors",
+    "relative_rotation",
     "rotmat_to_quat",
     "so3_exp",
     "so3_exp_quat",

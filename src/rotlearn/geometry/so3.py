@@ -13,7 +13,15 @@ from torch import Tensor
 
 from rotlearn.geometry.quaternion import quat_canonical, quat_to_rotmat, rotmat_to_quat
 
-__all__ = ["hat", "so3_exp", "so3_exp_quat", "so3_log", "so3_log_quat", "vee"]
+__all__ = [
+    "hat",
+    "relative_rotation",
+    "so3_exp",
+    "so3_exp_quat",
+    "so3_log",
+    "so3_log_quat",
+    "vee",
+]
 
 
 def hat(phi: Tensor) -> Tensor:
@@ -103,3 +111,19 @@ def so3_log(R: Tensor) -> Tensor:
         the axis sign is the one `quat_canonical` picks.
     """
     return so3_log_quat(rotmat_to_quat(R))
+
+
+def relative_rotation(R_w1: Tensor, R_w2: Tensor) -> Tensor:
+    """The rotation C_21 = R_w2^T R_w1 from frame 1 to frame 2 (spec section 5).
+
+    With camera-to-world orientations R_wi (p_w = R_wi p_i + t_wi, as in KITTI's poses files),
+    C_21 is the rotation part of T_21 = T_w2^-1 T_w1: it maps a direction in camera-1
+    coordinates to camera-2 coordinates, d_2 = C_21 d_1.
+
+    Args:
+        R_w1, R_w2: (..., 3, 3) camera-to-world rotations of the first and second frame.
+
+    Returns:
+        (..., 3, 3) C_21.
+    """
+    return R_w2.transpose(-1, -2) @ R_w1

@@ -28,7 +28,8 @@ class RotationRegressor(pl.LightningModule):
     """Regress rotations: `head(net(batch["input"]))`, trained with `loss(prediction, batch)`.
 
     Logs, once per epoch: train/loss, train/err_*, val/err_*, test/err_* (degrees; mean, median,
-    p10, p90). Every step checks the network output and the loss for NaN/inf and stops with a
+    p10, p90), and at test time the "predict identity" baseline test/identity_err_{mean,median}.
+    Every step checks the network output and the loss for NaN/inf and stops with a
     `NonFiniteError` naming the stage, step and tensor rather than train on garbage.
 
     Args:
@@ -52,6 +53,8 @@ class RotationRegressor(pl.LightningModule):
         self.optimizer_factory, self.scheduler_factory = optimizer, scheduler
         self.train_loss = MeanMetric()
         self.train_err, self.val_err, self.test_err = AngularError(), AngularError(), AngularError()
+        # the "predict identity" baseline: does the model beat the targets' own angles?
+        self.test_identity_err = AngularError()
         # heads with a belief: does the DT score (paper eq. 26) rank the test errors?
         self.test_dt_spearman = SpearmanCorrCoef()
         self.run_config: dict[str, Any] | None = None  # stored in checkpoints when set
@@ -96,6 +99,8 @@ class RotationRegressor(pl.LightningModule):
     def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
         prediction = self._step(batch, "test", batch_idx)
         self.test_err.update(prediction.R, batch["R"])
+        identity = torch.eye(3, dtype=batch["R"].dtype, device=batch["R"].device)
+        self.test_identity_err.update(identity.expand_as(batch["R"]), batch["R"])
         if prediction.eigenvalues is not None:
             dt = dispersion_from_eigenvalues(prediction.eigenvalues).sum(-1)
             errors = angle_deg(prediction.R, batch["R"])
@@ -120,6 +125,13 @@ class RotationRegressor(pl.LightningModule):
     def on_test_epoch_end(self) -> None:
         self.test_errors = self.test_err.values().cpu()
         self._log_errors("test")
+        baseline = self.test_identity_err.compute()
+        self.log_dict(
+            {f"test/identity_{k}": baseline[k] for k in ("err_mean", "err_median")},
+            on_step=False,
+            on_epoch=True,
+        )
+        self.test_identity_err.reset()
         if self.test_dt_spearman.update_count:
             rho = self.test_dt_spearman.compute()
             self.log("test/dt_spearman", rho, on_step=False, on_epoch=True)

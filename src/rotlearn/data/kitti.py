@@ -1,0 +1,186 @@
+"""KITTI odometry relative rotations (paper Fig. 6-7 and Table I; spec section 5).
+
+Layout: `<root>/sequences/<XX>/image_2/<frame>.png` (left colour camera; `image_0` is the left gray
+one, read as three equal channels) and `<root>/poses/<XX>.txt`, one line per frame holding the
+row-major 3x4 camera-to-world matrix [R | t] (12 numbers).
+
+The pair (i, i + delta) has the target C_21 = R_{i+delta}^T R_i, the rotation part of
+T_21 = T_w(i+delta)^-1 T_wi: it maps camera-i coordinates to camera-(i+delta) coordinates
+(`rotlearn.geometry.relative_rotation`). Frames are resized to S x S (224 in the paper) with
+OpenCV, cached once per sequence as uint8 (`rotlearn.data.images.frame_cache`) and stacked as
+2 x 3 channels; pixels are scaled to [0, 1].
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from rotlearn.data.images import frame_cache, resize_square
+from rotlearn.data.pairs import ImagePairDataModule, PairIndex
+from rotlearn.errors import ConfigValueError, require_positive_ints
+from rotlearn.geometry import relative_rotation
+from rotlearn.heads.svd import special_orthogonalize
+
+__all__ = ["KittiOdometryDataModule", "read_kitti_poses", "sequence_name"]
+
+ORTHONORMAL_TOL = 1e-3  # KITTI's poses are printed with 6-7 significant digits
+
+
+def sequence_name(sequence: int | str) -> str:
+    """ "00" for 0, "00" or "0"; other names (e.g. "my_drive") unchanged."""
+    text = str(sequence)
+    return f"{int(text):02d}" if text.isdigit() else text
+
+
+def read_kitti_poses(path: str | Path) -> np.ndarray:
+    """The camera-to-world poses of a KITTI `poses/XX.txt` file.
+
+    Args:
+        path: a text file, one pose a line: 12 numbers, the row-major 3x4 matrix [R | t].
+
+    Returns:
+        (N, 3, 4) float64; each R is projected onto SO(3) (it is orthonormal to 1e-3 already).
+
+    Raises:
+        ValueError: naming the file and line of a line that is not 12 numbers or whose R is
+            not a rotation.
+    """
+    path = Path(path)
+    rows = []
+    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+        words = line.split()
+        if not words:
+            continue
+        if len(words) != 12:
+            raise ValueError(
+                f"{path}:{lineno}: expected 12 numbers (a 3x4 [R|t]), got {len(words)}"
+            )
+        try:
+            rows.append([float(w) for w in words])
+        except ValueError:
+            raise ValueError(f"{path}:{lineno}: not a number in {line.strip()!r}") from None
+    if not rows:
+        raise ValueError(f"{path}: no poses")
+    poses = np.asarray(rows, dtype=np.float64).reshape(-1, 3, 4)
+    R = poses[:, :, :3]
+    error = np.abs(R.transpose(0, 2, 1) @ R - np.eye(3)).max(axis=(1, 2))
+    bad = np.flatnonzero((error > ORTHONORMAL_TOL) | (np.linalg.det(R) < 0))
+    if len(bad):
+        i = int(bad[0])
+        raise ValueError(
+            f"{path}:{i + 1}: the rotation is not orthonormal with det +1 "
+            f"(max |R^T R - I| = {error[i]:.2e}, det = {np.linalg.det(R[i]):.4f})"
+        )
+    poses[:, :, :3] = special_orthogonalize(torch.from_numpy(R)).numpy()
+    return poses
+
+
+class KittiOdometryDataModule(ImagePairDataModule):
+    """KITTI odometry frame pairs with their relative rotations (module docstring).
+
+    Args:
+        root: dataset root holding `sequences/` and `poses/`.
+        train_sequences: sequences to train on (paper: 00, 02, 05-10); those also listed in
+            `test_sequences` are left out of training (the paper's leave-one-out).
+        test_sequences: sequences to test on (paper: one of 00, 02, 05).
+        camera: "image_2" (left colour, the paper's) or "image_0" (left gray).
+        delta: frame step of a pair (i, i + delta).
+        image_size: S of the S x S frames (paper: 224).
+        pair_channels: channels of a stacked pair; must be 6 (two RGB frames). It is a config
+            key so that the net can read it (`${data.pair_channels}`).
+        cache_dir: frame caches (default `<root>/.rotlearn_cache`).
+        **kwargs: batch sizes, workers, corruption, validation pairs and seed
+            (`ImagePairDataModule`).
+    """
+
+    def __init__(
+        self,
+        root: str,
+        train_sequences: Sequence[int | str] = ("00", "02", "05", "06", "07", "08", "09", "10"),
+        test_sequences: Sequence[int | str] = ("00",),
+        camera: str = "image_2",
+        delta: int = 1,
+        image_size: int = 224,
+        pair_channels: int = 6,
+        cache_dir: str | None = None,
+        **kwargs,
+    ) -> None:
+        super().__init__(**kwargs)
+        require_positive_ints(delta=delta, image_size=image_size)
+        if camera not in ("image_2", "image_0"):
+            raise ConfigValueError("camera", f"must be image_2 or image_0, got {camera!r}")
+        if pair_channels != 6:
+            raise ConfigValueError(
+                "pair_channels", f"KITTI pairs have 6 channels, got {pair_channels}"
+            )
+        self.root, self.camera = Path(root), camera
+        self.test_sequences = [sequence_name(s) for s in test_sequences]
+        self.train_sequences = [
+            name for name in map(sequence_name, train_sequences) if name not in self.test_sequences
+        ]
+        for key, names in (
+            ("train_sequences", self.train_sequences),
+            ("test_sequences", self.test_sequences),
+        ):
+            if not names:
+                raise ConfigValueError(key, "no sequence left (train minus test sequences)")
+        self.delta, self.image_size = int(delta), int(image_size)
+        self.cache_dir = Path(cache_dir) if cache_dir else self.root / ".rotlearn_cache"
+
+    def frames(self, sequence: str) -> list[Path]:
+        """The image files of a sequence, in order."""
+        folder = self.root / "sequences" / sequence / self.camera
+        if not folder.is_dir():
+            raise FileNotFoundError(
+                f"sequence {sequence}: no directory {folder} (data.root={self.root}, "
+                f"data.camera={self.camera}; see data/README.md)"
+            )
+        files = sorted(folder.glob("*.png"))
+        if not files:
+            raise FileNotFoundError(f"sequence {sequence}: no .png frames in {folder}")
+        return files
+
+    def sequence_pairs(self, sequence: str) -> PairIndex:
+        """The pairs (i, i + delta) of one sequence, its frames cached."""
+        files = self.frames(sequence)
+        poses_path = self.root / "poses" / f"{sequence}.txt"
+        if not poses_path.is_file():
+            raise FileNotFoundError(f"sequence {sequence}: no poses file {poses_path}")
+        poses = read_kitti_poses(poses_path)
+        if len(poses) != len(files):
+            raise ValueError(
+                f"{poses_path}: {len(poses)} poses, but {files[0].parent} holds {len(files)} "
+                "frames (one pose line per frame expected)"
+            )
+        if len(files) <= self.delta:
+            raise ValueError(
+                f"sequence {sequence}: {len(files)} frames, none with a frame {self.delta} later"
+            )
+        cache = self.cache_dir / f"{sequence}_{self.camera}_{self.image_size}"
+        frame_cache(
+            files,
+            cache,
+            functools.partial(resize_square, size=self.image_size),
+            {"resize_square": self.image_size},
+            desc=f"caching KITTI {sequence}/{self.camera}",
+        )
+        first = np.arange(len(files) - self.delta)
+        R = poses[:, :, :3]
+        C = relative_rotation(torch.from_numpy(R[first]), torch.from_numpy(R[first + self.delta]))
+        return PairIndex(
+            caches=[cache.with_suffix(".npy")],
+            source=np.zeros(len(first), dtype=np.int64),
+            first=first,
+            second=first + self.delta,
+            R=C.numpy(),
+            names=[sequence],
+        )
+
+    def load(self, split: str) -> PairIndex:
+        names = self.train_sequences if split == "train" else self.test_sequences
+        return PairIndex.concat([self.sequence_pairs(name) for name in names])

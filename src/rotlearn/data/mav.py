@@ -1,0 +1,250 @@
+"""MAV indoor/outdoor relative rotations (paper Fig. 8; spec section 9).
+
+Layout (EuRoC-like):
+- `<root>/flea3/data.csv`: `#timestamp [ns],filename` header, then one `t_ns,filename` row per
+  frame; the images are `<root>/flea3/data/<filename>` (8-bit gray).
+- `<root>/pose/data.csv`: `#...` header, then `timestamp, ..., qw, qx, qy, qz` rows: the
+  camera-to-world orientation as a Hamilton quaternion, scalar FIRST in this file (rotlearn's own
+  quaternions are x, y, z, w), at any rate.
+- `<root>/pairs/<scene>.csv`: headerless `id1,id2` rows, 0-based indices into the frame rows of
+  `flea3/data.csv`; scenes `outdoor`, `indoor`, `transition`.
+
+Each frame takes the pose nearest in time, which must lie within `pose_tolerance_ms` (30 ms).
+A pair's target is C_21 = R_2^T R_1, as for KITTI (`rotlearn.geometry.relative_rotation`). Frames
+go through Resize(256) -> CenterCrop(224) (cached once as uint8) and Normalize(0.45, 0.25); the
+two gray frames of a pair are stacked as 2 channels. A seeded random `test_fraction` of each
+scene's pairs is its test set.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from rotlearn.data.draws import draw_seed
+from rotlearn.data.images import frame_cache, resize_center_crop
+from rotlearn.data.pairs import ImagePairDataModule, PairIndex
+from rotlearn.errors import ConfigValueError, require_positive_ints
+from rotlearn.geometry import quat_normalize, quat_to_rotmat, relative_rotation
+
+__all__ = ["MAVDataModule", "match_poses", "read_frame_list", "read_pair_file", "read_pose_file"]
+
+
+def _rows(path: Path, columns: int | None = None, min_columns: int = 1):
+    """(line number, fields) of a CSV file's rows, skipping blank lines and `#` comments."""
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file")
+    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+        text = line.strip()
+        if not text or text.startswith("#"):
+            continue
+        fields = [f.strip() for f in text.split(",")]
+        if (columns is not None and len(fields) != columns) or len(fields) < min_columns:
+            want = f"{columns}" if columns is not None else f"at least {min_columns}"
+            raise ValueError(
+                f"{path}:{lineno}: expected {want} comma-separated fields, got {len(fields)}"
+            )
+        yield lineno, fields
+
+
+def _int(path: Path, lineno: int, text: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise ValueError(f"{path}:{lineno}: not an integer: {text!r}") from None
+
+
+def read_frame_list(path: str | Path) -> tuple[np.ndarray, list[str], np.ndarray]:
+    """Frames of `flea3/data.csv`: timestamps (N,) int64 ns, file names, and line numbers (N,)."""
+    path = Path(path)
+    stamps, names, lines = [], [], []
+    for lineno, (stamp, name) in _rows(path, columns=2):
+        stamps.append(_int(path, lineno, stamp))
+        names.append(name)
+        lines.append(lineno)
+    if not stamps:
+        raise ValueError(f"{path}: no frames")
+    return np.asarray(stamps, dtype=np.int64), names, np.asarray(lines)
+
+
+def read_pose_file(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """Poses of `pose/data.csv`: timestamps (M,) int64 ns (sorted) and unit quaternions (M, 4),
+    converted to rotlearn's (x, y, z, w) from the file's trailing qw, qx, qy, qz columns."""
+    path = Path(path)
+    stamps, quats = [], []
+    for lineno, fields in _rows(path, min_columns=5):
+        stamps.append(_int(path, lineno, fields[0]))
+        try:
+            qw, qx, qy, qz = (float(f) for f in fields[-4:])
+        except ValueError:
+            raise ValueError(f"{path}:{lineno}: not a number among {fields[-4:]}") from None
+        if not 0.9 < (qw * qw + qx * qx + qy * qy + qz * qz) ** 0.5 < 1.1:
+            raise ValueError(f"{path}:{lineno}: the quaternion (qw, qx, qy, qz) is not unit")
+        quats.append((qx, qy, qz, qw))
+    if not stamps:
+        raise ValueError(f"{path}: no poses")
+    stamps = np.asarray(stamps, dtype=np.int64)
+    order = np.argsort(stamps, kind="stable")
+    return stamps[order], np.asarray(quats, dtype=np.float64)[order]
+
+
+def match_poses(frame_stamps: np.ndarray, pose_stamps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each frame, the index of the pose nearest in time and the gap in ns.
+
+    Args:
+        frame_stamps: (N,) int64 ns.
+        pose_stamps: (M,) int64 ns, sorted.
+
+    Returns:
+        (N,) int64 pose indices and (N,) int64 absolute gaps |t_pose - t_frame|.
+    """
+    right = np.searchsorted(pose_stamps, frame_stamps).clip(1, len(pose_stamps) - 1)
+    left = right - 1
+    if len(pose_stamps) == 1:
+        left = right = np.zeros_like(frame_stamps)
+    gap_left = np.abs(frame_stamps - pose_stamps[left])
+    gap_right = np.abs(pose_stamps[right] - frame_stamps)
+    nearest = np.where(gap_right < gap_left, right, left)
+    return nearest, np.minimum(gap_left, gap_right)
+
+
+def read_pair_file(
+    path: str | Path, num_frames: int, frame_list: str = "flea3/data.csv"
+) -> np.ndarray:
+    """Pairs of a headerless `id1,id2` file as (P, 2) int64.
+
+    Raises:
+        ValueError: naming the file and line of a pair that refers to a frame that does not exist.
+    """
+    path = Path(path)
+    pairs = []
+    for lineno, fields in _rows(path, columns=2):
+        ids = [_int(path, lineno, f) for f in fields]
+        for i in ids:
+            if not 0 <= i < num_frames:
+                raise ValueError(
+                    f"{path}:{lineno}: frame {i} does not exist ({frame_list} lists {num_frames} "
+                    f"frames, 0 to {num_frames - 1})"
+                )
+        pairs.append(ids)
+    if not pairs:
+        raise ValueError(f"{path}: no pairs")
+    return np.asarray(pairs, dtype=np.int64)
+
+
+class MAVDataModule(ImagePairDataModule):
+    """MAV frame pairs with their relative rotations (module docstring).
+
+    Args:
+        root: dataset root holding `flea3/`, `pose/` and `pairs/`.
+        train_scenes: scenes whose training part is trained on (paper: outdoor).
+        test_scenes: scenes whose test part is tested on (paper: outdoor; + indoor; + transition).
+        test_fraction: the random fraction of each scene's pairs held out for testing (0.1).
+        pose_tolerance_ms: the largest frame-to-pose time gap accepted (30 ms).
+        resize, image_size: Resize(resize) -> CenterCrop(image_size) (paper: 256, 224).
+        pair_channels: channels of a stacked pair; must be 2 (two gray frames).
+        cache_dir: frame cache (default `<root>/.rotlearn_cache`).
+        **kwargs: batch sizes, workers, corruption, validation pairs, mean/std and seed
+            (`ImagePairDataModule`; mean 0.45 and std 0.25 by default here).
+    """
+
+    def __init__(
+        self,
+        root: str,
+        train_scenes: Sequence[str] = ("outdoor",),
+        test_scenes: Sequence[str] = ("outdoor",),
+        test_fraction: float = 0.1,
+        pose_tolerance_ms: float = 30.0,
+        resize: int = 256,
+        image_size: int = 224,
+        pair_channels: int = 2,
+        cache_dir: str | None = None,
+        **kwargs,
+    ) -> None:
+        kwargs.setdefault("mean", 0.45)
+        kwargs.setdefault("std", 0.25)
+        super().__init__(**kwargs)
+        require_positive_ints(resize=resize, image_size=image_size)
+        if image_size > resize:
+            raise ConfigValueError("image_size", f"the crop {image_size} exceeds resize={resize}")
+        if not 0.0 < test_fraction < 1.0:
+            raise ConfigValueError("test_fraction", f"must lie in (0, 1), got {test_fraction}")
+        if not pose_tolerance_ms > 0:
+            raise ConfigValueError("pose_tolerance_ms", f"must be > 0, got {pose_tolerance_ms}")
+        if pair_channels != 2:
+            raise ConfigValueError(
+                "pair_channels", f"MAV pairs have 2 channels, got {pair_channels}"
+            )
+        for key, scenes in (("train_scenes", train_scenes), ("test_scenes", test_scenes)):
+            if not scenes:
+                raise ConfigValueError(key, "lists no scene")
+        self.root = Path(root)
+        self.train_scenes, self.test_scenes = list(train_scenes), list(test_scenes)
+        self.test_fraction, self.pose_tolerance_ms = float(test_fraction), float(pose_tolerance_ms)
+        self.resize, self.image_size = int(resize), int(image_size)
+        self.cache_dir = Path(cache_dir) if cache_dir else self.root / ".rotlearn_cache"
+        self._frames: tuple[np.ndarray, np.ndarray, Path] | None = None
+
+    def _frame_rotations(self) -> tuple[np.ndarray, np.ndarray, Path]:
+        """Every frame's camera-to-world rotation (N, 3, 3), its pose gap in ns, and the cache."""
+        if self._frames is None:
+            frame_list = self.root / "flea3" / "data.csv"
+            stamps, names, _ = read_frame_list(frame_list)
+            pose_stamps, quats = read_pose_file(self.root / "pose" / "data.csv")
+            nearest, gaps = match_poses(stamps, pose_stamps)
+            q = quat_normalize(torch.from_numpy(quats[nearest]))
+            cache = self.cache_dir / f"flea3_{self.resize}_{self.image_size}"
+            frame_cache(
+                [self.root / "flea3" / "data" / name for name in names],
+                cache,
+                functools.partial(resize_center_crop, resize=self.resize, crop=self.image_size),
+                {"resize": self.resize, "center_crop": self.image_size},
+                gray=True,
+                desc="caching MAV frames",
+            )
+            self._frames = (quat_to_rotmat(q).numpy(), gaps, cache.with_suffix(".npy"))
+        return self._frames
+
+    def _check_gaps(self, pairs: np.ndarray) -> None:
+        frame_list = self.root / "flea3" / "data.csv"
+        stamps, _, lines = read_frame_list(frame_list)
+        gaps = self._frame_rotations()[1]
+        used = np.unique(pairs)
+        late = used[gaps[used] > self.pose_tolerance_ms * 1e6]
+        if len(late):
+            i = int(late[0])
+            raise ValueError(
+                f"{frame_list}:{lines[i]}: frame {i} (t = {stamps[i]} ns) has no pose within "
+                f"{self.pose_tolerance_ms:g} ms in {self.root / 'pose' / 'data.csv'} (nearest: "
+                f"{gaps[i] / 1e6:.1f} ms; data.pose_tolerance_ms); {len(late)} frame(s) in all"
+            )
+
+    def scene_pairs(self, scene: str, split: str) -> PairIndex:
+        """The training or test part of one scene's pairs."""
+        rotations, _, cache = self._frame_rotations()
+        pairs = read_pair_file(self.root / "pairs" / f"{scene}.csv", len(rotations))
+        self._check_gaps(pairs)
+        rng = np.random.default_rng(draw_seed(self.seed, *scene.encode()))
+        is_test = np.zeros(len(pairs), dtype=bool)
+        is_test[rng.permutation(len(pairs))[: max(1, round(self.test_fraction * len(pairs)))]] = (
+            True
+        )
+        pairs = pairs[is_test if split == "test" else ~is_test]
+        R = torch.from_numpy(rotations)
+        C = relative_rotation(R[pairs[:, 0]], R[pairs[:, 1]])
+        return PairIndex(
+            caches=[cache],
+            source=np.zeros(len(pairs), dtype=np.int64),
+            first=pairs[:, 0],
+            second=pairs[:, 1],
+            R=C.numpy(),
+            names=[scene],
+        )
+
+    def load(self, split: str) -> PairIndex:
+        scenes = self.train_scenes if split == "train" else self.test_scenes
+        return PairIndex.concat([self.scene_pairs(scene, split) for scene in scenes])

@@ -1,0 +1,232 @@
+"""Image-pair datasets over frame caches, and their LightningDataModule base (KITTI, MAV).
+
+A batch is {"input": (B, 2C, S, S) in the model's dtype, "R": (B, 3, 3), "q": (B, 4) (x, y, z, w),
+"corrupted": (B,) bool, "source": (B,) int64 (sequence / scene index), "index": (B,) int64}.
+Loader workers gather whole batches of uint8 frames from memory-mapped caches (`__getitems__`);
+the conversion to floats, the normalisation and the erasing of corrupted test pairs happen after
+the transfer, on the model's device.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import lightning.pytorch as pl
+import numpy as np
+import torch
+from torch import Tensor
+from torch.utils.data import DataLoader, Dataset
+
+from rotlearn.data.corruption import corrupted_flags, draw_erasing_boxes, erase_boxes
+from rotlearn.data.draws import SPLITS, draw_seed
+from rotlearn.errors import ConfigValueError, require_positive_ints
+from rotlearn.geometry import rotmat_to_quat
+
+__all__ = ["ImagePairDataModule", "ImagePairs", "PairIndex"]
+
+
+@dataclass
+class PairIndex:
+    """Which frames make each pair, and its target.
+
+    Attributes:
+        caches: `.npy` frame caches (N_s, C, S, S) uint8, one per source (sequence / scene).
+        source: (P,) index into `caches`.
+        first, second: (P,) frame indices of the pair's two images in their cache.
+        R: (P, 3, 3) float64 targets C_21 (`rotlearn.geometry.relative_rotation`).
+        names: a name per cache (sequence or scene), for messages and reports.
+    """
+
+    caches: list[Path]
+    source: np.ndarray
+    first: np.ndarray
+    second: np.ndarray
+    R: np.ndarray
+    names: list[str] = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return len(self.source)
+
+    def subset(self, keep: np.ndarray) -> PairIndex:
+        return PairIndex(
+            self.caches, self.source[keep], self.first[keep], self.second[keep], self.R[keep],
+            self.names,
+        )  # fmt: skip
+
+    @staticmethod
+    def concat(parts: list[PairIndex]) -> PairIndex:
+        """One index over several, with their caches listed one after the other."""
+        offsets = np.cumsum([0] + [len(p.caches) for p in parts])
+        return PairIndex(
+            caches=[c for p in parts for c in p.caches],
+            source=np.concatenate([p.source + o for p, o in zip(parts, offsets, strict=False)]),
+            first=np.concatenate([p.first for p in parts]),
+            second=np.concatenate([p.second for p in parts]),
+            R=np.concatenate([p.R for p in parts]).reshape(-1, 3, 3),
+            names=[n for p in parts for n in p.names],
+        )
+
+
+class ImagePairs(Dataset):
+    """A fixed, ordered set of image pairs; fetched a whole batch at a time.
+
+    Args:
+        index: the pairs.
+        corrupt_fraction: the last fraction of the pairs is marked `corrupted` and carries
+            erasing boxes (one per image, spec section 7), drawn from `seed`.
+        seed: seed of the erasing boxes.
+    """
+
+    def __init__(self, index: PairIndex, corrupt_fraction: float = 0.0, seed: int = 0) -> None:
+        self.index = index
+        self.R = torch.from_numpy(index.R).float()
+        self.q = rotmat_to_quat(torch.from_numpy(index.R)).float()
+        self.corrupted = corrupted_flags(len(index), corrupt_fraction)
+        self._arrays: list[np.ndarray] | None = None
+        size = self.arrays[0].shape[-1] if len(index) else 1
+        generator = torch.Generator().manual_seed(draw_seed(seed, SPLITS["test"], 7))
+        self.boxes = draw_erasing_boxes(2 * len(index), size, size, generator).view(-1, 2, 4)
+
+    @property
+    def arrays(self) -> list[np.ndarray]:
+        """The memory-mapped caches, opened lazily in each process (loader workers included)."""
+        if self._arrays is None:
+            self._arrays = [np.load(path, mmap_mode="r") for path in self.index.caches]
+        return self._arrays
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {**self.__dict__, "_arrays": None}
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def __getitems__(self, indices: list[int]) -> dict[str, Tensor]:
+        idx = np.asarray(indices, dtype=np.int64)
+        source = self.index.source[idx]
+        first_array = self.arrays[int(source[0])]
+        channels, size = first_array.shape[1], first_array.shape[-1]
+        images = np.empty((len(idx), 2 * channels, size, size), dtype=np.uint8)
+        for s in np.unique(source):  # one gather per sequence, not per sample
+            rows = np.flatnonzero(source == s)
+            array, pairs = self.arrays[int(s)], idx[rows]
+            images[rows, :channels] = array[self.index.first[pairs]]
+            images[rows, channels:] = array[self.index.second[pairs]]
+        t = torch.from_numpy(idx)
+        return {
+            "input": torch.from_numpy(images),
+            "R": self.R[t],
+            "q": self.q[t],
+            "corrupted": self.corrupted[t],
+            "boxes": self.boxes[t],
+            "source": torch.from_numpy(source),
+            "index": t,
+        }
+
+    def __getitem__(self, i: int) -> dict[str, Tensor]:
+        return {k: v[0] for k, v in self.__getitems__([i]).items()}
+
+
+def _whole_batch(batch: dict[str, Tensor]) -> dict[str, Tensor]:
+    """collate_fn for `ImagePairs.__getitems__`, which already returns a batch."""
+    return batch
+
+
+class ImagePairDataModule(pl.LightningDataModule):
+    """Base of the image-pair datamodules: subclasses implement `load(split)` -> `PairIndex`.
+
+    Args:
+        batch_size: training batch (paper: 32).
+        eval_batch_size: validation and test batch (paper: 64).
+        num_workers: loader processes gathering cached frames (0: in the main process).
+        corrupt_fraction: fraction of the test set, at its end, that is randomly erased
+            (spec section 7; the paper corrupts the second half: 0.5). Flagged `corrupted`.
+        num_val: test pairs, evenly spaced and never corrupted, also scored every epoch
+            (monitoring only; they are never trained on).
+        mean, std: input normalisation after scaling pixels to [0, 1].
+        seed: the data seed (shuffling, test/train split where random, erasing boxes).
+    """
+
+    def __init__(
+        self,
+        batch_size: int = 32,
+        eval_batch_size: int = 64,
+        num_workers: int = 2,
+        corrupt_fraction: float = 0.0,
+        num_val: int = 64,
+        mean: float = 0.0,
+        std: float = 1.0,
+        seed: int = 0,
+    ) -> None:
+        super().__init__()
+        require_positive_ints(batch_size=batch_size, eval_batch_size=eval_batch_size)
+        if not 0.0 <= corrupt_fraction <= 1.0:
+            raise ConfigValueError(
+                "corrupt_fraction", f"must lie in [0, 1], got {corrupt_fraction}"
+            )
+        if int(num_workers) < 0 or int(num_val) < 0:
+            key = "num_workers" if int(num_workers) < 0 else "num_val"
+            raise ConfigValueError(key, "must be >= 0")
+        if not std > 0:
+            raise ConfigValueError("std", f"must be > 0, got {std}")
+        self.batch_size, self.eval_batch_size = int(batch_size), int(eval_batch_size)
+        self.num_workers, self.num_val = int(num_workers), int(num_val)
+        self.corrupt_fraction = float(corrupt_fraction)
+        self.mean, self.std, self.seed = float(mean), float(std), int(seed)
+        self.sets: dict[str, ImagePairs] = {}
+
+    def load(self, split: str) -> PairIndex:  # pragma: no cover
+        """The pairs of "train" or "test", in a fixed order (frame caches built as needed)."""
+        raise NotImplementedError
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.sets:
+            return
+        train, test = self.load("train"), self.load("test")
+        val = test.subset(np.unique(np.linspace(0, len(test) - 1, self.num_val).astype(int)))
+        self.sets = {
+            "train": ImagePairs(train),
+            "val": ImagePairs(val if self.num_val else test.subset(np.arange(0))),
+            "test": ImagePairs(test, self.corrupt_fraction, self.seed),
+        }
+
+    def _loader(self, split: str, batch_size: int, shuffle: bool = False) -> DataLoader:
+        generator = torch.Generator().manual_seed(draw_seed(self.seed, SPLITS[split]))
+        return DataLoader(
+            self.sets[split],
+            batch_size=batch_size,
+            shuffle=shuffle,
+            generator=generator if shuffle else None,
+            collate_fn=_whole_batch,
+            num_workers=self.num_workers,
+            persistent_workers=self.num_workers > 0,
+            pin_memory=torch.cuda.is_available(),
+        )
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader("train", self.batch_size, shuffle=True)
+
+    def val_dataloader(self) -> DataLoader | list:
+        return self._loader("val", self.eval_batch_size) if len(self.sets["val"]) else []
+
+    def test_dataloader(self) -> DataLoader:
+        return self._loader("test", self.eval_batch_size)
+
+    def predict_dataloader(self) -> DataLoader:
+        return self.test_dataloader()
+
+    def on_after_batch_transfer(self, batch: Any, dataloader_idx: int) -> Any:
+        """uint8 pairs -> erased where corrupted -> floats (x / 255 - mean) / std, on the device."""
+        if not (
+            isinstance(batch, dict) and batch.get("input", torch.empty(0)).dtype == torch.uint8
+        ):
+            return batch
+        images = batch["input"]
+        if bool(batch["corrupted"].any()):
+            images = erase_boxes(images, batch["boxes"], batch["corrupted"])
+        trainer = self.trainer
+        module = trainer.lightning_module if trainer is not None else None
+        dtype = module.dtype if module is not None else torch.float32
+        x = images.to(dtype) * (1.0 / (255.0 * self.std)) - self.mean / self.std
+        return {**batch, "input": x, "R": batch["R"].to(dtype), "q": batch["q"].to(dtype)}

@@ -1,0 +1,66 @@
+"""The image-pair CNN of the paper's KITTI and MAV experiments (spec section 5)."""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Sequence
+
+from torch import Tensor, nn
+
+from rotlearn.nets.pointnet import mlp
+
+__all__ = ["PairCNN", "conv_encoder", "encoded_size"]
+
+
+def conv_encoder(in_channels: int, channels: Sequence[int]) -> nn.Sequential:
+    """[Conv2d(k3, s2, p1), BatchNorm2d, PReLU] per width in `channels`: each halves H and W
+    (rounding up). Input (B, in_channels, H, W); output (B, channels[-1], H', W')."""
+    layers: list[nn.Module] = []
+    for n_in, n_out in itertools.pairwise([in_channels, *channels]):
+        layers += [
+            nn.Conv2d(n_in, n_out, 3, stride=2, padding=1),
+            nn.BatchNorm2d(n_out),
+            nn.PReLU(),
+        ]
+    return nn.Sequential(*layers)
+
+
+def encoded_size(image_size: int, layers: int) -> int:
+    """Side of the feature map after `layers` stride-2 convolutions of `conv_encoder`."""
+    for _ in range(layers):
+        image_size = (image_size + 1) // 2
+    return image_size
+
+
+class PairCNN(nn.Module):
+    """Stacked image pair -> `out_dim` numbers (spec section 5).
+
+    Paper: 7 convolutions 6 -> 64 -> 128 -> 256 -> 512 -> 1024 -> 1024 -> 1024 (224 -> 2 pixels),
+    flatten (4096) -> Linear 512 -> PReLU -> Linear out_dim.
+
+    Args:
+        out_dim: size of the representation (`${rep.out_dim}`).
+        in_channels: channels of the stacked pair (`${data.pair_channels}`: 6 KITTI, 2 MAV).
+        image_size: S of the S x S input (`${data.image_size}`).
+        channels: widths of the convolutions.
+        hidden: width of the hidden linear layer.
+
+    Input (B, in_channels, S, S); output (B, out_dim).
+    """
+
+    def __init__(
+        self,
+        out_dim: int,
+        in_channels: int = 6,
+        image_size: int = 224,
+        channels: Sequence[int] = (64, 128, 256, 512, 1024, 1024, 1024),
+        hidden: int = 512,
+    ) -> None:
+        super().__init__()
+        self.in_channels = in_channels
+        self.encoder = conv_encoder(in_channels, channels)
+        flat = channels[-1] * encoded_size(image_size, len(channels)) ** 2
+        self.regressor = mlp([flat, hidden, out_dim])
+
+    def forward(self, pairs: Tensor) -> Tensor:
+        return self.regressor(self.encoder(pairs).flatten(1))
