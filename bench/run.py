@@ -4,6 +4,8 @@
   validation on 100), per representation, through the real Lightning pipeline.
 - heads: microseconds per sample of each head's forward and forward+backward at a large batch.
 - bingham: log N(Lambda) and its gradient per sample (bench/bingham.py).
+- kitti_loader: first-time KITTI preprocessing rate and cached pairs/s with 2 workers
+  (bench/kitti_loader.py).
 - paper: the paper's synthetic experiment (lr 5e-4, 50 epochs, phi_max 180) over 3 seeds per
   representation, beside the numbers of the authors' code (spec section 10; issue 2).
 
@@ -122,7 +124,11 @@ def bench_paper(reps: list[str], seeds: list[int]) -> dict:
     return {"runs": rows, "authors": AUTHORS}
 
 
-SCRIPTS = {"bingham": "bingham.py", "rep_layers": "rep_layers.py"}  # benchmarks with their own CLI
+SCRIPTS = {
+    "bingham": "bingham.py",
+    "rep_layers": "rep_layers.py",
+    "kitti_loader": "kitti_loader.py",
+}  # benchmarks with their own CLI
 
 
 def _run_script(name: str) -> None:

@@ -28,8 +28,8 @@ def draw_erasing_boxes(
     """Random erasing boxes, one per image.
 
     The area fraction a ~ U(area) and the log aspect ratio ~ U(log aspect); where the box would
-    not fit in the image, the aspect ratio is clamped to the largest range that fits (instead of
-    torchvision's retries), so every box has its drawn area. Integer rounding moves the area
+    not fit in the image, the aspect ratio is clamped to the range that fits, [a H / W, H / (a W)]
+    (never empty), instead of torchvision's retries, so every box has its drawn area. Integer rounding moves the area
     fraction by at most 0.5 / min(height, width) beyond `area`.
 
     Args:
@@ -47,8 +47,8 @@ def draw_erasing_boxes(
         math.log(aspect[0]), math.log(aspect[1]), generator=generator
     )
     pixels = a * height * width
-    # h = sqrt(a H W r) <= H and w = sqrt(a H W / r) <= W  <=>  a W / H <= r <= H / (a W)
-    r = log_r.exp().clamp(a * width / height, height / (a * width))
+    # h = sqrt(a H W r) <= H and w = sqrt(a H W / r) <= W  <=>  a H / W <= r <= H / (a W)
+    r = log_r.exp().clamp(a * height / width, height / (a * width))
     h = (pixels * r).sqrt().round().clamp(1, height)
     w = (pixels / h).round().clamp(1, width)
     u = torch.rand(count, 2, dtype=torch.float64, generator=generator)

@@ -207,6 +207,11 @@ class ImagePairDataModule(pl.LightningDataModule):
     def train_dataloader(self) -> DataLoader:
         return self._loader("train", self.batch_size, shuffle=True)
 
+    def eval_loader(self, split: str) -> DataLoader:
+        """The pairs of `split` in their fixed order, unshuffled, in evaluation batches (the
+        OOD evaluation scores the training set with it)."""
+        return self._loader(split, self.eval_batch_size)
+
     def val_dataloader(self) -> DataLoader | list:
         return self._loader("val", self.eval_batch_size) if len(self.sets["val"]) else []
 

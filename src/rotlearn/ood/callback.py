@@ -1,0 +1,240 @@
+"""`callbacks=ood`: OOD evaluation at test time (paper section V-A, Table I, Fig. 6-8).
+
+After the regular test, the callback scores the TRAINING set (unshuffled, unaugmented), sets a
+threshold per score and quantile (`rotlearn.ood.scores.quantile_threshold`), and evaluates the
+clean test set and the same test set with its last `corrupt_fraction` randomly erased. It writes
+`ood.csv` (one row per score, quantile and test set) and a Table I-style `ood.md` to the run
+directory, and logs scalars and figures (precision-recall curve over q, score-vs-error scatter,
+box plots of the score on train / test / corrupted / pure-noise inputs) to TensorBoard.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+from typing import Any
+
+import lightning.pytorch as pl
+import numpy as np
+import torch
+from lightning.pytorch.loggers import TensorBoardLogger
+from torch import Tensor
+
+from rotlearn.data.corruption import corrupted_flags
+from rotlearn.errors import ConfigValueError
+from rotlearn.geometry import angle_deg
+from rotlearn.io import write_text_atomic
+from rotlearn.ood.evaluation import rejection_row
+from rotlearn.ood.scores import SCORES, Score, available_scores
+
+__all__ = ["OODEvaluation", "pr_quantiles"]
+
+log = logging.getLogger("rotlearn")
+
+
+def pr_quantiles(start: float = 0.05, stop: float = 0.97, step: float = 0.02) -> list[float]:
+    """The quantiles of the precision-recall curve (spec section 6: 0.05 to 0.97 by 0.02)."""
+    return [round(q, 6) for q in np.arange(start, stop + step / 2, step)]
+
+
+class OODEvaluation(pl.Callback):
+    """Score, threshold and evaluate OOD rejection when the test loop ends (module docstring).
+
+    Args:
+        quantiles: fractions of the training scores kept, each in [0, 1] (paper: 0.75 KITTI,
+            0.5 MAV, 1.0 for the auto-encoder).
+        scores: among dt, eigengap, raw_norm, autoencoder; those the head cannot give (dt and
+            eigengap need the A head) or that lack a checkpoint (autoencoder) are skipped.
+        autoencoder_ckpt: checkpoint of `rotlearn-train experiment=<data>_autoencoder`.
+        corrupt_fraction: the last fraction of the test set that is erased for the corrupted set.
+        table: score -> quantile shown in `ood.md`'s Table I (others: the largest quantile <= 0.75).
+        noise_pairs: pure-noise input pairs scored for the box plots.
+        max_train_pairs: score at most this many training pairs (evenly spaced); null: all.
+    """
+
+    def __init__(
+        self,
+        quantiles: list[float] = (0.25, 0.5, 0.75, 1.0),
+        scores: list[str] = ("dt", "eigengap", "raw_norm", "autoencoder"),
+        autoencoder_ckpt: str | None = None,
+        corrupt_fraction: float = 0.5,
+        table: dict[str, float] | None = None,
+        noise_pairs: int = 64,
+        max_train_pairs: int | None = None,
+    ) -> None:
+        super().__init__()
+        self.quantiles = [float(q) for q in quantiles]
+        bad = [q for q in self.quantiles if not 0.0 <= q <= 1.0 or math.isnan(q)]
+        if bad or not self.quantiles:
+            raise ConfigValueError("quantiles", f"each must lie in [0, 1], got {list(quantiles)}")
+        unknown = sorted(set(scores) - set(SCORES))
+        if unknown:
+            raise ConfigValueError("scores", f"unknown {unknown}; choose from {sorted(SCORES)}")
+        if autoencoder_ckpt and not Path(autoencoder_ckpt).exists():
+            raise ConfigValueError("autoencoder_ckpt", f"{autoencoder_ckpt} does not exist")
+        if not 0.0 < corrupt_fraction <= 1.0:
+            raise ConfigValueError(
+                "corrupt_fraction", f"must lie in (0, 1], got {corrupt_fraction}"
+            )
+        self.score_names = list(scores)
+        self.autoencoder_ckpt = autoencoder_ckpt
+        self.corrupt_fraction = float(corrupt_fraction)
+        self.table = {"autoencoder": 1.0, **(table or {})}
+        self.noise_pairs, self.max_train_pairs = int(noise_pairs), max_train_pairs
+        self.rows: list[dict[str, Any]] = []
+
+    # -- collecting scores ---------------------------------------------------------------------
+
+    def _autoencoder(self, device: torch.device):
+        if not self.autoencoder_ckpt or "autoencoder" not in self.score_names:
+            return None
+        from rotlearn.lit.autoencoder import load_autoencoder
+
+        return load_autoencoder(self.autoencoder_ckpt, device=device)
+
+    def _score_batch(
+        self, module, autoencoder, scores: list[Score], batch: dict
+    ) -> dict[str, Tensor]:
+        prediction = module(batch["input"])
+        out = {"error": angle_deg(prediction.R, batch["R"]).double()}
+        for score in scores:
+            values = autoencoder.score(batch["input"]) if score.fn is None else score.fn(prediction)
+            out[score.name] = values.double()
+        return out
+
+    def _collect(self, trainer, module, autoencoder, scores, loader, corrupt: Tensor | None):
+        dm = trainer.datamodule
+        parts: list[dict[str, Tensor]] = []
+        for batch in loader:
+            batch = {k: v.to(module.device) for k, v in batch.items()}
+            flags = torch.zeros_like(batch["corrupted"])
+            if corrupt is not None:
+                flags = corrupt.to(module.device)[batch["index"]]
+            batch = dm.on_after_batch_transfer({**batch, "corrupted": flags}, 0)
+            part = self._score_batch(module, autoencoder, scores, batch)
+            part["corrupted"] = flags
+            parts.append({k: v.cpu() for k, v in part.items()})
+        return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+
+    def _noise(self, trainer, module, autoencoder, scores) -> dict[str, Tensor]:
+        dm = trainer.datamodule
+        sample = dm.sets["test"].__getitems__([0])
+        shape = (self.noise_pairs, *sample["input"].shape[1:])
+        generator = torch.Generator().manual_seed(dm.seed + 99)
+        noise = torch.randint(0, 256, shape, generator=generator, dtype=torch.uint8)
+        n = self.noise_pairs
+        batch = {
+            "input": noise,
+            "R": torch.eye(3).expand(n, 3, 3),
+            "q": torch.tensor([0.0, 0.0, 0.0, 1.0]).expand(n, 4),
+            "corrupted": torch.zeros(n, dtype=torch.bool),
+            "boxes": torch.zeros(n, 2, 4, dtype=torch.long),
+        }
+        batch = dm.on_after_batch_transfer({k: v.to(module.device) for k, v in batch.items()}, 0)
+        return {
+            k: v.cpu() for k, v in self._score_batch(module, autoencoder, scores, batch).items()
+        }
+
+    # -- the evaluation --------------------------------------------------------------------------
+
+    def on_test_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        dm = trainer.datamodule
+        if not hasattr(dm, "eval_loader"):
+            raise ConfigValueError(
+                "callbacks.ood", "needs an image-pair datamodule (data=kitti or data=mav)"
+            )
+        if not trainer.is_global_zero:
+            return
+        was_training = pl_module.training
+        pl_module.eval()
+        with torch.inference_mode():
+            results = self._evaluate(trainer, pl_module)
+        pl_module.train(was_training)
+        self._write(trainer, pl_module, *results)
+
+    def _evaluate(self, trainer, module):
+        dm = trainer.datamodule
+        autoencoder = self._autoencoder(module.device)
+        probe = module(dm.on_after_batch_transfer(
+            {k: v.to(module.device) for k, v in dm.sets["test"].__getitems__([0]).items()}, 0
+        )["input"])  # fmt: skip
+        scores = available_scores(
+            self.score_names, probe.eigenvalues is not None, autoencoder is not None
+        )
+        train_loader = dm.eval_loader("train")
+        if self.max_train_pairs and len(dm.sets["train"]) > self.max_train_pairs:
+            keep = np.linspace(0, len(dm.sets["train"]) - 1, self.max_train_pairs).astype(int)
+            subset = torch.utils.data.Subset(dm.sets["train"], keep.tolist())
+            train_loader = torch.utils.data.DataLoader(
+                subset, batch_size=dm.eval_batch_size, collate_fn=train_loader.collate_fn
+            )
+        sets = {"train": self._collect(trainer, module, autoencoder, scores, train_loader, None)}
+        test_loader = dm.eval_loader("test")
+        sets["clean"] = self._collect(trainer, module, autoencoder, scores, test_loader, None)
+        flags = corrupted_flags(len(dm.sets["test"]), self.corrupt_fraction)
+        sets["corrupted"] = self._collect(trainer, module, autoencoder, scores, test_loader, flags)
+        sets["noise"] = self._noise(trainer, module, autoencoder, scores)
+        rows = []
+        for score in scores:
+            nan_count = {k: int((~torch.isfinite(v[score.name])).sum()) for k, v in sets.items()}
+            if any(nan_count.values()):
+                log.warning("OOD score %s is NaN or inf for %s samples (never kept)", score.name,
+                            nan_count)  # fmt: skip
+            for test_set in ("clean", "corrupted"):
+                data = sets[test_set]
+                for q in sorted(set(self.quantiles) | {self._table_q(score.name)}):
+                    row = rejection_row(
+                        score, q, sets["train"][score.name], data[score.name], data["error"],
+                        data["corrupted"],
+                    )  # fmt: skip
+                    rows.append({"set": test_set, "in_table": q == self._table_q(score.name),
+                                 "listed": q in self.quantiles, **row})  # fmt: skip
+        self.rows = rows
+        return scores, sets, rows
+
+    def _table_q(self, name: str) -> float:
+        if name in self.table:
+            return float(self.table[name])
+        below = [q for q in self.quantiles if q <= 0.75]
+        return max(below) if below else min(self.quantiles)
+
+    # -- outputs ---------------------------------------------------------------------------------
+
+    def _write(self, trainer, module, scores, sets, rows) -> None:
+        import pandas as pd
+
+        from rotlearn.ood.report import ood_markdown
+
+        run_dir = Path(trainer.default_root_dir)
+        rep = getattr(module.head, "name", type(module.head).__name__)
+        frame = pd.DataFrame(rows)
+        frame.insert(0, "rep", rep)
+        listed = frame[frame["listed"]].drop(columns=["listed"])
+        write_text_atomic(run_dir / "ood.csv", listed.to_csv(index=False))
+        errors = {k: sets[k]["error"] for k in ("clean", "corrupted")}
+        write_text_atomic(run_dir / "ood.md", ood_markdown(rep, frame, errors))
+        log.info("OOD evaluation: %s", run_dir / "ood.md")
+        for logger in trainer.loggers:
+            if isinstance(logger, TensorBoardLogger):
+                self._log_tensorboard(logger.experiment, scores, sets, frame, trainer.global_step)
+
+    def _log_tensorboard(self, writer, scores, sets, frame, step: int) -> None:
+        from rotlearn.ood.report import box_figure, pr_figure, scatter_figure
+
+        for row in frame[frame["listed"]].itertuples():
+            prefix = f"ood/{row.score}/q{row.q:g}/{row.set}"
+            for key in ("kept_pct", "err_mean_kept", "precision", "recall", "auroc", "spearman"):
+                value = getattr(row, key)
+                if not (isinstance(value, float) and math.isnan(value)):
+                    writer.add_scalar(f"{prefix}/{key}", value, step)
+        for score in scores:
+            curve = [
+                rejection_row(score, q, sets["train"][score.name], sets["corrupted"][score.name],
+                              sets["corrupted"]["error"], sets["corrupted"]["corrupted"])
+                for q in pr_quantiles()
+            ]  # fmt: skip
+            writer.add_figure(f"ood/{score.name}/precision_recall", pr_figure(score, curve), step)
+            writer.add_figure(f"ood/{score.name}/score_vs_error", scatter_figure(score, sets), step)
+            writer.add_figure(f"ood/{score.name}/boxes", box_figure(score, sets), step)
+        writer.flush()

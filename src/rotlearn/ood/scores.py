@@ -1,0 +1,98 @@
+"""OOD scores of a prediction, each with its direction, and the one quantile-threshold rule.
+
+A score maps a prediction to (B,) numbers. `keep_below` says which side is confident: DT's
+tr(Lambda) and the auto-encoder's reconstruction error keep LOW scores; the eigen-gap and the
+norm of the raw output keep HIGH scores (spec section 6).
+
+Thresholds: for a quantile q, the threshold is set so that a fraction q of the TRAINING scores
+falls on the kept side: the q-quantile of the training scores for keep-below scores (the paper's
+rule, kept if score < threshold), the (1 - q)-quantile for keep-above scores (kept if score >
+threshold). A NaN score is never kept.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from rotlearn.bingham import dispersion_from_eigenvalues
+from rotlearn.heads import RotationPrediction
+
+__all__ = ["SCORES", "Score", "available_scores", "keep_mask", "quantile_threshold"]
+
+
+@dataclass(frozen=True)
+class Score:
+    """An OOD score: `fn(prediction) -> (B,)`, kept below (or above) a threshold."""
+
+    name: str
+    keep_below: bool
+    fn: Callable[[RotationPrediction], Tensor] | None
+    needs_eigenvalues: bool = False
+    description: str = ""
+
+
+def dt(prediction: RotationPrediction) -> Tensor:
+    """tr(Lambda) = sum of the dispersion coefficients, 3 l1 - l2 - l3 - l4 <= 0 (paper eq. 26)."""
+    return dispersion_from_eigenvalues(prediction.eigenvalues).sum(-1)
+
+
+def first_eigengap(prediction: RotationPrediction) -> Tensor:
+    """l2 - l1 >= 0, the gap that makes the mode unique."""
+    ev = prediction.eigenvalues
+    return ev[..., 1] - ev[..., 0]
+
+
+def raw_norm(prediction: RotationPrediction) -> Tensor:
+    """||raw network output||, for every head (the paper's remark in section V-A)."""
+    return torch.linalg.vector_norm(prediction.raw, dim=-1)
+
+
+SCORES: dict[str, Score] = {
+    "dt": Score("dt", True, dt, True, "tr(Lambda), dispersion thresholding (A + DT)"),
+    "eigengap": Score("eigengap", False, first_eigengap, True, "first eigen-gap l2 - l1"),
+    "raw_norm": Score("raw_norm", False, raw_norm, False, "norm of the raw network output"),
+    "autoencoder": Score("autoencoder", True, None, False, "auto-encoder L1 reconstruction error"),
+}
+
+
+def available_scores(names: list[str], has_eigenvalues: bool, has_autoencoder: bool) -> list[Score]:
+    """The scores among `names` that a head (with or without eigenvalues) and an optional
+    auto-encoder can give."""
+    unknown = sorted(set(names) - set(SCORES))
+    if unknown:
+        raise ValueError(f"unknown OOD score(s) {unknown}; choose from {sorted(SCORES)}")
+    return [
+        SCORES[n]
+        for n in names
+        if (has_eigenvalues or not SCORES[n].needs_eigenvalues)
+        and (has_autoencoder or n != "autoencoder")
+    ]
+
+
+def quantile_threshold(train_scores: Tensor, q: float, keep_below: bool) -> float:
+    """The threshold that keeps a fraction q of the (finite) training scores.
+
+    Args:
+        train_scores: (N,) scores of the training set.
+        q: in [0, 1]; the q-quantile (keep-below) or (1 - q)-quantile (keep-above), linear
+            interpolation as numpy's default.
+        keep_below: the score's direction.
+
+    Raises:
+        ValueError: if q is outside [0, 1] or no training score is finite.
+    """
+    if not 0.0 <= q <= 1.0:
+        raise ValueError(f"quantile {q} outside [0, 1]")
+    finite = train_scores[torch.isfinite(train_scores)].double()
+    if finite.numel() == 0:
+        raise ValueError("no finite training score to take a quantile of")
+    return float(torch.quantile(finite, q if keep_below else 1.0 - q))
+
+
+def keep_mask(scores: Tensor, threshold: float, keep_below: bool) -> Tensor:
+    """(N,) bool: score < threshold (keep-below) or score > threshold (keep-above); NaN never."""
+    return scores < threshold if keep_below else scores > threshold

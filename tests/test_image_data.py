@@ -1,0 +1,362 @@
+"""KITTI and MAV readers, the frame cache and corruption, on tiny datasets written here."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from rotlearn.data import (
+    KittiOdometryDataModule,
+    MAVDataModule,
+    corrupted_flags,
+    draw_erasing_boxes,
+    erase_boxes,
+    match_poses,
+    read_kitti_poses,
+)
+from rotlearn.geometry import angle_deg, relative_rotation, so3_exp
+
+cv2 = pytest.importorskip("cv2")
+
+
+def rot_y(deg: float) -> np.ndarray:
+    return so3_exp(torch.tensor([0.0, math.radians(deg), 0.0], dtype=torch.float64)).numpy()
+
+
+def pose_line(R: np.ndarray, t=(0.0, 0.0, 0.0)) -> str:
+    return " ".join(f"{v:e}" for v in np.hstack([R, np.asarray(t)[:, None]]).ravel())
+
+
+def write_kitti(root: Path, rotations: dict[str, list[np.ndarray]], size=(24, 16), seed=0) -> Path:
+    """sequences/XX/image_2/NNNNNN.png (random colour) and poses/XX.txt for each sequence."""
+    rng = np.random.default_rng(seed)
+    (root / "poses").mkdir(parents=True, exist_ok=True)
+    for seq, Rs in rotations.items():
+        folder = root / "sequences" / seq / "image_2"
+        folder.mkdir(parents=True, exist_ok=True)
+        for i in range(len(Rs)):
+            image = rng.integers(0, 256, (size[1], size[0], 3), dtype=np.uint8)
+            cv2.imwrite(str(folder / f"{i:06d}.png"), image)
+        lines = [pose_line(R, (0.0, 0.0, float(i))) for i, R in enumerate(Rs)]
+        (root / "poses" / f"{seq}.txt").write_text("\n".join(lines) + "\n")
+    return root
+
+
+def kitti_module(root: Path, **kwargs) -> KittiOdometryDataModule:
+    defaults = {"train_sequences": ["01"], "test_sequences": ["00"], "image_size": 8}
+    return KittiOdometryDataModule(str(root), num_workers=0, **{**defaults, **kwargs})
+
+
+def yaw_sequence(n: int, step_deg: float) -> list[np.ndarray]:
+    return [rot_y(step_deg * i) for i in range(n)]
+
+
+# -- relative-rotation convention --------------------------------------------------------------
+
+
+def test_relative_rotation_maps_camera_1_directions_to_camera_2():
+    """A world direction seen from two camera-to-world orientations: d_2 = C_21 d_1."""
+    g = torch.Generator().manual_seed(0)
+    R_w1 = so3_exp(torch.randn(5, 3, generator=g, dtype=torch.float64))
+    R_w2 = so3_exp(torch.randn(5, 3, generator=g, dtype=torch.float64))
+    d_w = torch.randn(5, 3, 1, generator=g, dtype=torch.float64)
+    d_1, d_2 = R_w1.mT @ d_w, R_w2.mT @ d_w
+    torch.testing.assert_close(relative_rotation(R_w1, R_w2) @ d_1, d_2)
+
+
+def test_kitti_target_of_a_known_yaw(tmp_path):
+    """The camera turns +3 degrees about its y axis (down) per frame: a point straight ahead in
+    frame i lies at -3 degrees about y in frame i + 1, so C_21 = Exp(-3 deg * y)."""
+    root = write_kitti(tmp_path, {"00": yaw_sequence(4, 3.0), "01": yaw_sequence(3, 1.0)})
+    dm = kitti_module(root)
+    dm.setup()
+    test = dm.sets["test"]
+    assert len(test) == 3 and len(dm.sets["train"]) == 2
+    expected = torch.from_numpy(rot_y(-3.0)).float().expand(3, 3, 3)
+    torch.testing.assert_close(test.R, expected, atol=1e-6, rtol=0)
+    ahead = torch.tensor([0.0, 0.0, 1.0])
+    moved = test.R[0] @ ahead
+    assert moved[0] < 0  # the point ahead moves to the left (x right, y down, z forward)
+
+
+def test_delta_pairs_frames_delta_apart(tmp_path):
+    root = write_kitti(tmp_path, {"00": yaw_sequence(6, 2.0), "01": yaw_sequence(3, 1.0)})
+    dm = kitti_module(root, delta=2)
+    dm.setup()
+    test = dm.sets["test"]
+    assert list(test.index.second - test.index.first) == [2] * 4
+    assert torch.allclose(angle_deg(test.R, torch.eye(3)), torch.tensor(4.0), atol=1e-3)
+
+
+def test_batches_stack_the_two_frames_as_channels(tmp_path):
+    root = write_kitti(tmp_path, {"00": yaw_sequence(4, 1.0), "01": yaw_sequence(3, 1.0)})
+    dm = kitti_module(root)
+    dm.setup()
+    frames = np.load(dm.sets["test"].index.caches[0])
+    batch = dm.sets["test"].__getitems__([2, 0])
+    assert batch["input"].shape == (2, 6, 8, 8) and batch["input"].dtype == torch.uint8
+    assert np.array_equal(batch["input"][0, :3].numpy(), frames[2])
+    assert np.array_equal(batch["input"][0, 3:].numpy(), frames[3])
+    floats = dm.on_after_batch_transfer(batch, 0)["input"]
+    assert floats.dtype == torch.float32 and float(floats.max()) <= 1.0
+
+
+# -- frame cache -------------------------------------------------------------------------------
+
+
+def test_cache_is_reused_without_decoding(tmp_path, monkeypatch):
+    root = write_kitti(tmp_path, {"00": yaw_sequence(4, 1.0), "01": yaw_sequence(3, 1.0)})
+    kitti_module(root).setup()
+    cached = sorted((root / ".rotlearn_cache").glob("*.npy"))
+    assert [p.name for p in cached] == ["00_image_2_8.npy", "01_image_2_8.npy"]
+
+    def no_decoding(*args, **kwargs):
+        raise AssertionError("the cache should have been reused")
+
+    monkeypatch.setattr(cv2, "imread", no_decoding)
+    dm = kitti_module(root)
+    dm.setup()
+    assert len(dm.sets["test"]) == 3
+    monkeypatch.undo()
+    # another image size is another cache
+    kitti_module(root, image_size=6).setup()
+    assert (root / ".rotlearn_cache" / "00_image_2_6.npy").is_file()
+
+
+def test_a_changed_frame_rebuilds_the_cache(tmp_path):
+    root = write_kitti(tmp_path, {"00": yaw_sequence(4, 1.0), "01": yaw_sequence(3, 1.0)})
+    kitti_module(root).setup()
+    frame = root / "sequences" / "00" / "image_2" / "000001.png"
+    cv2.imwrite(str(frame), np.zeros((16, 24, 3), np.uint8))
+    dm = kitti_module(root)
+    dm.setup()
+    assert not np.load(dm.sets["test"].index.caches[0])[1].any()
+
+
+# -- KITTI bad input ---------------------------------------------------------------------------
+
+
+def test_poses_with_fewer_lines_than_images_are_refused(tmp_path):
+    root = write_kitti(tmp_path, {"00": yaw_sequence(4, 1.0), "01": yaw_sequence(3, 1.0)})
+    poses = root / "poses" / "00.txt"
+    poses.write_text("\n".join(poses.read_text().splitlines()[:3]) + "\n")
+    with pytest.raises(ValueError, match=r"00\.txt: 3 poses, but .*image_2 holds 4 frames"):
+        kitti_module(root).setup()
+
+
+def test_a_pose_line_that_is_not_12_numbers_is_named(tmp_path):
+    path = tmp_path / "07.txt"
+    path.write_text(pose_line(np.eye(3)) + "\n1 0 0 0 0 1 0 0 0 0 1\n")
+    with pytest.raises(ValueError, match=r"07\.txt:2: expected 12 numbers .* got 11"):
+        read_kitti_poses(path)
+    path.write_text(pose_line(np.eye(3)).replace("0.000000e+00", "nan?", 1) + "\n")
+    with pytest.raises(ValueError, match=r"07\.txt:1: not a number"):
+        read_kitti_poses(path)
+
+
+def test_a_non_orthonormal_rotation_is_named(tmp_path):
+    path = tmp_path / "00.txt"
+    sheared = np.eye(3)
+    sheared[0, 1] = 0.05
+    path.write_text(f"{pose_line(np.eye(3))}\n{pose_line(rot_y(5))}\n{pose_line(sheared)}\n")
+    with pytest.raises(ValueError, match=r"00\.txt:3: the rotation is not orthonormal"):
+        read_kitti_poses(path)
+    reflection = np.diag([1.0, 1.0, -1.0])
+    path.write_text(f"{pose_line(reflection)}\n")
+    with pytest.raises(ValueError, match=r"00\.txt:1: .*det = -1"):
+        read_kitti_poses(path)
+
+
+def test_poses_are_projected_onto_so3(tmp_path):
+    path = tmp_path / "00.txt"
+    noisy = rot_y(30) + 1e-5
+    path.write_text(pose_line(noisy) + "\n")
+    R = read_kitti_poses(path)[0, :, :3]
+    assert np.abs(R.T @ R - np.eye(3)).max() < 1e-12
+
+
+def test_an_unreadable_image_is_named_and_no_cache_is_left(tmp_path):
+    root = write_kitti(tmp_path, {"00": yaw_sequence(4, 1.0), "01": yaw_sequence(3, 1.0)})
+    bad = root / "sequences" / "00" / "image_2" / "000002.png"
+    bad.write_bytes(b"not a png")
+    with pytest.raises(ValueError, match=r"000002\.png: cannot be read as an image"):
+        kitti_module(root).setup()
+    leftovers = [p.name for p in (root / ".rotlearn_cache").iterdir() if p.name.startswith("00")]
+    hidden = [p.name for p in (root / ".rotlearn_cache").iterdir() if p.name.startswith(".")]
+    assert leftovers == [] and hidden == []
+
+
+def test_a_missing_sequence_directory_is_named(tmp_path):
+    root = write_kitti(tmp_path, {"00": yaw_sequence(4, 1.0)})
+    with pytest.raises(
+        FileNotFoundError, match=r"sequence 01: no directory .*sequences/01/image_2"
+    ):
+        kitti_module(root).setup()
+
+
+def test_sequence_names_from_the_command_line_are_zero_padded(tmp_path):
+    dm = KittiOdometryDataModule(str(tmp_path), train_sequences=[0, 2, "05"], test_sequences=[2])
+    assert dm.train_sequences == ["00", "05"] and dm.test_sequences == ["02"]
+
+
+# -- MAV -----------------------------------------------------------------------------------------
+
+
+def write_mav(root: Path, frames: int = 12, pose_gap_after: int | None = None) -> Path:
+    """Frames at 20 Hz (jittered), poses at 100 Hz of a steady yaw of 20 deg/s; three scenes."""
+    rng = np.random.default_rng(1)
+    (root / "flea3" / "data").mkdir(parents=True)
+    (root / "pose").mkdir()
+    (root / "pairs").mkdir()
+    t_frames = (np.arange(frames) * 50e6 + rng.integers(-2e6, 2e6, frames) + 1e9).astype(np.int64)
+    rows = ["#timestamp [ns],filename"]
+    for t in t_frames:
+        cv2.imwrite(
+            str(root / "flea3" / "data" / f"{t}.png"), rng.integers(0, 256, (20, 26), np.uint8)
+        )
+        rows.append(f"{t},{t}.png")
+    (root / "flea3" / "data.csv").write_text("\n".join(rows) + "\n")
+    t_poses = np.arange(0, frames * 50e6 + 1e9 + 20e6, 10e6).astype(np.int64)
+    if pose_gap_after is not None:  # no pose for 100 ms after frame `pose_gap_after`
+        t0 = t_frames[pose_gap_after]
+        t_poses = t_poses[(t_poses < t0 - 50e6) | (t_poses > t0 + 50e6)]
+    rows = ["#timestamp, p_x, p_y, p_z, q_w, q_x, q_y, q_z"]
+    for t in t_poses:
+        half = math.radians(20.0 * t / 1e9) / 2
+        rows.append(f"{t},0,0,0,{math.cos(half):.9f},0,{math.sin(half):.9f},0")
+    (root / "pose" / "data.csv").write_text("\n".join(rows) + "\n")
+    third = frames // 3
+    for scene, (lo, hi) in {"outdoor": (0, third), "transition": (third, 2 * third),
+                            "indoor": (2 * third, frames)}.items():  # fmt: skip
+        pairs = "\n".join(f"{i},{i + 1}" for i in range(lo, hi - 1))
+        (root / "pairs" / f"{scene}.csv").write_text(pairs + "\n")
+    return root
+
+
+def mav_module(root: Path, **kwargs) -> MAVDataModule:
+    defaults = {"resize": 10, "image_size": 8, "test_fraction": 0.25}
+    return MAVDataModule(str(root), num_workers=0, **{**defaults, **kwargs})
+
+
+def test_nearest_pose_matching():
+    poses = np.array([0, 10, 20, 30], dtype=np.int64)
+    frames = np.array([-3, 4, 6, 15, 29, 100], dtype=np.int64)
+    nearest, gaps = match_poses(frames, poses)
+    assert nearest.tolist() == [0, 0, 1, 1, 3, 3]  # a tie (15) takes the earlier pose
+    assert gaps.tolist() == [3, 4, 4, 5, 1, 70]
+
+
+def test_mav_targets_follow_the_matched_poses(tmp_path):
+    root = write_mav(tmp_path)
+    dm = mav_module(root, test_scenes=["outdoor", "indoor"])
+    dm.setup()
+    train, test = dm.sets["train"], dm.sets["test"]
+    assert len(train) + len(dm.load("test")) > 0
+    assert set(test.index.names) == {"outdoor", "indoor"}
+    # 20 deg/s over ~50 ms: about 1 degree per pair, up to the 4 ms frame jitter
+    angles = angle_deg(torch.cat([train.R, test.R]), torch.eye(3))
+    assert ((angles > 0.75) & (angles < 1.3)).all()
+    batch = test.__getitems__(list(range(len(test))))
+    assert batch["input"].shape[1:] == (2, 8, 8)
+    x = dm.on_after_batch_transfer(batch, 0)["input"]
+    torch.testing.assert_close(x, (batch["input"].float() / 255 - 0.45) / 0.25)
+
+
+def test_mav_test_split_is_seeded_and_disjoint(tmp_path):
+    root = write_mav(tmp_path, frames=30)
+    a, b, c = mav_module(root), mav_module(root), mav_module(root, seed=1)
+    for dm in (a, b, c):
+        dm.setup()
+    key = lambda dm, s: set(dm.sets[s].index.first.tolist())  # noqa: E731
+    assert key(a, "test") == key(b, "test")
+    assert not key(a, "test") & key(a, "train")
+    assert key(a, "test") != key(c, "test")
+
+
+def test_a_pair_naming_a_missing_frame_is_refused(tmp_path):
+    root = write_mav(tmp_path)
+    (root / "pairs" / "outdoor.csv").write_text("0,1\n1,2\n2,99\n")
+    with pytest.raises(ValueError, match=r"outdoor\.csv:3: frame 99 does not exist .*12 frames"):
+        mav_module(root).setup()
+
+
+def test_a_pose_gap_beyond_the_tolerance_names_the_frame(tmp_path):
+    root = write_mav(tmp_path, pose_gap_after=1)
+    with pytest.raises(ValueError, match=r"data\.csv:3: frame 1 .* no pose within 30 ms"):
+        mav_module(root).setup()
+    mav_module(root, pose_tolerance_ms=80).setup()  # a looser tolerance accepts it
+
+
+def test_a_malformed_frame_list_line_is_named(tmp_path):
+    root = write_mav(tmp_path)
+    path = root / "flea3" / "data.csv"
+    lines = path.read_text().splitlines()
+    lines[4] = "123"
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(ValueError, match=r"data\.csv:5: expected 2 comma-separated fields"):
+        mav_module(root).setup()
+
+
+# -- corruption --------------------------------------------------------------------------------
+
+
+@settings(max_examples=30, deadline=None)
+@given(height=st.integers(8, 300), width=st.integers(8, 300), seed=st.integers(0, 2**31))
+def test_erasing_boxes_have_the_drawn_area_and_aspect(height, width, seed):
+    boxes = draw_erasing_boxes(200, height, width, torch.Generator().manual_seed(seed))
+    top, left, h, w = boxes.T.double()
+    assert ((top >= 0) & (left >= 0) & (top + h <= height) & (left + w <= width)).all()
+    tol = 0.5 / min(height, width) + 1.0 / (height * width)
+    area = h * w / (height * width)
+    assert ((area >= 0.25 - tol) & (area <= 0.5 + tol)).all()
+
+
+def test_erasing_statistics_and_determinism():
+    boxes = draw_erasing_boxes(4000, 224, 224, torch.Generator().manual_seed(3))
+    _, _, h, w = boxes.T.double()
+    area = h * w / 224**2
+    assert abs(float(area.mean()) - 0.375) < 0.01  # U[0.25, 0.5]
+    ratio = (h / w).log()
+    assert float(ratio.min()) > math.log(0.33) - 0.02 and float(ratio.max()) < math.log(3) + 0.02
+    assert abs(float(ratio.mean())) < 0.05  # log-uniform and symmetric
+    again = draw_erasing_boxes(4000, 224, 224, torch.Generator().manual_seed(3))
+    assert torch.equal(boxes, again)
+
+
+def test_erase_zeroes_exactly_the_boxes_of_flagged_samples():
+    images = torch.full((3, 6, 10, 12), 7, dtype=torch.uint8)
+    boxes = torch.tensor([[[1, 2, 3, 4], [0, 0, 10, 12]]] * 3)
+    out = erase_boxes(images, boxes, torch.tensor([True, False, True]))
+    assert torch.equal(out[1], images[1])
+    first, second = out[0, :3], out[0, 3:]
+    assert (first[:, 1:4, 2:6] == 0).all() and int((first == 0).sum()) == 3 * 12
+    assert (second == 0).all()
+    assert (images == 7).all()
+
+
+def test_corrupted_flags_mark_the_tail():
+    assert corrupted_flags(5, 0.5).tolist() == [False] * 3 + [True] * 2
+    assert corrupted_flags(10, 0.5).tolist() == [False] * 5 + [True] * 5
+    assert not corrupted_flags(7, 0.0).any() and corrupted_flags(7, 1.0).all()
+
+
+def test_corrupted_test_batches_are_erased_and_flagged(tmp_path):
+    root = write_kitti(tmp_path, {"00": yaw_sequence(9, 1.0), "01": yaw_sequence(3, 1.0)})
+    dm = kitti_module(root, corrupt_fraction=0.5, image_size=16)
+    dm.setup()
+    test = dm.sets["test"]
+    batch = test.__getitems__(list(range(len(test))))
+    assert batch["corrupted"].tolist() == [False] * 4 + [True] * 4
+    clean = dm.on_after_batch_transfer({**batch, "corrupted": torch.zeros(8, dtype=bool)}, 0)
+    erased = dm.on_after_batch_transfer(batch, 0)
+    changed = (clean["input"] != erased["input"]).flatten(1).any(1)
+    assert changed.tolist() == batch["corrupted"].tolist()
+    zero = (erased["input"][4:] == 0).float().mean(dim=(-1, -2))  # per image and channel
+    assert ((zero >= 0.25 - 0.05) & (zero <= 0.5 + 0.1)).all()
+    assert not dm.sets["val"].corrupted.any() and not dm.sets["train"].corrupted.any()
