@@ -25,7 +25,8 @@ from rotlearn.checkpoint import resolve_checkpoint
 from rotlearn.cli.schemas import ConfigError, validate
 from rotlearn.errors import ConfigValueError
 from rotlearn.io import write_json_atomic
-from rotlearn.lit import EpochTimer, RotationRegressor
+from rotlearn.lit import AutoEncoderModule, EpochTimer, RotationRegressor
+from rotlearn.nets import ConvAutoEncoder
 from rotlearn.paths import config_dir
 
 __all__ = ["ConfigError", "build", "main", "resume_arguments", "train"]
@@ -59,19 +60,35 @@ def _instantiate_all(cfg: DictConfig, key: str) -> list[Any]:
     return [_instantiate(cfg, f"{key}.{name}") for name in node]
 
 
-def build(cfg: DictConfig) -> tuple[RotationRegressor, pl.LightningDataModule, pl.Trainer]:
-    """Model, datamodule and trainer for a composed config (validated, seeds set first)."""
+def build(
+    cfg: DictConfig,
+) -> tuple[RotationRegressor | AutoEncoderModule, pl.LightningDataModule, pl.Trainer]:
+    """Model, datamodule and trainer for a composed config (validated, seeds set first).
+
+    `task=rotation` builds a `RotationRegressor`; `task=autoencoder` an `AutoEncoderModule`
+    (spec section 8: no head, no loss), whose net must be `net=autoencoder`."""
     validate(cfg)
+    task = cfg.get("task", "rotation")
+    if task not in ("rotation", "autoencoder"):
+        raise ConfigError(f"config key task: must be 'rotation' or 'autoencoder', got {task!r}")
     pl.seed_everything(cfg.seed, workers=True, verbose=False)
     datamodule = _instantiate(cfg, "data")
-    head = _instantiate(cfg, "rep")
+    head = _instantiate(cfg, "rep") if task == "rotation" else None
     net = _instantiate(cfg, "net")
-    loss = _instantiate(cfg, "loss")
-    optimizer = _instantiate(cfg, "optim")
-    scheduler = _instantiate(cfg, "scheduler") if OmegaConf.select(cfg, "scheduler") else None
-    model = RotationRegressor(
-        net=net, head=head, loss=loss, optimizer=optimizer, scheduler=scheduler
-    )
+    if isinstance(net, ConvAutoEncoder) != (task == "autoencoder"):
+        raise ConfigError(
+            f"config key task: task={task} cannot train net {cfg.net._target_} "
+            "(task=autoencoder goes with net=autoencoder, every other net with task=rotation)"
+        )
+    if task == "autoencoder":
+        model = AutoEncoderModule(net=net, optimizer=_instantiate(cfg, "optim"))
+    else:
+        loss = _instantiate(cfg, "loss")
+        optimizer = _instantiate(cfg, "optim")
+        scheduler = _instantiate(cfg, "scheduler") if OmegaConf.select(cfg, "scheduler") else None
+        model = RotationRegressor(
+            net=net, head=head, loss=loss, optimizer=optimizer, scheduler=scheduler
+        )
     model.run_config = OmegaConf.to_container(cfg, resolve=True)
     trainer = _instantiate(
         cfg,
@@ -137,26 +154,37 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     metrics.update(_scalars(trainer.callback_metrics))
 
     metrics = {k: v for k, v in metrics.items() if not k.startswith("time/")}
+    task = cfg.get("task", "rotation")
     metrics.update(
         {
             "epochs": trainer.current_epoch,
             "global_step": trainer.global_step,
             "seed": cfg.seed,
             "data_seed": OmegaConf.select(cfg, "data.seed"),
-            "rep": OmegaConf.select(cfg, "rep.name"),
+            "task": task,
             "tested_weights": "best" if ckpt_path else "last",
         }
     )
-    if trainer.checkpoint_callback and trainer.checkpoint_callback.best_model_score is not None:
-        metrics["best/val_err_mean"] = float(trainer.checkpoint_callback.best_model_score)
+    if task == "rotation":
+        metrics["rep"] = OmegaConf.select(cfg, "rep.name")
+    checkpoints = trainer.checkpoint_callback
+    if checkpoints and checkpoints.best_model_score is not None:  # best/val_err_mean, best/val_loss
+        metrics[f"best/{checkpoints.monitor.replace('/', '_')}"] = float(
+            checkpoints.best_model_score
+        )
     if trainer.is_global_zero:
         # metrics.json holds only what the config and seeds determine (identical on a rerun);
         # wall-clock times go beside it.
         write_json_atomic(run_dir / "timing.json", _timing(trainer))
-        if model.test_errors is not None:  # per-sample errors, for box plots (paper Fig. 4)
-            write_json_atomic(run_dir / "test_errors.json", model.test_errors.tolist())
+        test_errors = getattr(model, "test_errors", None)  # the auto-encoder has none
+        if test_errors is not None:  # per-sample errors, for box plots (paper Fig. 4)
+            write_json_atomic(run_dir / "test_errors.json", test_errors.tolist())
         write_json_atomic(run_dir / "metrics.json", metrics)
-        hp_metrics = {f"hp/{k.replace('/', '_')}": v for k, v in metrics.items() if "/err_" in k}
+        hp_metrics = {
+            f"hp/{k.replace('/', '_')}": v
+            for k, v in metrics.items()
+            if "/err_" in k or "/recon_" in k
+        }
         params = _flatten(OmegaConf.to_container(cfg, resolve=True))
         for logger in trainer.loggers:
             if isinstance(logger, TensorBoardLogger):  # its hparams tab shows these metrics
@@ -177,14 +205,21 @@ def _report(cfg: DictConfig, metrics: dict[str, Any]) -> None:
     tb = str(tensorboard) if tensorboard.exists() else "tensorboard"
     with contextlib.suppress(ValueError):
         tb = str(Path(tb).relative_to(Path.cwd()))
-    log.info(
-        "test error (%s head, %s weights): mean %.3f deg, median %.3f deg, p90 %.3f deg",
-        metrics.get("rep"),
-        metrics.get("tested_weights"),
-        metrics.get("test/err_mean", math.nan),
-        metrics.get("test/err_median", math.nan),
-        metrics.get("test/err_p90", math.nan),
-    )
+    if metrics.get("task") == "autoencoder":
+        log.info(
+            "test reconstruction error (auto-encoder, %s weights): mean L1 %.4f",
+            metrics.get("tested_weights"),
+            metrics.get("test/recon_mean", math.nan),
+        )
+    else:
+        log.info(
+            "test error (%s head, %s weights): mean %.3f deg, median %.3f deg, p90 %.3f deg",
+            metrics.get("rep"),
+            metrics.get("tested_weights"),
+            metrics.get("test/err_mean", math.nan),
+            metrics.get("test/err_median", math.nan),
+            metrics.get("test/err_p90", math.nan),
+        )
     log.info("run directory: %s (metrics.json, checkpoints/, tensorboard/)", shown)
     log.info("open TensorBoard: %s --logdir %s", tb, shown)
 

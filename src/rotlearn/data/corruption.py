@@ -29,8 +29,8 @@ def draw_erasing_boxes(
 
     The area fraction a ~ U(area) and the log aspect ratio ~ U(log aspect); where the box would
     not fit in the image, the aspect ratio is clamped to the range that fits, [a H / W, H / (a W)]
-    (never empty), instead of torchvision's retries, so every box has its drawn area. Integer rounding moves the area
-    fraction by at most 0.5 / min(height, width) beyond `area`.
+    (never empty), instead of torchvision's retries, so every box has its drawn area. Integer
+    rounding moves the area fraction by at most 0.5 / min(height, width) beyond `area`.
 
     Args:
         count: number of boxes.

@@ -16,8 +16,8 @@ MAV (EuRoC-like, `write_mav_demo`), `<out>/mav/`:
     flea3/data.csv        "#timestamp [ns],filename", then "<t_ns>,<t_ns>.png" per frame (~20 Hz)
     flea3/data/<t_ns>.png 8-bit grayscale frames
     pose/data.csv         "#timestamp [ns], p_RS_R_x [m], ..., q_RS_w [], q_RS_x [], q_RS_y [],
-                          q_RS_z []", 200 Hz: position and camera-to-world orientation R_wc as a
-                          Hamilton quaternion SCALAR FIRST (w, x, y, z; rotlearn itself uses x y z w)
+                          q_RS_z []", 200 Hz: position (m) and camera-to-world orientation R_wc
+                          as a Hamilton quaternion SCALAR FIRST (w x y z; rotlearn uses x y z w)
     pairs/{outdoor,transition,indoor}.csv   headerless "id1,id2" rows: consecutive frames (0-based
                           rows of flea3/data.csv) inside one scene
 Frame timestamps are jittered off the pose clock: match them to the nearest pose (within 30 ms).
@@ -178,11 +178,13 @@ def _periodic_noise(rng: np.random.Generator, height: int, width: int, cells: in
     return noise / max(float(noise.std()), 1e-6)
 
 
-def _octaves(rng: np.random.Generator, height: int, width: int, cells: Sequence[int], decay: float):
-    """Sum of `_periodic_noise` at each feature count in `cells`, amplitude cells ** -decay."""
-    total = np.zeros((height, width, 3), np.float32)
+def _octaves(rng: np.random.Generator, shape: tuple[int, int, int], cells: Sequence[int]):
+    """Sum of `_periodic_noise` of `shape` (H, W, C) at each feature count in `cells`, the
+    amplitude of each proportional to cells ** -0.25 (fine detail nearly as strong as coarse),
+    scaled to unit variance."""
+    total = np.zeros(shape, np.float32)
     for c in cells:
-        total += c**-decay * _periodic_noise(rng, height, width, c, 3)
+        total += c**-0.25 * _periodic_noise(rng, shape[0], shape[1], c, shape[2])
     return total / total.std()
 
 
@@ -216,33 +218,34 @@ def _random_shapes(rng: np.random.Generator, canvas: np.ndarray, count: int, pal
 
 
 def _outdoor_panorama(rng: np.random.Generator, width: int) -> np.ndarray:
-    """Equirectangular BGR uint8 (width // 2, width): a bright sky-to-ground gradient, coloured
-    multi-scale noise down to a few pixels, and many small bright shapes and lines."""
+    """Equirectangular BGR uint8 (width // 2, width): a bright sky over a darker green ground
+    (horizon at latitude 0), both shaded by multi-scale noise (features from 60 degrees down to
+    about 12 pixels) quantised into flat terraces (flat areas keep the PNGs small), under many
+    small shapes and lines of random colours."""
     height = width // 2
-    noise = _octaves(rng, height, width, (6, 24, 96, width // 12, width // 4), decay=0.25)
-    latitude = np.linspace(-1.0, 1.0, height, dtype=np.float32)[:, None, None]  # -1: up
-    sky, ground = np.array([200, 170, 130], np.float32), np.array([70, 110, 100], np.float32)
-    base = np.where(latitude < 0, sky, ground) + 40.0 * latitude * (ground - sky) / 255.0
-    image = np.clip(base + 45.0 * noise, 0, 255).astype(np.uint8)
-    _random_shapes(rng, image, width // 6, lambda r: tuple(int(v) for v in r.integers(0, 256, 3)))
+    shade = _octaves(rng, (height, width, 1), (6, 24, 96, width // 12))
+    ground = (np.arange(height) >= height // 2)[:, None, None]
+    base = np.where(ground, np.float32([70, 115, 95]), np.float32([210, 175, 140]))
+    image = np.clip(base + 15.0 * np.round(40.0 / 15.0 * shade), 0, 255).astype(np.uint8)
+    _random_shapes(rng, image, width // 3, lambda r: tuple(int(v) for v in r.integers(0, 256, 3)))
     return image
 
 
 def _indoor_panorama(rng: np.random.Generator, width: int) -> np.ndarray:
-    """Equirectangular BGR uint8 (width // 2, width), darker than outdoors: large flat
-    grey-brown walls and panels with sharp edges, thin frames, and only faint noise."""
+    """Equirectangular BGR uint8 (width // 2, width), darker than outdoors: overlapping flat
+    grey-brown walls and panels with sharp edges, thin dark frames, and smooth faint shading."""
     height = width // 2
+    unit = width / 360.0  # pixels per degree
     image = np.full((height, width, 3), 35, np.uint8)
-    unit = width / 360.0
-    for _ in range(max(8, width // 25)):
+    for _ in range(max(8, width // 8)):
         x, y = int(rng.integers(width)), int(rng.integers(height))
-        w, h = int(unit * rng.uniform(3, 40)), int(unit * rng.uniform(3, 30))
-        grey = int(rng.integers(20, 120))
-        colour = tuple(int(v) for v in grey + rng.integers(-12, 12, 3))
-        _draw_wrapped(image, lambda c, u: cv2.rectangle(c, (u, y), (u + w, y + h), colour, -1), x)
-    _random_shapes(rng, image, width // 30, lambda r: (int(r.integers(0, 60)),) * 3)
-    noise = 4.0 * _periodic_noise(rng, height, width, width // 4, 1)
-    return np.clip(image + noise, 0, 255).astype(np.uint8)
+        w, h = (int(unit * s) for s in rng.uniform((2.0, 2.0), (25.0, 20.0)))
+        colour = tuple(int(v) for v in rng.integers(15, 110) + rng.integers(-10, 10, 3))
+        for u in _wrapped(x, width):
+            cv2.rectangle(image, (u, y), (u + w, y + h), colour, -1)
+    _random_shapes(rng, image, width // 20, lambda r: (int(r.integers(0, 50)),) * 3)
+    shading = 6.0 * _periodic_noise(rng, height, width, width // 12, 1)
+    return np.clip(image + shading, 0, 255).astype(np.uint8)
 
 
 # ---- rendering -----------------------------------------------------------------------------------
@@ -283,12 +286,18 @@ def _render(panorama: np.ndarray, rays: np.ndarray, R_wc: np.ndarray) -> np.ndar
         (cv2.remap: positions quantised to 1/32 panorama pixel; longitude wraps).
     """
     height, width = panorama.shape[:2]
-    d = rays @ R_wc.T
+    d = (rays @ R_wc.T).astype(np.float32)  # float32 trigonometry: ~1e-4 px, twice as fast
     longitude = np.arctan2(d[..., 0], d[..., 2])
     latitude = np.arctan2(d[..., 1], np.hypot(d[..., 0], d[..., 2]))
-    map_x = np.mod(longitude * (width / (2 * np.pi)), width).astype(np.float32)
-    map_y = ((latitude / np.pi + 0.5) * height - 0.5).astype(np.float32)
+    map_x = np.mod(longitude * np.float32(width / (2 * np.pi)), np.float32(width))
+    map_y = (latitude / np.float32(np.pi) + np.float32(0.5)) * np.float32(height) - np.float32(0.5)
     return cv2.remap(panorama, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+
+
+def _write_png(path: Path, image: np.ndarray) -> None:
+    """cv2.imwrite at zlib level 3 (a little smaller than OpenCV's default 1, still fast)."""
+    if not cv2.imwrite(str(path), image, [cv2.IMWRITE_PNG_COMPRESSION, 3]):
+        raise OSError(f"could not write {path}")
 
 
 # ---- KITTI odometry ------------------------------------------------------------------------------
@@ -337,10 +346,13 @@ def _kitti_calib(K: np.ndarray) -> str:
     return "".join(f"{k}: {' '.join(f'{v:e}' for v in m.ravel())}\n" for k, m in rows.items())
 
 
-def _write_kitti_sequence(root: Path, name: str, rng, frames: int, K, width: int, height: int):
-    """One sequence: its panorama, poses, times.txt, calib.txt and image_2 frames."""
-    panorama = _outdoor_panorama(rng, _panorama_width(K))
-    poses = _kitti_poses(rng, frames)
+def _write_kitti_sequence(
+    root: Path, name: str, seed: int, frames: int, K, width: int, height: int
+):
+    """One sequence: its panorama, poses, times.txt, calib.txt and image_2 frames. The panorama
+    and the motion come from separate streams of (seed, sequence number)."""
+    panorama = _outdoor_panorama(np.random.default_rng([seed, 1, int(name), 0]), _panorama_width(K))
+    poses = _kitti_poses(np.random.default_rng([seed, 1, int(name), 1]), frames)
     folder = root / "sequences" / name
     (folder / "image_2").mkdir(parents=True)
     (root / "poses").mkdir(exist_ok=True)
@@ -349,7 +361,7 @@ def _write_kitti_sequence(root: Path, name: str, rng, frames: int, K, width: int
     (folder / "calib.txt").write_text(_kitti_calib(K))
     rays = _pixel_rays(K, width, height)
     for i, pose in enumerate(poses):
-        cv2.imwrite(str(folder / "image_2" / f"{i:06d}.png"), _render(panorama, rays, pose[:, :3]))
+        _write_png(folder / "image_2" / f"{i:06d}.png", _render(panorama, rays, pose[:, :3]))
 
 
 def write_kitti_demo(
@@ -384,46 +396,43 @@ def write_kitti_demo(
     K = camera_matrix(width, height)
     with _staged(out, "kitti", ["kitti"]) as stage:
         for name in sequences:
-            rng = np.random.default_rng([seed, 1, int(name)])
-            _write_kitti_sequence(stage / "kitti", name, rng, frames, K, width, height)
+            _write_kitti_sequence(stage / "kitti", name, seed, frames, K, width, height)
     return out / "kitti"
 
 
 # ---- MAV (EuRoC-like) ----------------------------------------------------------------------------
 
 
-def _sinusoids(rng: np.random.Generator, t: np.ndarray, amplitudes, hz: tuple[float, float]):
-    """sum_k a_k sin(2 pi f_k t + phase_k) (radians for amplitudes in degrees): f_k drawn in
-    `hz`, phases uniform, amplitudes a_k scaled by a factor in [0.7, 1.3]."""
-    a = np.radians(np.asarray(amplitudes)) * rng.uniform(0.7, 1.3, len(amplitudes))
-    f = rng.uniform(*hz, len(amplitudes))
-    phase = rng.uniform(0, 2 * np.pi, len(amplitudes))
-    return (a * np.sin(2 * np.pi * f * t[..., None] + phase)).sum(-1)
-
-
 class _MavTrajectory:
-    """A smooth camera trajectory of time t (seconds): orientation R_wc(t) = R_y(yaw) R_x(pitch)
-    R_z(roll), each angle a sum of sinusoids (angular rate mostly 10-20 deg/s, at most ~30), and
-    a position drifting on a slow loop. Both are exact functions of t, for any t."""
+    """A smooth camera trajectory, an exact function of time t (seconds): orientation
+    R_wc(t) = R_y(yaw) R_x(pitch) R_z(roll), each angle a sum of random sinusoids (angular rate
+    mostly 10-20 deg/s, below ~30), and a position drifting round a slow loop."""
+
+    # per angle: amplitudes in degrees (each scaled by a draw in [0.7, 1.3]), frequency range Hz
+    _ANGLES = (
+        ((40.0, 12.0, 3.0), (0.04, 0.15)),
+        ((6.0, 3.0), (0.05, 0.2)),
+        ((4.0, 2.0), (0.05, 0.2)),
+    )
 
     def __init__(self, rng: np.random.Generator):
-        self._seeds = rng.integers(2**32, size=4)
-
-    def _angles(self, t: np.ndarray):
-        rng = [np.random.default_rng(s) for s in self._seeds[:3]]
-        yaw = _sinusoids(rng[0], t, (40.0, 12.0, 3.0), (0.04, 0.15))
-        pitch = _sinusoids(rng[1], t, (6.0, 3.0), (0.05, 0.2))
-        roll = _sinusoids(rng[2], t, (4.0, 2.0), (0.05, 0.2))
-        return yaw, pitch, roll
+        self._waves = []  # (amplitude rad, frequency Hz, phase rad) arrays per angle
+        for amplitudes, hz in self._ANGLES:
+            n = len(amplitudes)
+            a = np.radians(np.asarray(amplitudes)) * rng.uniform(0.7, 1.3, n)
+            self._waves.append((a, rng.uniform(*hz, n), rng.uniform(0, 2 * np.pi, n)))
+        self._loop_phase = rng.uniform(0, 2 * np.pi)
 
     def quat(self, t: np.ndarray) -> np.ndarray:
         """(len(t), 4) unit quaternions of R_wc, x y z w, continuous in t."""
-        return _euler_quat(*self._angles(t))
+        yaw, pitch, roll = (
+            (a * np.sin(2 * np.pi * f * t[:, None] + phase)).sum(-1) for a, f, phase in self._waves
+        )
+        return _euler_quat(yaw, pitch, roll)
 
     def position(self, t: np.ndarray) -> np.ndarray:
-        """(len(t), 3) camera positions in the world, metres."""
-        phase = np.random.default_rng(self._seeds[3]).uniform(0, 2 * np.pi)
-        w = 2 * np.pi * t / 40.0 + phase
+        """(len(t), 3) camera positions in the world, metres (a 40 s loop)."""
+        w = 2 * np.pi * t / 40.0 + self._loop_phase
         return np.stack((2.0 * np.cos(w), 0.3 * np.sin(2 * w), 1.5 * np.sin(w)), axis=-1)
 
 
@@ -457,14 +466,19 @@ def _write_mav_poses(path: Path, trajectory: _MavTrajectory, t_ns: np.ndarray) -
     q = trajectory.quat(t)
     q /= np.linalg.norm(q, axis=-1, keepdims=True)
     values = np.hstack((trajectory.position(t), q[:, [3, 0, 1, 2]]))
-    rows = [f"{s}," + ",".join(f"{v:.9f}" for v in row) for s, row in zip(t_ns, values)]
+    rows = [
+        f"{s}," + ",".join(f"{v:.9f}" for v in row) for s, row in zip(t_ns, values, strict=True)
+    ]
     path.write_text(MAV_POSE_HEADER + "\n" + "\n".join(rows) + "\n")
 
 
 def _mav_frame(panoramas, rays, R_wc: np.ndarray, blend: float) -> np.ndarray:
     """Gray frame: the outdoor view cross-faded to the indoor view by `blend` in [0, 1]."""
-    outdoor, indoor = (_render(p, rays, R_wc).astype(np.float32) for p in panoramas)
-    return np.rint((1.0 - blend) * outdoor + blend * indoor).astype(np.uint8)
+    outdoor, indoor = panoramas
+    if blend in (0.0, 1.0):
+        return _render(indoor if blend else outdoor, rays, R_wc)
+    views = [_render(p, rays, R_wc).astype(np.float32) for p in panoramas]
+    return np.rint((1.0 - blend) * views[0] + blend * views[1]).astype(np.uint8)
 
 
 def _scene_blend(frames: int) -> np.ndarray:
@@ -498,14 +512,14 @@ def write_mav_demo(
     if frames < 10:
         raise ValueError(f"need frames >= 10, got {frames}")
     out = Path(out)
-    rng = np.random.default_rng([seed, 2])
+    rngs = [np.random.default_rng([seed, 2, stream]) for stream in range(4)]
     K = camera_matrix(width, height)
     panoramas = [
         cv2.cvtColor(make(rng, _panorama_width(K)), cv2.COLOR_BGR2GRAY)
-        for make in (_outdoor_panorama, _indoor_panorama)
+        for make, rng in zip((_outdoor_panorama, _indoor_panorama), rngs[:2], strict=True)
     ]
-    trajectory = _MavTrajectory(rng)
-    pose_ns, frame_ns = _mav_clock(rng, frames)
+    trajectory = _MavTrajectory(rngs[2])
+    pose_ns, frame_ns = _mav_clock(rngs[3], frames)
     with _staged(out, "mav", ["mav"]) as stage:
         root = stage / "mav"
         for sub in ("flea3/data", "pose", "pairs"):
@@ -518,9 +532,9 @@ def write_mav_demo(
             (root / "pairs" / f"{name}.csv").write_text(pairs)
         rays = _pixel_rays(K, width, height)
         rotations = _quat_rotmat(trajectory.quat(_seconds(frame_ns)))
-        for t, R_wc, blend in zip(frame_ns, rotations, _scene_blend(frames)):
+        for t, R_wc, blend in zip(frame_ns, rotations, _scene_blend(frames), strict=True):
             image = _mav_frame(panoramas, rays, R_wc, blend)
-            cv2.imwrite(str(root / "flea3" / "data" / f"{t}.png"), image)
+            _write_png(root / "flea3" / "data" / f"{t}.png", image)
     return out / "mav"
 
 

@@ -1,10 +1,12 @@
 """Floor 2: backbones, plain `nn.Module`s that map an input batch to the head's raw numbers."""
 
+from rotlearn.nets.autoencoder import ConvAutoEncoder
 from rotlearn.nets.pair_cnn import PairCNN, conv_encoder, encoded_size
 from rotlearn.nets.pointnet import PointNet, mlp
 from rotlearn.nets.pooling import LinearMaxPool, linear_max
 
 __all__ = [
+    "ConvAutoEncoder",
     "LinearMaxPool",
     "PairCNN",
     "PointNet",
