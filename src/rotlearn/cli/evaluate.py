@@ -40,8 +40,10 @@ def evaluation_config(cfg: DictConfig, saved: dict[str, Any]) -> DictConfig:
     run = OmegaConf.create(saved)
     if run.get("task", "rotation") != "rotation":
         raise ConfigError(f"ckpt={cfg.ckpt}: a {run.task} checkpoint, not a rotation model")
-    if cfg.rep is not None and cfg.rep != run.rep.name:
-        raise ConfigError(f"ckpt={cfg.ckpt} was trained with rep={run.rep.name}, not rep={cfg.rep}")
+    if cfg.expect_rep is not None and cfg.expect_rep != run.rep.name:
+        raise ConfigError(
+            f"ckpt={cfg.ckpt} was trained with rep={run.rep.name}, not expect_rep={cfg.expect_rep}"
+        )
     out = cfg.paths.output_dir
     ood = OmegaConf.select(run, "callbacks.ood")
     if ood is None:

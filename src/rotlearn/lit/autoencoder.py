@@ -1,0 +1,136 @@
+"""AutoEncoderModule: the auto-encoder OOD baseline of spec section 8, trained on first images."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Iterable
+from typing import Any
+
+import lightning.pytorch as pl
+import torch
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
+from torch import Tensor, nn
+from torchmetrics import MeanMetric
+
+from rotlearn.checkpoint import load_checkpoint, resolve_checkpoint
+from rotlearn.errors import NonFiniteError
+from rotlearn.lit.regressor import rng_states, set_rng_states
+from rotlearn.nets.autoencoder import ConvAutoEncoder
+
+__all__ = ["AutoEncoderModule", "load_autoencoder"]
+
+OptimizerFactory = Callable[[Iterable[nn.Parameter]], torch.optim.Optimizer]
+
+
+class AutoEncoderModule(pl.LightningModule):
+    """Reconstruct the FIRST image of each stacked pair; its mean L1 error is the OOD score.
+
+    Spec section 8: trained with the mean L1 pixel loss (paper: Adam, lr 5e-4, batch 32,
+    20 epochs); a pair is kept when its score lies below a quantile of the training scores.
+    Logs, once per epoch: train/loss, val/loss (mean L1 over the epoch's pixels) and, at test,
+    test/recon_mean (the mean score of the test pairs).
+
+    Args:
+        net: the auto-encoder, (B, C, S, S) -> (B, C, S, S).
+        optimizer: partial optimizer taking the parameters (`optim=`); None for inference only.
+    """
+
+    def __init__(self, net: ConvAutoEncoder, optimizer: OptimizerFactory | None = None) -> None:
+        super().__init__()
+        self.net = net
+        self.optimizer_factory = optimizer
+        self.train_loss, self.val_loss, self.test_score = MeanMetric(), MeanMetric(), MeanMetric()
+        self.run_config: dict[str, Any] | None = None  # stored in checkpoints when set
+
+    def forward(self, images: Tensor) -> Tensor:
+        """(B, C, S, S) images -> (B, C, S, S) reconstructions."""
+        return self.net(images)
+
+    def errors(self, pairs: Tensor) -> Tensor:
+        """(B, 2C, S, S) stacked pairs -> (B,) mean absolute reconstruction error of the first
+        image of each pair (differentiable; the second image is never looked at)."""
+        images = self.net.first_image(pairs)
+        return (self.net(images) - images).abs().flatten(1).mean(1)
+
+    @torch.no_grad()
+    def score(self, pairs: Tensor) -> Tensor:
+        """OOD score of (B, 2C, S, S) stacked pairs: (B,) per-sample mean L1 reconstruction error
+        of the first image, >= 0; lower = more in-distribution. Call in eval mode (BatchNorm)."""
+        return self.errors(pairs.to(self.device, self.dtype))
+
+    def _loss(self, batch: dict[str, Tensor], stage: str, batch_idx: int) -> Tensor:
+        errors = self.errors(batch["input"])
+        if not bool(torch.isfinite(errors).all()):
+            raise NonFiniteError(
+                f"non-finite reconstruction error at {stage} step {self.global_step} "
+                f"(epoch {self.current_epoch}, batch {batch_idx}); try a lower optim.lr"
+            )
+        return errors
+
+    def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
+        loss = self._loss(batch, "train", batch_idx).mean()
+        self.train_loss.update(loss.detach())
+        return loss
+
+    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        self.val_loss.update(self._loss(batch, "val", batch_idx))
+
+    def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        self.test_score.update(self._loss(batch, "test", batch_idx))
+
+    def _log_mean(self, name: str, metric: MeanMetric) -> None:
+        self.log(name, metric.compute(), on_step=False, on_epoch=True)
+        metric.reset()
+
+    def on_train_epoch_end(self) -> None:
+        self._log_mean("train/loss", self.train_loss)
+
+    def on_validation_epoch_end(self) -> None:
+        self._log_mean("val/loss", self.val_loss)
+
+    def on_test_epoch_end(self) -> None:
+        self._log_mean("test/recon_mean", self.test_score)
+
+    def configure_optimizers(self) -> torch.optim.Optimizer:
+        if self.optimizer_factory is None:
+            raise ValueError("AutoEncoderModule was built without an optimizer; it cannot train")
+        return self.optimizer_factory(self.parameters())
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        if self.run_config is not None:
+            checkpoint["rotlearn_config"] = self.run_config
+        checkpoint["rng_states"] = rng_states()
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        if "rng_states" in checkpoint:
+            set_rng_states(checkpoint["rng_states"])
+
+
+def load_autoencoder(
+    ckpt_path: str | os.PathLike, device: str | torch.device = "cpu"
+) -> AutoEncoderModule:
+    """An `AutoEncoderModule`, in eval mode on `device`, from a checkpoint of a `task=autoencoder`
+    run (or a run directory's last one). The net is rebuilt from the config saved in the
+    checkpoint; the file is read with `torch.load(weights_only=True)`.
+
+    Raises:
+        FileNotFoundError: no such checkpoint.
+        ValueError: the checkpoint is not from an auto-encoder run (the message names the path).
+    """
+    path = resolve_checkpoint(ckpt_path)
+    checkpoint = load_checkpoint(path, map_location="cpu")
+    config = checkpoint.get("rotlearn_config")
+    if not config:
+        raise ValueError(f"{path} is not a rotlearn checkpoint (no saved config)")
+    task = config.get("task", "rotation")
+    if task != "autoencoder":
+        raise ValueError(
+            f"{path} is not an auto-encoder checkpoint: its run has task={task!r} "
+            "(train one with task=autoencoder, e.g. experiment=kitti_autoencoder)"
+        )
+    net = instantiate(OmegaConf.create(config).net)
+    module = AutoEncoderModule(net)
+    module.load_state_dict(checkpoint["state_dict"])
+    module.run_config = config
+    return module.to(device).eval()

@@ -1,0 +1,217 @@
+"""OOD scores, thresholds and statistics on hand-made numbers; the callback and rotlearn-eval on a
+tiny KITTI-format run."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from rotlearn.cli.schemas import ConfigError
+from rotlearn.cli.train import train
+from rotlearn.heads import make_head
+from rotlearn.ood import (
+    SCORES,
+    auroc,
+    available_scores,
+    keep_mask,
+    quantile_threshold,
+    rejection_row,
+    spearman,
+)
+from rotlearn.paths import config_dir
+from tests.test_image_data import write_kitti, yaw_sequence
+
+# -- thresholds --------------------------------------------------------------------------------
+
+
+def test_threshold_direction_and_quantile_semantics():
+    train = torch.arange(1.0, 101.0)  # 1 .. 100
+    dt = SCORES["dt"]  # keep below
+    gap = SCORES["eigengap"]  # keep above
+    assert quantile_threshold(train, 0.75, dt.keep_below) == pytest.approx(75.25)
+    assert quantile_threshold(train, 0.75, gap.keep_below) == pytest.approx(25.75)
+    test = torch.tensor([10.0, 50.0, 80.0, 100.0])
+    assert keep_mask(test, 75.25, True).tolist() == [True, True, False, False]
+    assert keep_mask(test, 25.75, False).tolist() == [False, True, True, True]
+    # q = 1 keeps below the training maximum; q = 0 keeps nothing of the training set
+    assert quantile_threshold(train, 1.0, True) == 100.0
+    assert not keep_mask(train, quantile_threshold(train, 0.0, True), True).any()
+
+
+@settings(max_examples=40, deadline=None)
+@given(q=st.floats(0.05, 0.95), seed=st.integers(0, 1000), below=st.booleans())
+def test_a_quantile_keeps_that_fraction_of_the_training_scores(q, seed, below):
+    train = torch.randn(2001, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+    kept = keep_mask(train, quantile_threshold(train, q, below), below).double().mean()
+    assert abs(float(kept) - q) <= 1.0 / 2001 + 1e-12
+
+
+def test_nan_scores_are_never_kept_and_ignored_by_the_threshold():
+    train = torch.tensor([1.0, 2.0, math.nan, 3.0])
+    assert quantile_threshold(train, 1.0, True) == 3.0
+    assert not keep_mask(torch.tensor([math.nan]), 10.0, True).any()
+    assert not keep_mask(torch.tensor([math.nan]), -10.0, False).any()
+    with pytest.raises(ValueError, match="outside"):
+        quantile_threshold(train, 1.5, True)
+
+
+# -- statistics --------------------------------------------------------------------------------
+
+
+def test_precision_recall_against_a_hand_computed_example():
+    """8 test samples, the last 4 corrupted; keep scores below 0.5 (q = 0.5 of the training)."""
+    train = torch.tensor([0.0, 0.2, 0.8, 1.0])  # median 0.5
+    scores = torch.tensor([0.1, 0.2, 0.9, 0.3, 0.4, 0.7, 0.8, math.nan])
+    errors = torch.tensor([1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0])
+    corrupted = torch.tensor([False] * 4 + [True] * 4)
+    row = rejection_row(SCORES["dt"], 0.5, train, scores, errors, corrupted)
+    # kept: samples 0, 1, 3 (clean) and 4 (corrupted)
+    assert row["threshold"] == pytest.approx(0.5)
+    assert row["kept_pct"] == pytest.approx(50.0)
+    assert row["precision"] == pytest.approx(75.0)  # 3 of the 4 kept are clean
+    assert row["recall"] == pytest.approx(75.0)  # 3 of the 4 clean are kept
+    assert row["err_mean_kept"] == pytest.approx((1 + 2 + 4 + 5) / 4)
+    assert row["err_mean_all"] == pytest.approx(4.5)
+    assert row["nan_scores"] == 1 and row["n_corrupted"] == 4
+
+
+def test_auroc_and_spearman_by_hand():
+    clean_low = torch.tensor([0.1, 0.2, 0.3, 0.9, 0.8, 0.7])
+    corrupted = torch.tensor([False, False, False, True, True, True])
+    assert auroc(clean_low, corrupted, keep_below=True) == 1.0
+    assert auroc(clean_low, corrupted, keep_below=False) == 0.0
+    ties = torch.tensor([0.5, 0.5, 0.5, 0.5])
+    assert auroc(ties, torch.tensor([False, True, False, True]), True) == 0.5
+    # one swapped pair out of 3 x 3
+    swapped = torch.tensor([0.1, 0.2, 0.75, 0.9, 0.8, 0.7])
+    assert auroc(swapped, corrupted, True) == pytest.approx(8 / 9)
+    x = torch.tensor([1.0, 2.0, 3.0, 4.0])
+    assert spearman(x, x**3) == pytest.approx(1.0)
+    assert spearman(x, -x) == pytest.approx(-1.0)
+    assert math.isnan(auroc(x, torch.zeros(4, dtype=torch.bool), True))
+
+
+def test_scores_follow_the_head():
+    names = ["dt", "eigengap", "raw_norm", "autoencoder"]
+    assert [s.name for s in available_scores(names, True, False)] == ["dt", "eigengap", "raw_norm"]
+    assert [s.name for s in available_scores(names, False, True)] == ["raw_norm", "autoencoder"]
+    raw = torch.randn(5, 10, dtype=torch.float64)
+    prediction = make_head("a")(raw)
+    dt = SCORES["dt"].fn(prediction)
+    ev = torch.linalg.eigvalsh(prediction.A)
+    torch.testing.assert_close(dt, 3 * ev[:, 0] - ev[:, 1:].sum(-1))
+    assert (dt <= 0).all()
+    torch.testing.assert_close(SCORES["raw_norm"].fn(prediction), raw.norm(dim=-1))
+
+
+# -- the callback and rotlearn-eval ------------------------------------------------------------
+
+TINY_PAIRS = [
+    "data=kitti",
+    "data.train_sequences=[01]",
+    "data.test_sequences=[00]",
+    "data.image_size=16",
+    "data.num_workers=0",
+    "data.eval_batch_size=4",
+    "net.channels=[8,8,8,8]",
+    "net.hidden=16",
+    "trainer=cpu",
+    "trainer.max_epochs=2",
+    "trainer.enable_progress_bar=false",
+    "trainer.enable_model_summary=false",
+    "callbacks=ood",
+    "callbacks.ood.noise_pairs=4",
+]
+
+
+@pytest.fixture
+def tiny_kitti(tmp_path):
+    return write_kitti(
+        tmp_path / "kitti", {"00": yaw_sequence(11, 1.0), "01": yaw_sequence(9, -1.0)}, seed=3
+    )
+
+
+@pytest.fixture
+def trained_run(tmp_path, tiny_kitti, make_cfg):
+    run_dir = tmp_path / "run"
+    cfg = make_cfg([*TINY_PAIRS, f"data.root={tiny_kitti}"], run_dir=run_dir)
+    metrics = train(cfg)
+    return run_dir, metrics
+
+
+def test_the_callback_writes_every_column(trained_run):
+    run_dir, _ = trained_run
+    frame = pd.read_csv(run_dir / "ood.csv")
+    expected = {
+        "rep", "set", "in_table", "score", "keep", "q", "threshold", "n", "n_corrupted",
+        "nan_scores", "kept_pct", "err_mean_all", "err_median_all", "err_mean_kept",
+        "err_median_kept", "precision", "recall", "auroc", "spearman",
+    }  # fmt: skip
+    assert expected <= set(frame.columns)
+    assert set(frame["score"]) == {"dt", "eigengap", "raw_norm"}  # no auto-encoder checkpoint
+    assert set(frame["set"]) == {"clean", "corrupted"}
+    assert sorted(frame["q"].unique()) == [0.25, 0.5, 0.75, 1.0]
+    assert (frame[frame["set"] == "corrupted"]["n_corrupted"] == 5).all()  # last half of 10
+    assert (frame[frame["set"] == "clean"]["n_corrupted"] == 0).all()
+    table = (run_dir / "ood.md").read_text()
+    assert "| a + DT | 0.75 |" in table
+    events = list((run_dir / "tensorboard").glob("events.out.tfevents.*"))
+    assert events
+
+
+def _eval_cfg(overrides, out):
+    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
+        return compose("eval", overrides=[f"paths.output_dir={out}", *overrides])
+
+
+def test_rotlearn_eval_reproduces_the_test_error(trained_run, tmp_path):
+    from rotlearn.cli.evaluate import evaluate
+
+    run_dir, metrics = trained_run
+    out = tmp_path / "eval"
+    result = evaluate(_eval_cfg([f"ckpt={run_dir}", "ood.quantiles=[0.5]"], out))
+    assert result["test/err_mean"] == pytest.approx(metrics["test/err_mean"], rel=1e-6)
+    frame = pd.read_csv(out / "ood.csv")
+    assert sorted(frame["q"].unique()) == [0.5]
+    assert json.loads((out / "metrics.json").read_text())["rep"] == "a"
+    assert not (run_dir / "ood.csv").stat().st_mtime > (out / "ood.csv").stat().st_mtime
+
+
+def test_rotlearn_eval_refuses_bad_input(trained_run, tmp_path):
+    from rotlearn.cli.evaluate import evaluate
+
+    run_dir, _ = trained_run
+    with pytest.raises(ConfigError, match="ckpt=.*nowhere.*no checkpoint"):
+        evaluate(_eval_cfg([f"ckpt={tmp_path / 'nowhere'}"], tmp_path / "e1"))
+    with pytest.raises(ConfigError, match="trained with rep=a, not expect_rep=sixd"):
+        evaluate(_eval_cfg([f"ckpt={run_dir}", "expect_rep=sixd"], tmp_path / "e2"))
+    with pytest.raises(ConfigError, match=r"callbacks\.ood\.quantiles: each must lie in \[0, 1\]"):
+        evaluate(_eval_cfg([f"ckpt={run_dir}", "ood.quantiles=[0.5,1.5]"], tmp_path / "e3"))
+
+
+def test_nan_scores_are_counted_in_the_csv(tiny_kitti, make_cfg, tmp_path, monkeypatch):
+    """A score that is NaN for some samples is reported in nan_scores and never kept."""
+    from rotlearn.ood import scores as scores_module
+
+    def raw_norm_with_nans(prediction):
+        values = torch.linalg.vector_norm(prediction.raw, dim=-1)
+        return torch.where(torch.arange(len(values)) % 2 == 0, math.nan, values)
+
+    patched = scores_module.Score("raw_norm", False, raw_norm_with_nans)
+    monkeypatch.setitem(scores_module.SCORES, "raw_norm", patched)
+    run_dir = tmp_path / "run"
+    cfg = make_cfg([*TINY_PAIRS, f"data.root={tiny_kitti}", "rep=sixd"], run_dir=run_dir)
+    train(cfg)
+    frame = pd.read_csv(run_dir / "ood.csv")
+    rows = frame[frame["score"] == "raw_norm"]
+    assert (rows["nan_scores"] == 5).all()  # 10 test pairs, batches of 4: indices 0, 2 of each
+    assert (rows["kept_pct"] <= 50.0).all()
+    assert np.isfinite(rows["threshold"]).all()
