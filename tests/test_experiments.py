@@ -25,10 +25,21 @@ def test_every_experiment_composes_and_validates(make_cfg, experiment):
     cfg = make_cfg([f"experiment={experiment}"])
     validate(cfg)
     assert cfg.trainer.max_epochs >= 1
+    data = {
+        "synthetic": "SyntheticWahbaDataModule",
+        "shapenet": "ShapeNetDataModule",
+        "kitti": "KittiOdometryDataModule",
+        "mav": "MAVDataModule",
+    }[experiment.split("_")[0]]
+    assert cfg.data._target_.endswith(data)
     if experiment.startswith("synthetic"):
         assert cfg.data.phi_max_deg == 180.0
+    if "autoencoder" in experiment:
+        assert cfg.task == "autoencoder" and cfg.net._target_.endswith("ConvAutoEncoder")
     else:
-        assert cfg.data._target_.endswith("ShapeNetDataModule") and cfg.rep.name == "a"
+        assert cfg.task == "rotation"
+    if data in ("KittiOdometryDataModule", "MAVDataModule") and "autoencoder" not in experiment:
+        assert cfg.net._target_.endswith("PairCNN") and "ood" in cfg.callbacks
 
 
 @pytest.mark.parametrize("sweep", config_options("sweep"))
