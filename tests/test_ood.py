@@ -180,7 +180,7 @@ def test_rotlearn_eval_reproduces_the_test_error(trained_run, tmp_path):
     result = evaluate(_eval_cfg([f"ckpt={run_dir}", "ood.quantiles=[0.5]"], out))
     assert result["test/err_mean"] == pytest.approx(metrics["test/err_mean"], rel=1e-6)
     frame = pd.read_csv(out / "ood.csv")
-    assert sorted(frame["q"].unique()) == [0.5]
+    assert set(frame["q"]) == {0.5, 0.75}  # the asked quantile and DT's Table I quantile
     assert json.loads((out / "metrics.json").read_text())["rep"] == "a"
     assert not (run_dir / "ood.csv").stat().st_mtime > (out / "ood.csv").stat().st_mtime
 
@@ -215,3 +215,21 @@ def test_nan_scores_are_counted_in_the_csv(tiny_kitti, make_cfg, tmp_path, monke
     assert (rows["nan_scores"] == 5).all()  # 10 test pairs, batches of 4: indices 0, 2 of each
     assert (rows["kept_pct"] <= 50.0).all()
     assert np.isfinite(rows["threshold"]).all()
+
+
+def test_an_autoencoder_trained_on_the_fly_scores_the_pairs(tiny_kitti, make_cfg, tmp_path):
+    run_dir = tmp_path / "run"
+    overrides = [
+        *TINY_PAIRS,
+        f"data.root={tiny_kitti}",
+        "rep=sixd",
+        "trainer.max_epochs=1",
+        "+callbacks.ood.autoencoder_train={epochs: 1, channels: [4, 4, 4, 4], hidden: 8, latent: 4}",
+    ]
+    train(make_cfg(overrides, run_dir=run_dir))
+    frame = pd.read_csv(run_dir / "ood.csv")
+    assert set(frame["score"]) == {"raw_norm", "autoencoder"}  # no eigenvalues for 6D
+    ae = frame[frame["score"] == "autoencoder"]
+    assert set(ae["q"]) == {0.25, 0.5, 0.75, 1.0} and (ae["nan_scores"] == 0).all()
+    assert (run_dir / "autoencoder.ckpt").is_file()
+    assert "| sixd + AE | 1.00 |" in (run_dir / "ood.md").read_text()

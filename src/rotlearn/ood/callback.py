@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +20,7 @@ import lightning.pytorch as pl
 import numpy as np
 import torch
 from lightning.pytorch.loggers import TensorBoardLogger
+from omegaconf import DictConfig, OmegaConf
 from torch import Tensor
 
 from rotlearn.data.corruption import corrupted_flags
@@ -47,8 +49,13 @@ class OODEvaluation(pl.Callback):
         scores: among dt, eigengap, raw_norm, autoencoder; those the head cannot give (dt and
             eigengap need the A head) or that lack a checkpoint (autoencoder) are skipped.
         autoencoder_ckpt: checkpoint of `rotlearn-train experiment=<data>_autoencoder`.
+        autoencoder_train: without a checkpoint, train an auto-encoder here first, on the same
+            training pairs: {epochs, lr, and ConvAutoEncoder's channels, hidden, latent}; it is
+            saved as `<run>/autoencoder.ckpt` (reusable as `autoencoder_ckpt`). For demos; on
+            real data train it once with its experiment instead.
         corrupt_fraction: the last fraction of the test set that is erased for the corrupted set.
-        table: score -> quantile shown in `ood.md`'s Table I (others: the largest quantile <= 0.75).
+        table: score -> quantile shown in `ood.md`'s Table I (others: the largest quantile <= 0.75);
+            these quantiles are evaluated too.
         noise_pairs: pure-noise input pairs scored for the box plots.
         max_train_pairs: score at most this many training pairs (evenly spaced); null: all.
     """
@@ -58,6 +65,7 @@ class OODEvaluation(pl.Callback):
         quantiles: list[float] = (0.25, 0.5, 0.75, 1.0),
         scores: list[str] = ("dt", "eigengap", "raw_norm", "autoencoder"),
         autoencoder_ckpt: str | None = None,
+        autoencoder_train: dict[str, Any] | None = None,
         corrupt_fraction: float = 0.5,
         table: dict[str, float] | None = None,
         noise_pairs: int = 64,
@@ -79,6 +87,9 @@ class OODEvaluation(pl.Callback):
             )
         self.score_names = list(scores)
         self.autoencoder_ckpt = autoencoder_ckpt
+        if isinstance(autoencoder_train, DictConfig):  # plain data: it goes into a checkpoint
+            autoencoder_train = OmegaConf.to_container(autoencoder_train, resolve=True)
+        self.autoencoder_train = dict(autoencoder_train or {})
         self.corrupt_fraction = float(corrupt_fraction)
         self.table = {"autoencoder": 1.0, **(table or {})}
         self.noise_pairs, self.max_train_pairs = int(noise_pairs), max_train_pairs
@@ -86,12 +97,46 @@ class OODEvaluation(pl.Callback):
 
     # -- collecting scores ---------------------------------------------------------------------
 
-    def _autoencoder(self, device: torch.device):
-        if not self.autoencoder_ckpt or "autoencoder" not in self.score_names:
-            return None
+    def _autoencoder(self, trainer: pl.Trainer, device: torch.device):
         from rotlearn.lit.autoencoder import load_autoencoder
 
-        return load_autoencoder(self.autoencoder_ckpt, device=device)
+        if "autoencoder" not in self.score_names:
+            return None
+        if self.autoencoder_ckpt:
+            return load_autoencoder(self.autoencoder_ckpt, device=device)
+        if self.autoencoder_train:
+            return load_autoencoder(self._train_autoencoder(trainer, device), device=device)
+        return None
+
+    def _train_autoencoder(self, trainer: pl.Trainer, device: torch.device) -> Path:
+        """Fit an auto-encoder on the datamodule's training pairs; returns its checkpoint."""
+        from hydra.utils import instantiate
+
+        from rotlearn.lit.autoencoder import AutoEncoderModule
+
+        dm = trainer.datamodule
+        spec = dict(self.autoencoder_train)
+        epochs, lr = int(spec.pop("epochs", 20)), float(spec.pop("lr", 5e-4))
+        pairs = dm.sets["test"].__getitems__([0])["input"]
+        net_cfg = {"_target_": "rotlearn.nets.ConvAutoEncoder", "pair_channels": pairs.shape[1],
+                   "image_size": pairs.shape[-1], **spec}  # fmt: skip
+        module = AutoEncoderModule(instantiate(net_cfg)).to(device)
+        module.run_config = {"task": "autoencoder", "net": net_cfg}
+        optimizer = torch.optim.Adam(module.parameters(), lr=lr)
+        log.info("OOD evaluation: training an auto-encoder for %d epochs", epochs)
+        module.train()
+        for _ in range(epochs):  # the paper's loop (spec 8): Adam on the mean L1 error
+            for batch in dm.train_dataloader():
+                batch = dm.on_after_batch_transfer({k: v.to(device) for k, v in batch.items()}, 0)
+                loss = module.errors(batch["input"]).mean()
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                optimizer.step()
+        path = Path(trainer.default_root_dir) / "autoencoder.ckpt"
+        tmp = path.with_name(f".{path.name}.tmp")
+        torch.save({"state_dict": module.state_dict(), "rotlearn_config": module.run_config}, tmp)
+        os.replace(tmp, path)
+        return path
 
     def _score_batch(
         self, module, autoencoder, scores: list[Score], batch: dict
@@ -146,16 +191,18 @@ class OODEvaluation(pl.Callback):
             )
         if not trainer.is_global_zero:
             return
+        # the test loop runs in inference mode; training an auto-encoder here needs autograd
+        with torch.inference_mode(False), torch.enable_grad():
+            autoencoder = self._autoencoder(trainer, pl_module.device)
         was_training = pl_module.training
         pl_module.eval()
         with torch.inference_mode():
-            results = self._evaluate(trainer, pl_module)
+            results = self._evaluate(trainer, pl_module, autoencoder)
         pl_module.train(was_training)
         self._write(trainer, pl_module, *results)
 
-    def _evaluate(self, trainer, module):
+    def _evaluate(self, trainer, module, autoencoder):
         dm = trainer.datamodule
-        autoencoder = self._autoencoder(module.device)
         probe = module(dm.on_after_batch_transfer(
             {k: v.to(module.device) for k, v in dm.sets["test"].__getitems__([0]).items()}, 0
         )["input"])  # fmt: skip
@@ -189,7 +236,7 @@ class OODEvaluation(pl.Callback):
                         data["corrupted"],
                     )  # fmt: skip
                     rows.append({"set": test_set, "in_table": q == self._table_q(score.name),
-                                 "listed": q in self.quantiles, **row})  # fmt: skip
+                                 **row})  # fmt: skip
         self.rows = rows
         return scores, sets, rows
 
@@ -210,8 +257,7 @@ class OODEvaluation(pl.Callback):
         rep = getattr(module.head, "name", type(module.head).__name__)
         frame = pd.DataFrame(rows)
         frame.insert(0, "rep", rep)
-        listed = frame[frame["listed"]].drop(columns=["listed"])
-        write_text_atomic(run_dir / "ood.csv", listed.to_csv(index=False))
+        write_text_atomic(run_dir / "ood.csv", frame.to_csv(index=False))
         errors = {k: sets[k]["error"] for k in ("clean", "corrupted")}
         write_text_atomic(run_dir / "ood.md", ood_markdown(rep, frame, errors))
         log.info("OOD evaluation: %s", run_dir / "ood.md")
@@ -222,7 +268,7 @@ class OODEvaluation(pl.Callback):
     def _log_tensorboard(self, writer, scores, sets, frame, step: int) -> None:
         from rotlearn.ood.report import box_figure, pr_figure, scatter_figure
 
-        for row in frame[frame["listed"]].itertuples():
+        for row in frame.itertuples():
             prefix = f"ood/{row.score}/q{row.q:g}/{row.set}"
             for key in ("kept_pct", "err_mean_kept", "precision", "recall", "auroc", "spearman"):
                 value = getattr(row, key)

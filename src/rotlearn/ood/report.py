@@ -93,7 +93,6 @@ def ood_markdown(rep: str, frame: pd.DataFrame, errors: dict[str, Tensor]) -> st
     n_corrupted = (
         int(frame[frame["set"] == "corrupted"]["n_corrupted"].iloc[0]) if len(frame) else 0
     )
-    listed = frame[frame["listed"]]
     detail_columns = ["score", "keep", "q", "set", "kept_pct", "err_mean_kept", "err_median_kept",
                       "precision", "recall", "auroc", "spearman", "nan_scores"]  # fmt: skip
     return "\n\n".join([
@@ -105,7 +104,7 @@ def ood_markdown(rep: str, frame: pd.DataFrame, errors: dict[str, Tensor]) -> st
         "## Table I",
         markdown_table(table_rows(rep, frame, errors), TABLE_COLUMNS),
         "## Every score and quantile",
-        markdown_table(listed.to_dict("records"), detail_columns),
+        markdown_table(frame.to_dict("records"), detail_columns),
     ]) + "\n"  # fmt: skip
 
 

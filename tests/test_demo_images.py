@@ -1,0 +1,287 @@
+"""Demo KITTI odometry and MAV datasets: layouts, determinism, images that agree with the poses."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from rotlearn.data import demo
+from rotlearn.data.demo import MAV_POSE_HEADER, main, write_kitti_demo, write_mav_demo
+
+KITTI = {"sequences": ("00", "01"), "frames": 6, "width": 248, "height": 76}  # 1 degree: 2.6 px
+MAV = {"frames": 40, "width": 64, "height": 52}
+
+
+@pytest.fixture(scope="module")
+def kitti(tmp_path_factory) -> Path:
+    return write_kitti_demo(tmp_path_factory.mktemp("kitti"), **KITTI)
+
+
+@pytest.fixture(scope="module")
+def mav(tmp_path_factory) -> Path:
+    return write_mav_demo(tmp_path_factory.mktemp("mav"), **MAV)
+
+
+def _kitti_poses(root: Path, sequence: str) -> np.ndarray:
+    """(frames, 3, 4) camera-to-world poses of a poses/<XX>.txt."""
+    return np.loadtxt(root / "poses" / f"{sequence}.txt", ndmin=2).reshape(-1, 3, 4)
+
+
+def _calib(root: Path, sequence: str) -> dict[str, np.ndarray]:
+    lines = (root / "sequences" / sequence / "calib.txt").read_text().splitlines()
+    return {k: np.array(v.split(), float) for k, v in (line.split(":") for line in lines)}
+
+
+def _frames_csv(root: Path) -> np.ndarray:
+    """Frame timestamps (ns, int64) of flea3/data.csv, checking each row's file name."""
+    lines = (root / "flea3" / "data.csv").read_text().splitlines()
+    assert lines[0] == "#timestamp [ns],filename"
+    stamps, names = zip(*(line.split(",") for line in lines[1:]), strict=True)
+    assert list(names) == [f"{t}.png" for t in stamps]
+    return np.array(stamps, dtype=np.int64)
+
+
+def _poses_csv(root: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(pose timestamps (P,) ns int64, rows (P, 7): position, quaternion w x y z)."""
+    lines = (root / "pose" / "data.csv").read_text().splitlines()
+    assert lines[0] == MAV_POSE_HEADER
+    rows = [line.split(",") for line in lines[1:]]
+    return np.array([r[0] for r in rows], np.int64), np.array([r[1:] for r in rows], float)
+
+
+def _rotmat_wxyz(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix of one Hamilton quaternion, scalar first (written independently of
+    rotlearn.geometry, to check the file convention)."""
+    w, x, y, z = q / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def _angle_deg(C: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(C) - 1) / 2, -1.0, 1.0))))
+
+
+def _warp_gain(first: np.ndarray, second: np.ndarray, K: np.ndarray, C_21: np.ndarray) -> float:
+    """Mean |second - first| over mean |second - H first|, H = K C_21 K^-1, on the interior
+    pixels that the warp covers: large when the rotation C_21 explains the image change."""
+    height, width = first.shape[:2]
+    H = K @ C_21 @ np.linalg.inv(K)
+    warped = cv2.warpPerspective(first, H, (width, height), flags=cv2.INTER_LINEAR)
+    covered = cv2.warpPerspective(np.ones((height, width), np.uint8), H, (width, height))
+    inside = cv2.erode(covered, np.ones((5, 5), np.uint8)).astype(bool)
+    a, b, c = (im.astype(np.float64)[inside] for im in (first, second, warped))
+    return float(np.abs(b - a).mean() / np.abs(b - c).mean())
+
+
+# ---- KITTI ---------------------------------------------------------------------------------------
+
+
+def test_kitti_layout(kitti):
+    assert kitti.name == "kitti"
+    assert sorted(p.name for p in (kitti / "poses").iterdir()) == ["00.txt", "01.txt"]
+    for sequence in KITTI["sequences"]:
+        folder = kitti / "sequences" / sequence
+        names = sorted(p.name for p in (folder / "image_2").iterdir())
+        assert names == [f"{i:06d}.png" for i in range(KITTI["frames"])]
+        image = cv2.imread(str(folder / "image_2" / names[0]), cv2.IMREAD_UNCHANGED)
+        assert image.shape == (KITTI["height"], KITTI["width"], 3) and image.dtype == np.uint8
+        times = np.loadtxt(folder / "times.txt")
+        np.testing.assert_allclose(times, 0.1 * np.arange(KITTI["frames"]), atol=1e-9)
+        calib = _calib(kitti, sequence)
+        assert list(calib) == ["P0", "P1", "P2", "P3", "Tr"]
+        assert all(v.shape == (12,) for v in calib.values())
+        lines = (kitti / "poses" / f"{sequence}.txt").read_text().splitlines()
+        assert len(lines) == KITTI["frames"] and all(len(line.split()) == 12 for line in lines)
+
+
+def test_kitti_poses_are_rotations_starting_at_identity_moving_forward(kitti):
+    poses = _kitti_poses(kitti, "00")
+    R, t = poses[:, :, :3], poses[:, :, 3]
+    np.testing.assert_array_equal(poses[0], np.hstack((np.eye(3), np.zeros((3, 1)))))
+    np.testing.assert_allclose(
+        R @ R.transpose(0, 2, 1), np.broadcast_to(np.eye(3), R.shape), atol=3e-6
+    )
+    np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=3e-6)
+    np.testing.assert_allclose(np.linalg.norm(np.diff(t, axis=0), axis=1), 1.0, atol=1e-5)
+    angles = [_angle_deg(R[i].T @ R[i + 1]) for i in range(len(R) - 1)]
+    assert max(angles) < 2.5 and np.mean(angles) > 0.3
+
+
+def test_kitti_intrinsics_are_80_degrees_across_centred(kitti):
+    K = _calib(kitti, "00")["P2"].reshape(3, 4)
+    width, height = KITTI["width"], KITTI["height"]
+    np.testing.assert_allclose(K[:, 3], 0.0)
+    assert K[0, 0] == pytest.approx(K[1, 1])
+    assert np.degrees(2 * np.arctan(width / 2 / K[0, 0])) == pytest.approx(80.0, abs=1e-3)
+    assert (K[0, 2], K[1, 2]) == pytest.approx(((width - 1) / 2, (height - 1) / 2))
+
+
+def test_kitti_consecutive_frames_differ_by_the_written_rotation(kitti):
+    """Warping frame i by K C_21 K^-1, C_21 = R_{i+1}^T R_i from the pose file, reproduces frame
+    i + 1 far better than frame i itself does: the images and the poses agree."""
+    K = _calib(kitti, "00")["P2"].reshape(3, 4)[:, :3]
+    for sequence in KITTI["sequences"]:
+        R = _kitti_poses(kitti, sequence)[:, :, :3]
+        folder = kitti / "sequences" / sequence / "image_2"
+        frames = [cv2.imread(str(folder / f"{i:06d}.png")) for i in range(KITTI["frames"])]
+        for i in range(KITTI["frames"] - 1):
+            C_21 = R[i + 1].T @ R[i]
+            if _angle_deg(C_21) > 0.5:
+                assert _warp_gain(frames[i], frames[i + 1], K, C_21) > 3.0, (sequence, i)
+                assert _warp_gain(frames[i], frames[i + 1], K, C_21.T) < 1.0  # the wrong way
+
+
+def test_kitti_is_deterministic_in_the_seed(kitti, tmp_path):
+    same = write_kitti_demo(tmp_path / "same", **KITTI)
+    other = write_kitti_demo(tmp_path / "other", **KITTI, seed=1)
+    for sequence in KITTI["sequences"]:
+        poses = f"poses/{sequence}.txt"
+        image = f"sequences/{sequence}/image_2/000003.png"
+        assert (same / poses).read_bytes() == (kitti / poses).read_bytes()
+        assert (same / image).read_bytes() == (kitti / image).read_bytes()
+        assert (other / poses).read_bytes() != (kitti / poses).read_bytes()
+        assert (other / image).read_bytes() != (kitti / image).read_bytes()
+
+
+# ---- MAV -----------------------------------------------------------------------------------------
+
+
+def test_mav_layout(mav):
+    assert mav.name == "mav"
+    stamps = _frames_csv(mav)
+    assert len(stamps) == MAV["frames"] and np.all(np.diff(stamps) > 0)
+    files = sorted(p.name for p in (mav / "flea3" / "data").iterdir())
+    assert files == sorted(f"{t}.png" for t in stamps)
+    image = cv2.imread(str(mav / "flea3" / "data" / files[0]), cv2.IMREAD_UNCHANGED)
+    assert image.shape == (MAV["height"], MAV["width"]) and image.dtype == np.uint8
+    assert np.median(np.diff(stamps)) == pytest.approx(50e6, rel=0.1)  # ~20 Hz
+
+
+def test_mav_frames_are_off_the_pose_clock_but_within_30_ms(mav):
+    frames = _frames_csv(mav)
+    pose_times, rows = _poses_csv(mav)
+    assert np.all(np.diff(pose_times) == 5_000_000)  # 200 Hz
+    assert not set(frames.tolist()) & set(pose_times.tolist())
+    nearest = np.abs(frames[:, None] - pose_times[None, :]).min(axis=1)
+    assert nearest.max() <= 30_000_000 and nearest.max() <= 1_500_000
+    np.testing.assert_allclose(np.linalg.norm(rows[:, 3:], axis=1), 1.0, atol=1e-8)
+
+
+def test_mav_pose_rate_keeps_the_nearest_pose_label_within_0_05_degrees(mav):
+    _, rows = _poses_csv(mav)
+    q = rows[:, 3:]
+    step = np.degrees(2 * np.arccos(np.clip(np.abs((q[1:] * q[:-1]).sum(1)), 0, 1)))
+    rate = step / 0.005  # deg/s
+    assert rate.max() * 0.0015 < 0.05 and 5.0 < rate.mean() < 25.0
+
+
+def test_mav_pairs_are_consecutive_inside_disjoint_scenes(mav):
+    ranges = {}
+    for scene in ("outdoor", "transition", "indoor"):
+        pairs = np.loadtxt(mav / "pairs" / f"{scene}.csv", delimiter=",", dtype=int, ndmin=2)
+        assert len(pairs) > 0
+        np.testing.assert_array_equal(pairs[:, 1], pairs[:, 0] + 1)
+        assert pairs.min() >= 0 and pairs.max() < MAV["frames"]
+        ranges[scene] = (pairs.min(), pairs.max())
+    assert ranges["outdoor"][1] < ranges["transition"][0]
+    assert ranges["transition"][1] < ranges["indoor"][0]
+
+
+def test_mav_indoor_frames_are_darker_and_flatter(mav):
+    stamps = _frames_csv(mav)
+
+    def frame(i: int) -> np.ndarray:
+        return cv2.imread(str(mav / "flea3" / "data" / f"{stamps[i]}.png"), cv2.IMREAD_GRAYSCALE)
+
+    outdoor, indoor = frame(2), frame(MAV["frames"] - 2)
+    assert indoor.mean() < outdoor.mean() - 20
+
+
+def test_mav_frames_differ_by_the_rotation_of_their_nearest_poses(mav):
+    """Inside a scene, the scalar-first quaternions of the nearest poses explain the motion
+    between frames 8 apart (the transition cross-fades, so it is left out)."""
+    stamps = _frames_csv(mav)
+    pose_times, rows = _poses_csv(mav)
+    R = [_rotmat_wxyz(rows[np.abs(pose_times - t).argmin(), 3:]) for t in stamps]
+    K = demo.camera_matrix(MAV["width"], MAV["height"])
+    folder = mav / "flea3" / "data"
+    frames = [cv2.imread(str(folder / f"{t}.png"), cv2.IMREAD_GRAYSCALE) for t in stamps]
+    checked = 0
+    for scene in ("outdoor", "indoor"):
+        pairs = np.loadtxt(mav / "pairs" / f"{scene}.csv", delimiter=",", dtype=int, ndmin=2)
+        for i in range(pairs.min(), pairs.max() - 7):
+            C_21 = R[i + 8].T @ R[i]
+            if _angle_deg(C_21) > 1.5:
+                assert _warp_gain(frames[i], frames[i + 8], K, C_21) > 3.0, (scene, i)
+                checked += 1
+    assert checked >= 5
+
+
+def test_mav_is_deterministic_in_the_seed(mav, tmp_path):
+    same = write_mav_demo(tmp_path / "same", **MAV)
+    other = write_mav_demo(tmp_path / "other", **MAV, seed=1)
+    for name in ("pose/data.csv", "flea3/data.csv", "pairs/indoor.csv"):
+        assert (same / name).read_bytes() == (mav / name).read_bytes()
+    first = sorted((mav / "flea3" / "data").iterdir())[5]
+    assert (same / "flea3" / "data" / first.name).read_bytes() == first.read_bytes()
+    assert (other / "pose" / "data.csv").read_bytes() != (mav / "pose" / "data.csv").read_bytes()
+
+
+# ---- writing safely ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "write", [lambda out: write_kitti_demo(out, **KITTI), lambda out: write_mav_demo(out, **MAV)]
+)
+def test_an_interrupted_write_leaves_nothing_under_the_final_name(write, tmp_path, monkeypatch):
+    real_imwrite, calls = cv2.imwrite, []
+
+    def failing_imwrite(*args, **kwargs):
+        calls.append(args[0])
+        if len(calls) > 3:
+            raise KeyboardInterrupt
+        return real_imwrite(*args, **kwargs)
+
+    monkeypatch.setattr(cv2, "imwrite", failing_imwrite)
+    with pytest.raises(KeyboardInterrupt):
+        write(tmp_path)
+    assert len(calls) == 4 and list(tmp_path.iterdir()) == []
+
+
+def test_an_interrupted_rewrite_keeps_the_old_dataset_and_a_finished_one_replaces_it(
+    tmp_path, monkeypatch
+):
+    old = write_kitti_demo(tmp_path, **KITTI)
+    (old / "stale.txt").write_text("from the previous run")
+    monkeypatch.setattr(cv2, "imwrite", lambda *a, **k: (_ for _ in ()).throw(OSError("disk")))
+    with pytest.raises(OSError):
+        write_kitti_demo(tmp_path, **KITTI)
+    assert (old / "stale.txt").exists()
+    monkeypatch.undo()
+    write_kitti_demo(tmp_path, **KITTI)
+    assert not (old / "stale.txt").exists() and (old / "poses" / "00.txt").exists()
+    assert [p.name for p in tmp_path.iterdir()] == ["kitti"]
+
+
+def test_main_writes_the_chosen_datasets(tmp_path, monkeypatch, capsys):
+    written = []
+    monkeypatch.setattr(demo, "write_kitti_demo", lambda out, seed: written.append(seed) or out)
+    monkeypatch.setattr(demo, "write_mav_demo", lambda out, seed: pytest.fail("not chosen"))
+    assert main(["--out", str(tmp_path), "--seed", "3", "--only", "kitti"]) == 0
+    assert written == [3] and "kitti" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        main(["--out", str(tmp_path), "--only", "kitti,lidar"])
+
+
+def test_the_smallest_mav_has_a_pair_in_every_scene(tmp_path):
+    root = write_mav_demo(tmp_path, frames=10, width=32, height=26)
+    for scene in ("outdoor", "transition", "indoor"):
+        assert (root / "pairs" / f"{scene}.csv").read_text().strip()
