@@ -224,7 +224,7 @@ def test_an_autoencoder_trained_on_the_fly_scores_the_pairs(tiny_kitti, make_cfg
         f"data.root={tiny_kitti}",
         "rep=sixd",
         "trainer.max_epochs=1",
-        "+callbacks.ood.autoencoder_train={epochs: 1, channels: [4, 4, 4, 4], hidden: 8, latent: 4}",
+        "callbacks.ood.autoencoder_train={epochs: 1, channels: [4, 4, 4, 4], hidden: 8, latent: 4}",
     ]
     train(make_cfg(overrides, run_dir=run_dir))
     frame = pd.read_csv(run_dir / "ood.csv")
@@ -233,3 +233,42 @@ def test_an_autoencoder_trained_on_the_fly_scores_the_pairs(tiny_kitti, make_cfg
     assert set(ae["q"]) == {0.25, 0.5, 0.75, 1.0} and (ae["nan_scores"] == 0).all()
     assert (run_dir / "autoencoder.ckpt").is_file()
     assert "| sixd + AE | 1.00 |" in (run_dir / "ood.md").read_text()
+
+
+def test_the_report_collects_table_one(trained_run, make_cfg, tmp_path):
+    from omegaconf import OmegaConf
+
+    from rotlearn.cli.report import make_report
+
+    run_dir, _ = trained_run
+    (run_dir / ".hydra").mkdir()
+    OmegaConf.save(make_cfg(TINY_PAIRS), run_dir / ".hydra" / "config.yaml")
+    files = make_report(run_dir, tmp_path / "report")
+    report = files["report"].read_text()
+    assert "## OOD rejection (paper Table I)" in report
+    table = pd.read_csv(files["ood_table"])
+    assert list(table["method"]) == ["a", "a + DT", "a + gap", "a + norm"]
+    assert (table["clean kept %"] <= 100).all()
+
+
+def test_unseen_scenes_count_as_ood(tmp_path, make_cfg):
+    from tests.test_image_data import write_mav
+
+    root = write_mav(tmp_path / "mav", frames=30)
+    run_dir = tmp_path / "run"
+    overrides = [
+        "data=mav",
+        f"data.root={root}",
+        "data.resize=18",
+        "data.image_size=16",
+        "data.test_fraction=0.3",
+        "data.test_scenes=[outdoor,indoor]",
+        *[o for o in TINY_PAIRS if not o.startswith("data")],
+        "data.num_workers=0",
+        "callbacks.ood.unseen_scenes_ood=true",
+    ]
+    train(make_cfg(overrides, run_dir=run_dir))
+    frame = pd.read_csv(run_dir / "ood.csv")
+    clean = frame[frame["set"] == "clean"]
+    # indoor holds frames 20-29: 9 pairs, of which round(0.3 * 9) = 3 are test pairs
+    assert (clean["n_corrupted"] == 3).all() and (clean["n"] == 6).all()

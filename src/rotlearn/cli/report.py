@@ -21,6 +21,7 @@ import pandas as pd
 from omegaconf import OmegaConf
 
 from rotlearn.io import write_text_atomic
+from rotlearn.ood.report import TABLE_COLUMNS, markdown_table, table_rows
 
 __all__ = ["collect_runs", "main", "make_report"]
 
@@ -196,6 +197,26 @@ def _plot_phi_max(done: pd.DataFrame, path: Path) -> bool:
     return drew
 
 
+def _ood_table(done: pd.DataFrame) -> pd.DataFrame | None:
+    """Table I rows of every completed run that has an `ood.csv` (OOD evaluation)."""
+    rows = []
+    for _, run in done.iterrows():
+        path = Path(run["dir"]) / "ood.csv"
+        if path.is_file():
+            frame = pd.read_csv(path)
+            rows += [{"job": run["job"], **row} for row in table_rows(run["rep"], frame)]
+    return pd.DataFrame(rows) if rows else None
+
+
+def _ood_note() -> str:
+    return (
+        "Per job: the head unfiltered, then with each OOD score at its Table I quantile. clean: "
+        "the test set; corrupted: the same with its OOD part (erased pairs, or unseen scenes) "
+        "included. Errors are mean degrees over the kept pairs; precision and recall are of "
+        "keeping in-distribution pairs; each job's ood.md has every quantile."
+    )
+
+
 def make_report(root: str | Path, out: str | Path | None = None) -> dict[str, Path]:
     """Write summary.csv, report.md and the plots for the sweep (or run) directory `root`.
 
@@ -227,6 +248,11 @@ def make_report(root: str | Path, out: str | Path | None = None) -> dict[str, Pa
         if _plot_curves(done, out / "curves.png"):
             files["curves"] = out / "curves.png"
             md += ["## Error per epoch", "", "![per-epoch error](curves.png)", ""]
+    ood = _ood_table(done)
+    if ood is not None:
+        files["ood_table"] = write_text_atomic(out / "ood_table.csv", ood.to_csv(index=False))
+        md += ["## OOD rejection (paper Table I)", "", _ood_note(), "",
+               markdown_table(ood.to_dict("records"), ["job", *TABLE_COLUMNS]), ""]  # fmt: skip
     if not failed.empty:
         md += ["## Failed or incomplete jobs", "", "| job | status | overrides | error |",
                "|---|---|---|---|"]  # fmt: skip

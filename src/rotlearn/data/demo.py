@@ -1,8 +1,8 @@
 """Small datasets in the real on-disk layouts, for tests and demos (`rotlearn-make-demo-data`).
 
 ShapeNet: random "airplanes" (fuselage, wings, tail fin of random sizes: no rotational symmetry)
-written as ShapeNetCore v2 meshes `<out>/shapenet_core/02691156/<id>/models/model_normalized.obj`
-and as the 6D paper's clouds `<out>/shapenet_pts/{train,test}/<id>.pts` ("x y z" lines).
+written as ShapeNetCore v2 meshes `<out>/shapenet/02691156/<id>/models/model_normalized.obj`
+and as the 6D paper's clouds `<out>/shapenet/{train,test}/<id>.pts` ("x y z" lines).
 
 KITTI odometry (`write_kitti_demo`), `<out>/kitti/`:
     sequences/<XX>/image_2/<000000>.png   colour frames (6-digit frame index)
@@ -116,16 +116,18 @@ def _airplane(rng: np.random.Generator):
 def write_shapenet_demo(
     out: str | Path, num_train: int = 12, num_test: int = 4, points: int = 512, seed: int = 0
 ) -> dict[str, Path]:
-    """Write the demo ShapeNet in both layouts; returns their roots {"mesh": ..., "pts": ...}.
+    """Write the demo ShapeNet in both layouts under one root, `<out>/shapenet` (data.format=mesh
+    reads `<root>/02691156/...`, data.format=pts reads `<root>/{train,test}`); returns
+    {"mesh": root, "pts": root}.
 
     The `.pts` files hold 2 * `points` points: the paper's point_fraction 0.5 keeps `points`.
     """
     import trimesh
 
     out = Path(out)
-    names = {"mesh": "shapenet_core", "pts": "shapenet_pts"}
+    names = {"mesh": "shapenet", "pts": "shapenet"}
     rng = np.random.default_rng(seed)
-    with _staged(out, "shapenet", list(names.values())) as stage:
+    with _staged(out, "shapenet", ["shapenet"]) as stage:
         for i in range(num_train + num_test):
             model_id = f"demo{seed:02d}{i:04d}"
             mesh = _airplane(rng)
@@ -350,9 +352,13 @@ def _kitti_calib(K: np.ndarray) -> str:
 def _write_kitti_sequence(
     root: Path, name: str, seed: int, frames: int, K: np.ndarray, width: int, height: int
 ) -> None:
-    """One sequence: its panorama, poses, times.txt, calib.txt and image_2 frames. The panorama
-    and the motion come from separate streams of (seed, sequence number)."""
-    panorama = _outdoor_panorama(np.random.default_rng([seed, 1, int(name), 0]), _panorama_width(K))
+    """One sequence: poses, times.txt, calib.txt and image_2 frames. Every sequence views the
+    same world (one panorama from `seed`), like KITTI's drives through one city, each from its
+    own starting heading (a roll of the panorama) and with its own motion, from separate streams
+    of (seed, sequence number)."""
+    world = _outdoor_panorama(np.random.default_rng([seed, 1, 0]), _panorama_width(K))
+    heading = np.random.default_rng([seed, 1, int(name), 0]).integers(world.shape[1])
+    panorama = np.roll(world, heading, axis=1)
     poses = _kitti_poses(np.random.default_rng([seed, 1, int(name), 1]), frames)
     folder = root / "sequences" / name
     (folder / "image_2").mkdir(parents=True)
@@ -367,23 +373,23 @@ def _write_kitti_sequence(
 
 def write_kitti_demo(
     out: str | Path,
-    sequences: Sequence[str] = ("00", "01", "02", "03"),
-    frames: int = 120,
-    width: int = 620,
-    height: int = 188,
+    sequences: Sequence[str] = ("00", "02", "05", "06", "07", "08", "09", "10"),
+    frames: int = 300,
+    width: int = 310,
+    height: int = 94,
     seed: int = 0,
 ) -> Path:
     """Write a demo KITTI odometry dataset (layout in the module docstring); returns `<out>/kitti`.
 
-    Each sequence views its own procedural panorama at infinity (drawn from `seed` and the
-    sequence number) under pure rotation: R_wc(i + 1) = R_wc(i) Exp(omega_i), omega_i (camera
+    Every sequence views one procedural panorama at infinity (drawn from `seed`), from its own
+    starting heading, under pure rotation: R_wc(i + 1) = R_wc(i) Exp(omega_i), omega_i (camera
     frame) a smooth random process of about 1 degree per frame (mostly 0.3-1.5, mean ~1), mostly
     yaw whose sign turns every few tens of frames, so neither "identity" nor "the mean rotation"
     predicts it. The camera also moves 1 m per frame along its z axis; with the scene at infinity
     this has no visual effect. Intrinsics: `camera_matrix(width, height)` (80 degrees across),
     P2 = [K | 0]. Poses are written with "%e" (7 significant digits); the images are rendered
     from the float64 poses they round (orthonormal to ~1e-14), exact up to the renderer's
-    1/32-pixel interpolation grid (~0.005 degrees at 620 pixels across).
+    1/32-pixel interpolation grid (~0.01 degrees at 310 pixels across).
 
     Args:
         out: parent folder.
@@ -571,7 +577,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     writers = {
-        "shapenet": lambda: list(write_shapenet_demo(args.out, seed=args.seed).values()),
+        "shapenet": lambda: sorted(set(write_shapenet_demo(args.out, seed=args.seed).values())),
         "kitti": lambda: [write_kitti_demo(args.out, seed=args.seed)],
         "mav": lambda: [write_mav_demo(args.out, seed=args.seed)],
     }

@@ -58,6 +58,9 @@ class OODEvaluation(pl.Callback):
             these quantiles are evaluated too.
         noise_pairs: pure-noise input pairs scored for the box plots.
         max_train_pairs: score at most this many training pairs (evenly spaced); null: all.
+        unseen_scenes_ood: count test pairs from sequences / scenes absent from training as OOD
+            (with the erased ones) in precision, recall and AUROC: the MAV experiment, where
+            the indoor and transition scenes are the unseen environments (paper Fig. 8).
     """
 
     def __init__(
@@ -70,6 +73,7 @@ class OODEvaluation(pl.Callback):
         table: dict[str, float] | None = None,
         noise_pairs: int = 64,
         max_train_pairs: int | None = None,
+        unseen_scenes_ood: bool = False,
     ) -> None:
         super().__init__()
         self.quantiles = [float(q) for q in quantiles]
@@ -93,6 +97,7 @@ class OODEvaluation(pl.Callback):
         self.corrupt_fraction = float(corrupt_fraction)
         self.table = {"autoencoder": 1.0, **(table or {})}
         self.noise_pairs, self.max_train_pairs = int(noise_pairs), max_train_pairs
+        self.unseen_scenes_ood = bool(unseen_scenes_ood)
         self.rows: list[dict[str, Any]] = []
 
     # -- collecting scores ---------------------------------------------------------------------
@@ -148,17 +153,27 @@ class OODEvaluation(pl.Callback):
             out[score.name] = values.double()
         return out
 
-    def _collect(self, trainer, module, autoencoder, scores, loader, corrupt: Tensor | None):
+    def _unseen(self, dm, split: str) -> Tensor:
+        """(sources,) bool: which sequences / scenes of `split` the model was not trained on,
+        when `unseen_scenes_ood` (MAV: indoor and transition are OOD); else all False."""
+        names = dm.sets[split].index.names
+        trained = set(dm.sets["train"].index.names)
+        return torch.tensor([self.unseen_scenes_ood and n not in trained for n in names] or [False])
+
+    def _collect(self, trainer, module, autoencoder, scores, split, loader, corrupt=None):
+        """Errors and scores of every pair of `loader`; `corrupted` (the OOD label) is set for
+        erased pairs (`corrupt`, by test index) and pairs from unseen scenes."""
         dm = trainer.datamodule
+        unseen = self._unseen(dm, split)
         parts: list[dict[str, Tensor]] = []
         for batch in loader:
             batch = {k: v.to(module.device) for k, v in batch.items()}
-            flags = torch.zeros_like(batch["corrupted"])
+            erase = torch.zeros_like(batch["corrupted"])
             if corrupt is not None:
-                flags = corrupt.to(module.device)[batch["index"]]
-            batch = dm.on_after_batch_transfer({**batch, "corrupted": flags}, 0)
+                erase = corrupt.to(module.device)[batch["index"]]
+            batch = dm.on_after_batch_transfer({**batch, "corrupted": erase}, 0)
             part = self._score_batch(module, autoencoder, scores, batch)
-            part["corrupted"] = flags
+            part["corrupted"] = erase | unseen.to(erase.device)[batch["source"]]
             parts.append({k: v.cpu() for k, v in part.items()})
         return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
 
@@ -216,11 +231,13 @@ class OODEvaluation(pl.Callback):
             train_loader = torch.utils.data.DataLoader(
                 subset, batch_size=dm.eval_batch_size, collate_fn=train_loader.collate_fn
             )
-        sets = {"train": self._collect(trainer, module, autoencoder, scores, train_loader, None)}
+        sets = {"train": self._collect(trainer, module, autoencoder, scores, "train", train_loader)}
         test_loader = dm.eval_loader("test")
-        sets["clean"] = self._collect(trainer, module, autoencoder, scores, test_loader, None)
+        sets["clean"] = self._collect(trainer, module, autoencoder, scores, "test", test_loader)
         flags = corrupted_flags(len(dm.sets["test"]), self.corrupt_fraction)
-        sets["corrupted"] = self._collect(trainer, module, autoencoder, scores, test_loader, flags)
+        sets["corrupted"] = self._collect(
+            trainer, module, autoencoder, scores, "test", test_loader, flags
+        )
         sets["noise"] = self._noise(trainer, module, autoencoder, scores)
         rows = []
         for score in scores:
