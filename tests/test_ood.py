@@ -272,3 +272,34 @@ def test_unseen_scenes_count_as_ood(tmp_path, make_cfg):
     clean = frame[frame["set"] == "clean"]
     # indoor holds frames 20-29: 9 pairs, of which round(0.3 * 9) = 3 are test pairs
     assert (clean["n_corrupted"] == 3).all() and (clean["n"] == 6).all()
+
+
+def test_ood_config_keys_are_checked_before_training(make_cfg):
+    from rotlearn.cli.schemas import validate
+
+    validate(make_cfg(["experiment=kitti_ood_demo"]))
+    with pytest.raises(ConfigError, match=r"callbacks\.ood\.quantile: unknown \(did you mean"):
+        validate(make_cfg(["data=kitti", "callbacks=ood", "+callbacks.ood.quantile=[0.5]"]))
+    with pytest.raises(ConfigError, match=r"callbacks\.ood\.noise_pairs: expected int"):
+        validate(make_cfg(["data=kitti", "callbacks=ood", "callbacks.ood.noise_pairs=many"]))
+
+
+def test_calibrated_threshold_gives_keep_flags_for_image_pairs(trained_run, tiny_kitti, capsys):
+    from rotlearn import load
+    from rotlearn.cli.predict import main as predict
+
+    run_dir, _ = trained_run
+    frame = pd.read_csv(run_dir / "ood.csv")
+    row = frame[(frame["score"] == "dt") & frame["in_table"] & (frame["set"] == "clean")]
+    predictor = load(run_dir)
+    assert predictor.ood["q"] == 0.75
+    assert predictor.ood["threshold"] == pytest.approx(float(row["threshold"].iloc[0]))
+    frames = sorted((tiny_kitti / "sequences" / "00" / "image_2").glob("*.png"))
+    assert predict([str(run_dir), str(frames[0]), str(frames[1]), "--json"]) == 0
+    answer = json.loads(capsys.readouterr().out)
+    assert set(answer) >= {"R", "q_xyzw", "dt_score", "dispersion", "keep"}
+    assert answer["keep"] == (answer["dt_score"] < predictor.ood["threshold"])
+    assert predict([str(run_dir), str(frames[0])]) == 2  # an image model needs two frames
+    assert "two image files" in capsys.readouterr().err
+    with pytest.raises(ValueError, match=r"shape \(B, 6, 16, 16\)"):
+        predictor(torch.zeros(1, 6, 8, 8))

@@ -80,6 +80,9 @@ class Predictor:
         self.ood = ood
         self.dtype = next(net.parameters()).dtype
         self.in_channels = getattr(net, "in_channels", None)
+        self.image_size = (
+            getattr(net, "image_size", None) if getattr(net, "channel_axis", -1) == 1 else None
+        )
 
     def _validate(self, inputs: Any) -> Tensor:
         if isinstance(inputs, np.ndarray):
@@ -94,7 +97,9 @@ class Predictor:
             )
         if not inputs.is_floating_point():
             raise TypeError(f"inputs must be floating point (float32/float64), got {inputs.dtype}")
-        if inputs.ndim < 2 or (
+        if self.image_size is not None:
+            self._validate_images(inputs)
+        elif inputs.ndim < 2 or (
             self.in_channels is not None and inputs.shape[-1] != self.in_channels
         ):
             width = self.in_channels if self.in_channels is not None else "C"
@@ -114,11 +119,20 @@ class Predictor:
             raise ValueError(f"inputs contain NaN or Inf (first at {bad})")
         return inputs.to(self.device, self.dtype)
 
+    def _validate_images(self, inputs: Tensor) -> None:
+        size, channels = self.image_size, self.in_channels
+        if inputs.ndim not in (3, 4) or tuple(inputs.shape[-3:]) != (channels, size, size):
+            raise ValueError(
+                f"inputs must be stacked image pairs of shape (B, {channels}, {size}, {size}) or "
+                f"({channels}, {size}, {size}), got {tuple(inputs.shape)}"
+            )
+
     @torch.no_grad()
     def __call__(self, inputs: Any) -> RotationEstimate:
-        """Estimate rotations for (B, N, C) inputs (or one (N, C) input, as a batch of one)."""
+        """Estimate rotations for (B, N, C) point inputs (or one (N, C) input, as a batch of one),
+        or, for image-pair models, (B, C, S, S) normalised pairs (or one (C, S, S))."""
         x = self._validate(inputs)
-        if x.ndim == 2:
+        if x.ndim == (3 if self.image_size is not None else 2):
             x = x.unsqueeze(0)
         raw = self.net(x)
         if not bool(torch.isfinite(raw).all()):

@@ -1,8 +1,11 @@
-"""`rotlearn-predict CKPT INPUT`: the rotation a trained model reads in an input, and how sure.
+"""`rotlearn-predict CKPT INPUT [INPUT2]`: the rotation a trained model reads in an input, and
+how sure.
 
-INPUT is a point-cloud pair file for point models: a `.npy` array (N, 6) or (B, N, 6), or a text
+Point models: INPUT is a point-cloud pair file, a `.npy` array (N, 6) or (B, N, 6), or a text
 file of N lines "ux uy uz vx vy vz" (whitespace or commas; `#` starts a comment): the matched
-pairs (u_i, v_i) with v_i = R u_i. Image-pair models (KITTI/MAV) come with the dataset loaders.
+pairs (u_i, v_i) with v_i = R u_i. Image-pair models (data=kitti, data=mav): INPUT and INPUT2 are
+the two frames (e.g. sequences/00/image_2/000000.png and 000001.png), preprocessed as in
+training; the answer is C_21, the rotation from the first camera to the second.
 """
 
 from __future__ import annotations
@@ -53,6 +56,20 @@ def read_point_pairs(path: str | Path, width: int = 6) -> np.ndarray:
     return np.asarray(rows)
 
 
+def _read_input(predictor, paths: list[str]):
+    """The model's input from the command line's files: a point-pair file, or an image pair."""
+    if predictor.image_size is None:
+        if len(paths) != 1:
+            raise ValueError(f"a point model reads one point-pair file, got {len(paths)} inputs")
+        return read_point_pairs(paths[0], predictor.in_channels or 6)
+    if len(paths) != 2:
+        raise ValueError(f"an image-pair model reads two image files, got {len(paths)} inputs")
+    from hydra.utils import instantiate
+
+    datamodule = instantiate(predictor.config["data"])
+    return datamodule.read_pair(*paths)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="rotlearn-predict",
@@ -60,7 +77,9 @@ def main(argv: list[str] | None = None) -> int:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("checkpoint", help="a .ckpt file or a run directory (uses its last.ckpt)")
-    parser.add_argument("input", help="point-cloud pair file (.npy or text)")
+    parser.add_argument(
+        "input", nargs="+", help="point-cloud pair file (.npy or text), or two image files"
+    )
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--json", action="store_true", help="print JSON instead of text")
     args = parser.parse_args(argv)
@@ -69,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         predictor = load(args.checkpoint, device=args.device)
-        estimate = predictor(read_point_pairs(args.input, predictor.in_channels or 6))
+        estimate = predictor(_read_input(predictor, args.input))
     except (OSError, ValueError, TypeError) as exc:
         print(f"rotlearn-predict: {exc}", file=sys.stderr)
         return 2

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import difflib
 from dataclasses import dataclass, field, fields
+from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ValidationError
@@ -137,15 +138,35 @@ class BinghamLossConfig:
     rep: str | None = None
 
 
+@dataclass
+class OODConfig:
+    """`callbacks=ood`: `rotlearn.ood.OODEvaluation` (conf/callbacks/ood.yaml)."""
+
+    _target_: str = "rotlearn.ood.OODEvaluation"
+    quantiles: list[float] = field(default_factory=lambda: [0.25, 0.5, 0.75, 1.0])
+    scores: list[str] = field(default_factory=lambda: ["dt", "eigengap", "raw_norm", "autoencoder"])
+    autoencoder_ckpt: str | None = None
+    autoencoder_train: dict[str, Any] | None = None
+    corrupt_fraction: float = 0.5
+    table: dict[str, float] | None = None
+    noise_pairs: int = 64
+    unseen_scenes_ood: bool = False
+    max_train_pairs: int | None = None
+
+
 SCHEMAS: dict[str, dict[str, type]] = {
     "rep": {RepConfig._target_: RepConfig},
     "data": {c._target_: c for c in (SyntheticWahbaConfig, ShapeNetConfig, KittiConfig, MAVConfig)},
     "loss": {c._target_: c for c in (ChordalLossConfig, AngularLossConfig, BinghamLossConfig)},
+    "callbacks.ood": {OODConfig._target_: OODConfig},
 }
+OPTIONAL = {"callbacks.ood"}  # checked when present
 
 
 def _check_node(cfg: DictConfig, key: str) -> None:
     node = OmegaConf.select(cfg, key)
+    if node is None and key in OPTIONAL:
+        return
     if node is None:
         raise ConfigError(f"config key {key} is missing")
     if not isinstance(node, DictConfig) or "_target_" not in node:
@@ -172,7 +193,7 @@ def _check_node(cfg: DictConfig, key: str) -> None:
 
 
 def validate(cfg: DictConfig) -> None:
-    """Check the `rep`, `data` and `loss` nodes of a composed config against their schemas.
+    """Check the `rep`, `data`, `loss` (and `callbacks.ood`) nodes against their schemas.
 
     Raises:
         ConfigError: naming the full key, and the allowed keys or the expected type.

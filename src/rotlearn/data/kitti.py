@@ -13,7 +13,6 @@ OpenCV, cached once per sequence as uint8 (`rotlearn.data.images.frame_cache`) a
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -132,6 +131,10 @@ class KittiOdometryDataModule(ImagePairDataModule):
         self.delta, self.image_size = int(delta), int(image_size)
         self.cache_dir = Path(cache_dir) if cache_dir else self.root / ".rotlearn_cache"
 
+    def preprocess(self, image: np.ndarray) -> np.ndarray:
+        """(H, W, 3) RGB frame -> (S, S, 3), resized with OpenCV's area filter."""
+        return resize_square(image, self.image_size)
+
     def frames(self, sequence: str) -> list[Path]:
         """The image files of a sequence, in order."""
         folder = self.root / "sequences" / sequence / self.camera
@@ -165,7 +168,7 @@ class KittiOdometryDataModule(ImagePairDataModule):
         frame_cache(
             files,
             cache,
-            functools.partial(resize_square, size=self.image_size),
+            self.preprocess,
             {"resize_square": self.image_size},
             desc=f"caching KITTI {sequence}/{self.camera}",
         )

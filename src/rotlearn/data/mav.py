@@ -18,7 +18,6 @@ scene's pairs is its test set.
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -189,6 +188,12 @@ class MAVDataModule(ImagePairDataModule):
         self.cache_dir = Path(cache_dir) if cache_dir else self.root / ".rotlearn_cache"
         self._frames: tuple[np.ndarray, np.ndarray, Path] | None = None
 
+    gray = True
+
+    def preprocess(self, image: np.ndarray) -> np.ndarray:
+        """(H, W) gray frame -> (S, S): Resize(resize) -> CenterCrop(image_size)."""
+        return resize_center_crop(image, self.resize, self.image_size)
+
     def _frame_rotations(self) -> tuple[np.ndarray, np.ndarray, Path]:
         """Every frame's camera-to-world rotation (N, 3, 3), its pose gap in ns, and the cache."""
         if self._frames is None:
@@ -201,7 +206,7 @@ class MAVDataModule(ImagePairDataModule):
             frame_cache(
                 [self.root / "flea3" / "data" / name for name in names],
                 cache,
-                functools.partial(resize_center_crop, resize=self.resize, crop=self.image_size),
+                self.preprocess,
                 {"resize": self.resize, "center_crop": self.image_size},
                 gray=True,
                 desc="caching MAV frames",

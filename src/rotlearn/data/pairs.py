@@ -233,5 +233,26 @@ class ImagePairDataModule(pl.LightningDataModule):
         trainer = self.trainer
         module = trainer.lightning_module if trainer is not None else None
         dtype = module.dtype if module is not None else torch.float32
-        x = images.to(dtype) * (1.0 / (255.0 * self.std)) - self.mean / self.std
+        x = self.normalize(images, dtype)
         return {**batch, "input": x, "R": batch["R"].to(dtype), "q": batch["q"].to(dtype)}
+
+    def normalize(self, images: Tensor, dtype: torch.dtype = torch.float32) -> Tensor:
+        """uint8 pixels -> (x / 255 - mean) / std in `dtype`, any shape."""
+        return images.to(dtype) * (1.0 / (255.0 * self.std)) - self.mean / self.std
+
+    gray = False  # frames decoded as one channel (MAV) or three (KITTI)
+
+    def preprocess(self, image: np.ndarray) -> np.ndarray:  # pragma: no cover
+        """A decoded frame -> the cached (S, S[, 3]) uint8 frame."""
+        raise NotImplementedError
+
+    def read_pair(self, first: str | Path, second: str | Path) -> Tensor:
+        """Two image files -> one normalised (2C, S, S) float32 pair, exactly as in training
+        (`rotlearn-predict` reads KITTI/MAV pairs with it)."""
+        from rotlearn.data.images import read_image
+
+        frames = []
+        for path in (first, second):
+            frame = self.preprocess(read_image(Path(path), self.gray))
+            frames.append(frame[None] if self.gray else frame.transpose(2, 0, 1))
+        return self.normalize(torch.from_numpy(np.concatenate(frames)))

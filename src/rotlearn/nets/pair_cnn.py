@@ -48,6 +48,8 @@ class PairCNN(nn.Module):
     Input (B, in_channels, S, S); output (B, out_dim).
     """
 
+    channel_axis = 1  # inputs are (B, C, S, S) images (the inference API checks this)
+
     def __init__(
         self,
         out_dim: int,
@@ -57,7 +59,7 @@ class PairCNN(nn.Module):
         hidden: int = 512,
     ) -> None:
         super().__init__()
-        self.in_channels = in_channels
+        self.in_channels, self.image_size = in_channels, image_size
         self.encoder = conv_encoder(in_channels, channels)
         flat = channels[-1] * encoded_size(image_size, len(channels)) ** 2
         self.regressor = mlp([flat, hidden, out_dim])

@@ -278,9 +278,27 @@ class OODEvaluation(pl.Callback):
         errors = {k: sets[k]["error"] for k in ("clean", "corrupted")}
         write_text_atomic(run_dir / "ood.md", ood_markdown(rep, frame, errors))
         log.info("OOD evaluation: %s", run_dir / "ood.md")
+        self._calibrate_checkpoints(run_dir, frame)
         for logger in trainer.loggers:
             if isinstance(logger, TensorBoardLogger):
                 self._log_tensorboard(logger.experiment, scores, sets, frame, trainer.global_step)
+
+    def _calibrate_checkpoints(self, run_dir: Path, frame) -> None:
+        """Store the DT threshold at its Table I quantile in the run's checkpoints, so that
+        `rotlearn.load(...)` returns keep flags (`rotlearn_ood`)."""
+        from rotlearn.checkpoint import load_checkpoint
+
+        rows = frame[(frame["score"] == "dt") & frame["in_table"] & (frame["set"] == "clean")]
+        if rows.empty:
+            return
+        ood = {"score": "dt", "threshold": float(rows["threshold"].iloc[0]),
+               "q": float(rows["q"].iloc[0])}  # fmt: skip
+        for path in sorted((run_dir / "checkpoints").glob("*.ckpt")):
+            checkpoint = load_checkpoint(path)
+            checkpoint["rotlearn_ood"] = ood
+            tmp = path.with_name(f".{path.name}.tmp")
+            torch.save(checkpoint, tmp)
+            os.replace(tmp, path)
 
     def _log_tensorboard(self, writer, scores, sets, frame, step: int) -> None:
         from rotlearn.ood.report import box_figure, pr_figure, scatter_figure
