@@ -174,3 +174,24 @@ def test_ddp_cpu_trains_in_two_processes(tmp_path):
     assert result.returncode == 0, result.stderr[-3000:]
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["epochs"] == 2 and 0.0 <= metrics["test/err_mean"] <= 180.0
+
+
+def test_report_keeps_every_swept_setting_apart(tmp_path, make_cfg):
+    """A sweep over loss (besides rep and trials) gets one row per (rep, loss), never pooled."""
+    sweep = tmp_path / "sweep"
+    jobs = [(loss, trial) for loss in ("chordal", "bingham") for trial in (0, 1)]
+    for num, (loss, trial) in enumerate(jobs):
+        run = sweep / str(num)
+        (run / ".hydra").mkdir(parents=True)
+        OmegaConf.save(make_cfg([f"loss={loss}"], run_dir=run), run / ".hydra" / "config.yaml")
+        (run / ".hydra" / "overrides.yaml").write_text(
+            f"- rep=a\n- loss={loss}\n- +trial={trial}\n"
+        )
+        error = 1.0 if loss == "chordal" else 3.0
+        metrics = {"test/err_mean": error + trial, "test/err_median": error}
+        (run / "metrics.json").write_text(json.dumps(metrics))
+        (run / "status.json").write_text(json.dumps({"num": num, "status": "COMPLETED"}))
+    report = make_report(sweep)["report"].read_text()
+    rows = {line.split("|")[1].strip(): line for line in report.splitlines() if "| 2 |" in line}
+    assert set(rows) == {"a loss=chordal", "a loss=bingham"}
+    assert float(rows["a loss=bingham"].split("|")[4]) == 3.5  # median of 3.0 and 4.0

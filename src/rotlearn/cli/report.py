@@ -98,17 +98,41 @@ def _ordered(reps) -> list[str]:
     return present + sorted(set(reps) - set(present))
 
 
+# Swept keys that are trials of one setting (pooled in the tables), not settings of their own.
+TRIAL_KEYS = {"rep", "trial", "seed", "data.seed", "optim.lr", "data.phi_max_deg"}
+
+
+def _groups(runs: pd.DataFrame) -> pd.Series:
+    """Each run's setting: its rep plus every other swept key (e.g. `a loss=bingham`), so that a
+    sweep over a key besides rep, lr, trial and phi_max is never pooled in the tables."""
+    overrides = [
+        dict(o.lstrip("+~").split("=", 1) for o in str(text).split() if "=" in o)
+        for text in runs["overrides"]
+    ]
+    keys = sorted({k for o in overrides for k in o} - TRIAL_KEYS)
+    swept = [k for k in keys if len({o.get(k) for o in overrides}) > 1]
+    return pd.Series(
+        [
+            " ".join([str(rep), *(f"{k}={o.get(k, '-')}" for k in swept)])
+            for rep, o in zip(runs["rep"], overrides, strict=True)
+        ],
+        index=runs.index,
+    )
+
+
 def _percentile_table(done: pd.DataFrame) -> str:
     lines = [
-        "| rep | trials | test err mean: p10 | median | p90 | median of per-run medians |",
+        "| setting | trials | test err mean: p10 | median | p90 | median of per-run medians |",
         "|---|---|---|---|---|---|",
     ]
-    for rep in _ordered(done["rep"]):
-        errs = done.loc[done["rep"] == rep, "test/err_mean"].to_numpy(dtype=float)
-        meds = done.loc[done["rep"] == rep, "test/err_median"].to_numpy(dtype=float)
+    groups = _groups(done)
+    order = {rep: i for i, rep in enumerate(_ordered(done["rep"]))}
+    for group in sorted(groups.unique(), key=lambda g: (order.get(g.split()[0], 99), g)):
+        errs = done.loc[groups == group, "test/err_mean"].to_numpy(dtype=float)
+        meds = done.loc[groups == group, "test/err_median"].to_numpy(dtype=float)
         p10, p50, p90 = np.percentile(errs, [10, 50, 90])
         lines.append(
-            f"| {rep} | {len(errs)} | {p10:.3f} | {p50:.3f} | {p90:.3f} | {np.median(meds):.3f} |"
+            f"| {group} | {len(errs)} | {p10:.3f} | {p50:.3f} | {p90:.3f} | {np.median(meds):.3f} |"
         )
     return "\n".join(lines)
 
