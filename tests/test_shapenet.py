@@ -28,7 +28,7 @@ def test_point_files_are_read_and_bad_lines_named(tmp_path):
     assert np.allclose(read_point_file(good), [[0, 0, 1], [1, 2, 3], [-1e-3, 4, 5]])
     bad = tmp_path / "b.xyz"
     bad.write_text("0 0 1\n0 1\n")
-    with pytest.raises(ValueError, match=r"b\.xyz:2: expected 'x y z'"):
+    with pytest.raises(ValueError, match=r"b\.xyz:2: expected 3 numbers \(x y z\)"):
         read_point_file(bad)
     bad.write_text("0 0 one\n")
     with pytest.raises(ValueError, match=r"b\.xyz:1: not a number"):

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from rotlearn.geometry import angle_deg
+from rotlearn.io import read_number_rows
 
 __all__ = ["main", "read_point_pairs"]
 
@@ -38,22 +39,7 @@ def read_point_pairs(path: str | Path, width: int = 6) -> np.ndarray:
             expected = f"(N, {width}) or (B, N, {width})"
             raise ValueError(f"{path}: expected an array of shape {expected}, got {array.shape}")
         return array.astype(np.float64)
-    rows = []
-    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
-        text = line.split("#", 1)[0].replace(",", " ").split()
-        if not text:
-            continue
-        if len(text) != width:
-            raise ValueError(
-                f"{path}:{lineno}: expected {width} numbers (ux uy uz vx vy vz), got {len(text)}"
-            )
-        try:
-            rows.append([float(v) for v in text])
-        except ValueError:
-            raise ValueError(f"{path}:{lineno}: not a number in {line.strip()!r}") from None
-    if not rows:
-        raise ValueError(f"{path}: no point pairs found")
-    return np.asarray(rows)
+    return read_number_rows(path, width, "ux uy uz vx vy vz", commas=True)
 
 
 def _read_input(predictor, paths: list[str]):

@@ -24,6 +24,7 @@ from rotlearn.data.pairs import ImagePairDataModule, PairIndex
 from rotlearn.errors import ConfigValueError, require_positive_ints
 from rotlearn.geometry import relative_rotation
 from rotlearn.heads.svd import special_orthogonalize
+from rotlearn.io import read_number_rows
 
 __all__ = ["KittiOdometryDataModule", "read_kitti_poses", "sequence_name"]
 
@@ -50,22 +51,7 @@ def read_kitti_poses(path: str | Path) -> np.ndarray:
             not a rotation.
     """
     path = Path(path)
-    rows = []
-    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
-        words = line.split()
-        if not words:
-            continue
-        if len(words) != 12:
-            raise ValueError(
-                f"{path}:{lineno}: expected 12 numbers (a 3x4 [R|t]), got {len(words)}"
-            )
-        try:
-            rows.append([float(w) for w in words])
-        except ValueError:
-            raise ValueError(f"{path}:{lineno}: not a number in {line.strip()!r}") from None
-    if not rows:
-        raise ValueError(f"{path}: no poses")
-    poses = np.asarray(rows, dtype=np.float64).reshape(-1, 3, 4)
+    poses = read_number_rows(path, 12, "a row-major 3x4 [R|t]").reshape(-1, 3, 4)
     R = poses[:, :, :3]
     error = np.abs(R.transpose(0, 2, 1) @ R - np.eye(3)).max(axis=(1, 2))
     bad = np.flatnonzero((error > ORTHONORMAL_TOL) | (np.linalg.det(R) < 0))

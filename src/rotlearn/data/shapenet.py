@@ -24,7 +24,7 @@ from torch.utils.data import DataLoader
 from rotlearn.data.draws import SPLITS, DrawDataModule
 from rotlearn.errors import ConfigValueError, require_positive_ints
 from rotlearn.geometry import quat_to_rotmat, so3_exp_quat
-from rotlearn.io import write_text_atomic
+from rotlearn.io import read_number_rows, write_text_atomic
 
 __all__ = ["AIRPLANE_SYNSET", "ShapeNetDataModule", "read_point_file", "sample_meshes"]
 
@@ -33,26 +33,13 @@ POINT_SUFFIXES = (".pts", ".xyz")
 
 
 def read_point_file(path: str | os.PathLike) -> np.ndarray:
-    """Points of a `.pts`/`.xyz` file: (N, 3) float32, one "x y z" line each.
+    """Points of a `.pts`/`.xyz` file: (N, 3) float32, one "x y z" line each (extra columns, such
+    as normals, are ignored).
 
     Raises:
         ValueError: naming the file and line of the first malformed row.
     """
-    path = Path(path)
-    rows = []
-    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
-        words = line.split()
-        if not words:
-            continue
-        if len(words) < 3:
-            raise ValueError(f"{path}:{lineno}: expected 'x y z', got {line.strip()!r}")
-        try:
-            rows.append([float(w) for w in words[:3]])
-        except ValueError:
-            raise ValueError(f"{path}:{lineno}: not a number in {line.strip()!r}") from None
-    if not rows:
-        raise ValueError(f"{path}: no points")
-    return np.asarray(rows, dtype=np.float32)
+    return read_number_rows(path, 3, "x y z", extra_ok=True).astype(np.float32)
 
 
 def sample_meshes(paths: list[Path], num_points: int, cache: Path, seed: int = 0) -> np.ndarray:

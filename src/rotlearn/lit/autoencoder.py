@@ -15,7 +15,7 @@ from torchmetrics import MeanMetric
 
 from rotlearn.checkpoint import load_checkpoint, resolve_checkpoint
 from rotlearn.errors import NonFiniteError
-from rotlearn.lit.regressor import rng_states, set_rng_states
+from rotlearn.lit.state import RunStateHooks
 from rotlearn.nets.autoencoder import ConvAutoEncoder
 
 __all__ = ["AutoEncoderModule", "load_autoencoder"]
@@ -23,7 +23,7 @@ __all__ = ["AutoEncoderModule", "load_autoencoder"]
 OptimizerFactory = Callable[[Iterable[nn.Parameter]], torch.optim.Optimizer]
 
 
-class AutoEncoderModule(pl.LightningModule):
+class AutoEncoderModule(RunStateHooks, pl.LightningModule):
     """Reconstruct the FIRST image of each stacked pair; its mean L1 error is the OOD score.
 
     Spec section 8: trained with the mean L1 pixel loss (paper: Adam, lr 5e-4, batch 32,
@@ -96,15 +96,6 @@ class AutoEncoderModule(pl.LightningModule):
         if self.optimizer_factory is None:
             raise ValueError("AutoEncoderModule was built without an optimizer; it cannot train")
         return self.optimizer_factory(self.parameters())
-
-    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        if self.run_config is not None:
-            checkpoint["rotlearn_config"] = self.run_config
-        checkpoint["rng_states"] = rng_states()
-
-    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        if "rng_states" in checkpoint:
-            set_rng_states(checkpoint["rng_states"])
 
 
 def load_autoencoder(

@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-import random
 from collections.abc import Callable, Iterable
 from typing import Any
 
 import lightning.pytorch as pl
-import numpy as np
 import torch
 from torch import Tensor, nn
 from torchmetrics import MeanMetric, SpearmanCorrCoef
@@ -16,15 +14,16 @@ from rotlearn.bingham import dispersion_from_eigenvalues
 from rotlearn.errors import NonFiniteError
 from rotlearn.geometry import angle_deg
 from rotlearn.heads import RotationHead, RotationPrediction
+from rotlearn.lit.state import RunStateHooks
 from rotlearn.metrics import AngularError
 
-__all__ = ["RotationRegressor", "rng_states", "set_rng_states"]
+__all__ = ["RotationRegressor"]
 
 OptimizerFactory = Callable[[Iterable[nn.Parameter]], torch.optim.Optimizer]
 SchedulerFactory = Callable[[torch.optim.Optimizer], Any]
 
 
-class RotationRegressor(pl.LightningModule):
+class RotationRegressor(RunStateHooks, pl.LightningModule):
     """Regress rotations: `head(net(batch["input"]))`, trained with `loss(prediction, batch)`.
 
     Logs, once per epoch: train/loss, train/err_*, val/err_*, test/err_* (degrees; mean, median,
@@ -146,38 +145,3 @@ class RotationRegressor(pl.LightningModule):
             "optimizer": optimizer,
             "lr_scheduler": {"scheduler": scheduler, "interval": "epoch"},
         }
-
-    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        if self.run_config is not None:
-            checkpoint["rotlearn_config"] = self.run_config
-        checkpoint["rng_states"] = rng_states()
-
-    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        if "rng_states" in checkpoint:
-            set_rng_states(checkpoint["rng_states"])
-
-
-def rng_states() -> dict[str, Any]:
-    """The global random states (torch CPU and CUDA, numpy, python) as tensors and plain data,
-    so that a checkpoint holding them still loads with `torch.load(weights_only=True)`."""
-    version, words, gauss = random.getstate()
-    name, keys, pos, has_gauss, cached = np.random.get_state()  # noqa: NPY002 (global state)
-    states: dict[str, Any] = {
-        "torch": torch.get_rng_state(),
-        "python": [version, list(words), gauss],
-        "numpy": [name, torch.from_numpy(keys.astype(np.int64)), pos, has_gauss, cached],
-    }
-    if torch.cuda.is_available():
-        states["cuda"] = torch.cuda.get_rng_state_all()
-    return states
-
-
-def set_rng_states(states: dict[str, Any]) -> None:
-    """Restore what `rng_states` returned."""
-    torch.set_rng_state(states["torch"])
-    version, words, gauss = states["python"]
-    random.setstate((version, tuple(words), gauss))
-    name, keys, pos, has_gauss, cached = states["numpy"]
-    np.random.set_state((name, keys.numpy().astype(np.uint32), pos, has_gauss, cached))  # noqa: NPY002
-    if "cuda" in states and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(states["cuda"])
