@@ -195,3 +195,14 @@ def test_report_keeps_every_swept_setting_apart(tmp_path, make_cfg):
     rows = {line.split("|")[1].strip(): line for line in report.splitlines() if "| 2 |" in line}
     assert set(rows) == {"a loss=chordal", "a loss=bingham"}
     assert float(rows["a loss=bingham"].split("|")[4]) == 3.5  # median of 3.0 and 4.0
+
+
+def test_optuna_search_minimises_the_validation_median(tmp_path):
+    pytest.importorskip("hydra_plugins.hydra_optuna_sweeper")
+    sweep = tmp_path / "optuna"
+    args = ["-m", "sweep=optuna", "hydra.sweeper.n_trials=2", *FAST, "trainer.max_epochs=1"]
+    result = _cli([*args, f"hydra.sweep.dir={sweep}"], tmp_path)
+    assert result.returncode == 0, result.stderr[-2000:]
+    best = OmegaConf.load(sweep / "optimization_results.yaml")
+    medians = [json.loads((sweep / str(i) / "metrics.json").read_text()) for i in (0, 1)]
+    assert best.best_value == pytest.approx(min(m["val/err_median"] for m in medians))

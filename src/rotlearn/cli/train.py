@@ -265,11 +265,12 @@ def resume_arguments(argv: list[str], runs_root: Path = Path("outputs/runs")) ->
 def _hydra_main(cfg: DictConfig) -> float:
     metrics = train(cfg)
     _report(cfg, metrics)
-    return metrics.get("test/err_median", math.nan)
+    # what sweepers (Optuna) minimise: the validation median error, never a test number
+    return metrics.get("val/err_median", metrics.get("val/loss", math.nan))
 
 
 def main() -> float:
-    """Entry point of `rotlearn-train`; returns the test median error (for sweepers)."""
+    """Entry point of `rotlearn-train`; returns the validation median error (for sweepers)."""
     sys.argv[1:] = resume_arguments(sys.argv[1:])
     return _hydra_main()
 
