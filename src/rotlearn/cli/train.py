@@ -220,6 +220,11 @@ def _report(cfg: DictConfig, metrics: dict[str, Any]) -> None:
             metrics.get("test/err_median", math.nan),
             metrics.get("test/err_p90", math.nan),
         )
+        log.info(
+            "baseline \"predict identity\": mean %.3f deg, median %.3f deg",
+            metrics.get("test/identity_err_mean", math.nan),
+            metrics.get("test/identity_err_median", math.nan),
+        )
     log.info("run directory: %s (metrics.json, checkpoints/, tensorboard/)", shown)
     log.info("open TensorBoard: %s --logdir %s", tb, shown)
 
