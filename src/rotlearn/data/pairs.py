@@ -17,7 +17,7 @@ import lightning.pytorch as pl
 import numpy as np
 import torch
 from torch import Tensor
-from torch.utils.data import DataLoader, Dataset
+from torch.utils.data import DataLoader, Dataset, get_worker_info
 
 from rotlearn.data.corruption import corrupted_flags, draw_erasing_boxes, erase_boxes
 from rotlearn.data.draws import SPLITS, draw_seed
@@ -107,7 +107,10 @@ class ImagePairs(Dataset):
         source = self.index.source[idx]
         first_array = self.arrays[int(source[0])]
         channels, size = first_array.shape[1], first_array.shape[-1]
-        images = np.empty((len(idx), 2 * channels, size, size), dtype=np.uint8)
+        batch = torch.empty((len(idx), 2 * channels, size, size), dtype=torch.uint8)
+        if get_worker_info() is not None:  # filled in place in shared memory: no copy to send
+            batch.share_memory_()
+        images = batch.numpy()
         for s in np.unique(source):  # one gather per sequence, not per sample
             rows = np.flatnonzero(source == s)
             array, pairs = self.arrays[int(s)], idx[rows]
@@ -115,7 +118,7 @@ class ImagePairs(Dataset):
             images[rows, channels:] = array[self.index.second[pairs]]
         t = torch.from_numpy(idx)
         return {
-            "input": torch.from_numpy(images),
+            "input": batch,
             "R": self.R[t],
             "q": self.q[t],
             "corrupted": self.corrupted[t],
@@ -237,8 +240,10 @@ class ImagePairDataModule(pl.LightningDataModule):
         return {**batch, "input": x, "R": batch["R"].to(dtype), "q": batch["q"].to(dtype)}
 
     def normalize(self, images: Tensor, dtype: torch.dtype = torch.float32) -> Tensor:
-        """uint8 pixels -> (x / 255 - mean) / std in `dtype`, any shape."""
-        return images.to(dtype) * (1.0 / (255.0 * self.std)) - self.mean / self.std
+        """uint8 pixels -> (x / 255 - mean) / std in `dtype`, any shape (one new tensor, scaled
+        in place: this runs on every batch)."""
+        x = images.to(dtype).mul_(1.0 / (255.0 * self.std))
+        return x.sub_(self.mean / self.std) if self.mean else x
 
     gray = False  # frames decoded as one channel (MAV) or three (KITTI)
 
