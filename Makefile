@@ -41,7 +41,7 @@ format: $(STAMP) ## apply ruff fixes and formatting
 bench: $(STAMP) ## benchmarks: results as JSON under bench/results and a printed table
 	$(BIN)/python bench/run.py $(ARGS)
 
-reproduce-cpu: $(STAMP) ## paper Figs. 3 and 4 sized for this CPU (about 20 min), each with its report
+reproduce-cpu: $(STAMP) ## paper Figs. 3 and 4 sized for this CPU (about 25 min), each with its report
 	$(BIN)/rotlearn-train -m experiment=synthetic_lr_cpu trainer.enable_progress_bar=false \
 		hydra.sweep.dir=outputs/reproduce-cpu/synthetic_lr_cpu
 	$(BIN)/rotlearn-train -m experiment=synthetic_phi_max_cpu trainer.enable_progress_bar=false \

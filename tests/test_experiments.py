@@ -47,10 +47,12 @@ def test_every_sweep_composes(make_cfg, sweep):
     validate(make_cfg([f"sweep={sweep}"]))
 
 
-def test_cpu_variants_are_smaller_than_the_paper_settings(make_cfg):
+def test_cpu_variants_are_no_larger_than_the_paper_settings(make_cfg):
     for name in ("synthetic_lr", "synthetic_phi_max", "shapenet_lr"):
         paper, cpu = make_cfg([f"experiment={name}"]), make_cfg([f"experiment={name}_cpu"])
-        assert cpu.trainer.max_epochs < paper.trainer.max_epochs
+        assert cpu.trainer.max_epochs <= paper.trainer.max_epochs
+        # Fig. 4 needs its 100 epochs (phi_max = 10 learns late); the others are cut down
+        assert cpu.trainer.max_epochs < paper.trainer.max_epochs or name == "synthetic_phi_max"
     assert make_cfg(["experiment=synthetic_lr"]).trials == 25
 
 
