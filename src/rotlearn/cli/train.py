@@ -221,7 +221,7 @@ def _report(cfg: DictConfig, metrics: dict[str, Any]) -> None:
             metrics.get("test/err_p90", math.nan),
         )
         log.info(
-            "baseline \"predict identity\": mean %.3f deg, median %.3f deg",
+            'baseline "predict identity": mean %.3f deg, median %.3f deg',
             metrics.get("test/identity_err_mean", math.nan),
             metrics.get("test/identity_err_median", math.nan),
         )
