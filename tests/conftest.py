@@ -36,7 +36,23 @@ def make_cfg(tmp_path: Path) -> Callable[..., DictConfig]:
 
 @pytest.fixture(scope="session")
 def demo_data(tmp_path_factory) -> dict[str, Path]:
-    """Small demo datasets in the real layouts, written once per test session."""
-    from rotlearn.data.demo import write_shapenet_demo
+    """Small demo datasets in the real layouts, written once per test session: "pts" and "mesh"
+    (ShapeNet), "kitti" (sequences 00 and 02) and "mav"."""
+    from rotlearn.data.demo import write_kitti_demo, write_mav_demo, write_shapenet_demo
 
-    return write_shapenet_demo(tmp_path_factory.mktemp("demo"), num_train=6, num_test=3, points=96)
+    out = tmp_path_factory.mktemp("demo")
+    roots = write_shapenet_demo(out, num_train=6, num_test=3, points=96)
+    roots["kitti"] = write_kitti_demo(out, sequences=("00", "02"), frames=6, width=62, height=19)
+    roots["mav"] = write_mav_demo(out, frames=40, width=64, height=52)
+    return roots
+
+
+# Overrides that point each dataset config at the demo copies, small enough for a unit test.
+def demo_overrides(demo_data: dict[str, Path], data: str) -> list[str]:
+    return {
+        "shapenet": [f"data.root={demo_data['pts']}"],
+        "kitti": [f"data.root={demo_data['kitti']}", "data.train_sequences=[02]",
+                  "data.test_sequences=[00]", "data.image_size=16", "data.num_workers=0"],
+        "mav": [f"data.root={demo_data['mav']}", "data.resize=18", "data.image_size=16",
+                "data.num_workers=0"],
+    }.get(data, [])  # fmt: skip

@@ -16,7 +16,7 @@ from omegaconf import OmegaConf
 from rotlearn.cli.schemas import SCHEMAS, validate
 from rotlearn.cli.train import ConfigError, build
 from rotlearn.heads import HEADS, RotationHead
-from tests.conftest import config_options
+from tests.conftest import config_options, demo_overrides
 
 
 def test_groups_have_the_documented_options():
@@ -39,12 +39,16 @@ def test_rep_builds_its_head_and_sizes_the_net(make_cfg, rep):
 
 @pytest.mark.parametrize("data", config_options("data"))
 def test_data_option_instantiates(make_cfg, demo_data, data):
-    roots = {"shapenet": [f"data.root={demo_data['pts']}"]}  # datasets read the demo copies
-    dm = instantiate(make_cfg([f"data={data}", *roots.get(data, [])]).data)
+    dm = instantiate(make_cfg([f"data={data}", *demo_overrides(demo_data, data)]).data)
     assert isinstance(dm, LightningDataModule)
     dm.setup("fit")
-    batch = dm.draw(0, 0, 4)
+    if hasattr(dm, "draw"):  # drawn on the device
+        batch = dm.draw(0, 0, 4)
+    else:  # image pairs read from disk
+        batch = dm.on_after_batch_transfer(next(iter(dm.train_dataloader())), 0)
+        batch = {k: v[:4] for k, v in batch.items()}
     assert batch["input"].shape[0] == 4 and batch["R"].shape == (4, 3, 3)
+    assert batch["input"].is_floating_point()
 
 
 @pytest.mark.parametrize("loss", config_options("loss"))
@@ -105,19 +109,31 @@ def test_every_option_of_a_schema_group_validates(make_cfg, group):
     "schema", [s for group in SCHEMAS.values() for s in group.values()], ids=lambda s: s.__name__
 )
 def test_schemas_match_their_targets_signatures(schema):
+    """Every constructor argument (those a subclass passes on with **kwargs included) is a schema
+    field with the same default; a list field's default equals the argument's tuple."""
     target = get_object(schema._target_)
-    if inspect.isclass(target):
-        target = target.__init__
-    params = {
-        name: p.default
-        for name, p in inspect.signature(target).parameters.items()
-        if name != "self" and p.kind is p.POSITIONAL_OR_KEYWORD
+    classes = (
+        [c for c in target.__mro__ if "__init__" in vars(c)] if inspect.isclass(target) else []
+    )
+    functions = [c.__init__ for c in classes] or [target]
+    params: dict = {}
+    for function in functions:
+        signature = inspect.signature(function).parameters
+        for name, p in signature.items():
+            if name != "self" and p.kind is p.POSITIONAL_OR_KEYWORD:
+                params.setdefault(name, p.default)
+        if not any(p.kind is p.VAR_KEYWORD for p in signature.values()):
+            break
+    fields = {
+        f.name: f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+        for f in dataclasses.fields(schema)
+        if f.name != "_target_"
     }
-    fields = {f.name: f.default for f in dataclasses.fields(schema) if f.name != "_target_"}
     assert fields.keys() == params.keys()
     for name, default in params.items():
         if default is not inspect.Parameter.empty and default is not None:
-            assert fields[name] == default, name
+            expected = list(default) if isinstance(default, tuple) else default
+            assert fields[name] == expected, name
 
 
 @pytest.mark.parametrize(

@@ -147,8 +147,9 @@ class MAVDataModule(ImagePairDataModule):
         resize, image_size: Resize(resize) -> CenterCrop(image_size) (paper: 256, 224).
         pair_channels: channels of a stacked pair; must be 2 (two gray frames).
         cache_dir: frame cache (default `<root>/.rotlearn_cache`).
-        **kwargs: batch sizes, workers, corruption, validation pairs, mean/std and seed
-            (`ImagePairDataModule`; mean 0.45 and std 0.25 by default here).
+        mean, std: Normalize(0.45, 0.25) after scaling pixels to [0, 1].
+        **kwargs: batch sizes, workers, corruption, validation pairs and seed
+            (`ImagePairDataModule`).
     """
 
     def __init__(
@@ -162,11 +163,11 @@ class MAVDataModule(ImagePairDataModule):
         image_size: int = 224,
         pair_channels: int = 2,
         cache_dir: str | None = None,
+        mean: float = 0.45,
+        std: float = 0.25,
         **kwargs,
     ) -> None:
-        kwargs.setdefault("mean", 0.45)
-        kwargs.setdefault("std", 0.25)
-        super().__init__(**kwargs)
+        super().__init__(mean=mean, std=std, **kwargs)
         require_positive_ints(resize=resize, image_size=image_size)
         if image_size > resize:
             raise ConfigValueError("image_size", f"the crop {image_size} exceeds resize={resize}")
