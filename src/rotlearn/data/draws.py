@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader
 
-__all__ = ["SPLITS", "DrawDataModule", "draw_seed"]
+__all__ = ["SPLITS", "DrawDataModule", "draw_seed", "model_device_dtype"]
 
 SPLITS = {"train": 0, "val": 1, "test": 2}
 
@@ -24,6 +24,15 @@ SPLITS = {"train": 0, "val": 1, "test": 2}
 def draw_seed(*words: int) -> int:
     """A well-mixed 63-bit seed from a tuple of non-negative integers."""
     return int(np.random.SeedSequence(list(words)).generate_state(1, np.uint64)[0] >> 1)
+
+
+def model_device_dtype(datamodule: pl.LightningDataModule) -> tuple[torch.device, torch.dtype]:
+    """The device and dtype of the model the datamodule feeds (CPU, float32 without one)."""
+    trainer = datamodule.trainer
+    module = trainer.lightning_module if trainer is not None else None
+    if module is None:
+        return torch.device("cpu"), torch.float32
+    return module.device, module.dtype
 
 
 class DrawDataModule(pl.LightningDataModule):
@@ -59,9 +68,7 @@ class DrawDataModule(pl.LightningDataModule):
         are fixed (unless `redraw_test`) and made on the CPU, so they are the same on every device.
         """
         trainer = self.trainer
-        module = trainer.lightning_module if trainer is not None else None
-        device = module.device if module is not None else torch.device("cpu")
-        dtype = module.dtype if module is not None else torch.float32
+        device, dtype = model_device_dtype(self)
         epoch = trainer.current_epoch if trainer is not None else 0
         fixed = split != SPLITS["train"] and not self.redraw_test
         seed = draw_seed(self.seed, split, 0 if fixed else epoch + 1, index)

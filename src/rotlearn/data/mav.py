@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -135,6 +136,14 @@ def read_pair_file(
     return np.asarray(pairs, dtype=np.int64)
 
 
+class _Frames(NamedTuple):
+    R: np.ndarray  # (N, 3, 3) camera-to-world rotation of each frame's nearest pose
+    gaps: np.ndarray  # (N,) ns between each frame and that pose
+    stamps: np.ndarray  # (N,) frame time stamps, ns
+    lines: np.ndarray  # (N,) line of each frame in flea3/data.csv
+    cache: Path  # the frame cache (.npy)
+
+
 class MAVDataModule(ImagePairDataModule):
     """MAV frame pairs with their relative rotations (module docstring).
 
@@ -187,7 +196,8 @@ class MAVDataModule(ImagePairDataModule):
         self.test_fraction, self.pose_tolerance_ms = float(test_fraction), float(pose_tolerance_ms)
         self.resize, self.image_size = int(resize), int(image_size)
         self.cache_dir = Path(cache_dir) if cache_dir else self.root / ".rotlearn_cache"
-        self._frames: tuple[np.ndarray, np.ndarray, Path] | None = None
+        self._frames: _Frames | None = None
+        self._scenes: dict[str, tuple[np.ndarray, np.ndarray]] = {}
 
     gray = True
 
@@ -195,11 +205,11 @@ class MAVDataModule(ImagePairDataModule):
         """(H, W) gray frame -> (S, S): Resize(resize) -> CenterCrop(image_size)."""
         return resize_center_crop(image, self.resize, self.image_size)
 
-    def _frame_rotations(self) -> tuple[np.ndarray, np.ndarray, Path]:
-        """Every frame's camera-to-world rotation (N, 3, 3), its pose gap in ns, and the cache."""
+    def _frame_rotations(self) -> _Frames:
+        """Every frame's rotation, pose gap, time stamp and `data.csv` line, and the cache; read
+        and cached once."""
         if self._frames is None:
-            frame_list = self.root / "flea3" / "data.csv"
-            stamps, names, _ = read_frame_list(frame_list)
+            stamps, names, lines = read_frame_list(self.root / "flea3" / "data.csv")
             pose_stamps, quats = read_pose_file(self.root / "pose" / "data.csv")
             nearest, gaps = match_poses(stamps, pose_stamps)
             q = quat_normalize(torch.from_numpy(quats[nearest]))
@@ -212,38 +222,45 @@ class MAVDataModule(ImagePairDataModule):
                 gray=True,
                 desc="caching MAV frames",
             )
-            self._frames = (quat_to_rotmat(q).numpy(), gaps, cache.with_suffix(".npy"))
+            R = quat_to_rotmat(q).numpy()
+            self._frames = _Frames(R, gaps, stamps, lines, cache.with_suffix(".npy"))
         return self._frames
 
     def _check_gaps(self, pairs: np.ndarray) -> None:
-        frame_list = self.root / "flea3" / "data.csv"
-        stamps, _, lines = read_frame_list(frame_list)
-        gaps = self._frame_rotations()[1]
+        frames = self._frame_rotations()
         used = np.unique(pairs)
-        late = used[gaps[used] > self.pose_tolerance_ms * 1e6]
+        late = used[frames.gaps[used] > self.pose_tolerance_ms * 1e6]
         if len(late):
             i = int(late[0])
             raise ValueError(
-                f"{frame_list}:{lines[i]}: frame {i} (t = {stamps[i]} ns) has no pose within "
-                f"{self.pose_tolerance_ms:g} ms in {self.root / 'pose' / 'data.csv'} (nearest: "
-                f"{gaps[i] / 1e6:.1f} ms; data.pose_tolerance_ms); {len(late)} frame(s) in all"
+                f"{self.root / 'flea3' / 'data.csv'}:{frames.lines[i]}: frame {i} "
+                f"(t = {frames.stamps[i]} ns) has no pose within {self.pose_tolerance_ms:g} ms in "
+                f"{self.root / 'pose' / 'data.csv'} (nearest: {frames.gaps[i] / 1e6:.1f} ms; "
+                f"data.pose_tolerance_ms); {len(late)} frame(s) in all"
             )
+
+    def _scene(self, scene: str) -> tuple[np.ndarray, np.ndarray]:
+        """A scene's pairs (P, 2), checked, and which are test pairs (P,): read once."""
+        if scene not in self._scenes:
+            frames = self._frame_rotations()
+            pairs = read_pair_file(self.root / "pairs" / f"{scene}.csv", len(frames.R))
+            self._check_gaps(pairs)
+            rng = np.random.default_rng(draw_seed(self.seed, *scene.encode()))
+            n_test = max(1, round(self.test_fraction * len(pairs)))
+            is_test = np.zeros(len(pairs), dtype=bool)
+            is_test[rng.permutation(len(pairs))[:n_test]] = True
+            self._scenes[scene] = (pairs, is_test)
+        return self._scenes[scene]
 
     def scene_pairs(self, scene: str, split: str) -> PairIndex:
         """The training or test part of one scene's pairs."""
-        rotations, _, cache = self._frame_rotations()
-        pairs = read_pair_file(self.root / "pairs" / f"{scene}.csv", len(rotations))
-        self._check_gaps(pairs)
-        rng = np.random.default_rng(draw_seed(self.seed, *scene.encode()))
-        is_test = np.zeros(len(pairs), dtype=bool)
-        is_test[rng.permutation(len(pairs))[: max(1, round(self.test_fraction * len(pairs)))]] = (
-            True
-        )
+        frames = self._frame_rotations()
+        pairs, is_test = self._scene(scene)
         pairs = pairs[is_test if split == "test" else ~is_test]
-        R = torch.from_numpy(rotations)
+        R = torch.from_numpy(frames.R)
         C = relative_rotation(R[pairs[:, 0]], R[pairs[:, 1]])
         return PairIndex(
-            caches=[cache],
+            caches=[frames.cache],
             source=np.zeros(len(pairs), dtype=np.int64),
             first=pairs[:, 0],
             second=pairs[:, 1],

@@ -20,7 +20,7 @@ from torch import Tensor
 from torch.utils.data import DataLoader, Dataset, get_worker_info
 
 from rotlearn.data.corruption import corrupted_flags, draw_erasing_boxes, erase_boxes
-from rotlearn.data.draws import SPLITS, draw_seed
+from rotlearn.data.draws import SPLITS, draw_seed, model_device_dtype
 from rotlearn.errors import ConfigValueError, require_positive_ints
 from rotlearn.geometry import rotmat_to_quat
 
@@ -190,7 +190,7 @@ class ImagePairDataModule(pl.LightningDataModule):
         val = test.subset(np.unique(np.linspace(0, len(test) - 1, self.num_val).astype(int)))
         self.sets = {
             "train": ImagePairs(train),
-            "val": ImagePairs(val if self.num_val else test.subset(np.arange(0))),
+            "val": ImagePairs(val),
             "test": ImagePairs(test, self.corrupt_fraction, self.seed),
         }
 
@@ -233,9 +233,7 @@ class ImagePairDataModule(pl.LightningDataModule):
         images = batch["input"]
         if bool(batch["corrupted"].any()):
             images = erase_boxes(images, batch["boxes"], batch["corrupted"])
-        trainer = self.trainer
-        module = trainer.lightning_module if trainer is not None else None
-        dtype = module.dtype if module is not None else torch.float32
+        dtype = model_device_dtype(self)[1]
         x = self.normalize(images, dtype)
         return {**batch, "input": x, "R": batch["R"].to(dtype), "q": batch["q"].to(dtype)}
 

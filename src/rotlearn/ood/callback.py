@@ -10,6 +10,7 @@ box plots of the score on train / test / corrupted / pure-noise inputs) to Tenso
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import os
@@ -98,7 +99,6 @@ class OODEvaluation(pl.Callback):
         self.table = {"autoencoder": 1.0, **(table or {})}
         self.noise_pairs, self.max_train_pairs = int(noise_pairs), max_train_pairs
         self.unseen_scenes_ood = bool(unseen_scenes_ood)
-        self.rows: list[dict[str, Any]] = []
 
     # -- collecting scores ---------------------------------------------------------------------
 
@@ -153,6 +153,19 @@ class OODEvaluation(pl.Callback):
             out[score.name] = values.double()
         return out
 
+    @staticmethod
+    def _on_device(dm, batch: dict[str, Tensor], device: torch.device) -> dict[str, Tensor]:
+        """A loader batch as the model sees it: on its device, through the datamodule's hook."""
+        return dm.on_after_batch_transfer({k: v.to(device) for k, v in batch.items()}, 0)
+
+    @staticmethod
+    def _batch_loader(dm, split: str, batches: list[list[int]]) -> torch.utils.data.DataLoader:
+        """The pairs of `split` in the given batches of indices, in that order."""
+        collate = dm.eval_loader(split).collate_fn
+        return torch.utils.data.DataLoader(
+            dm.sets[split], batch_sampler=batches, collate_fn=collate
+        )
+
     def _unseen(self, dm, split: str) -> Tensor:
         """(sources,) bool: which sequences / scenes of `split` the model was not trained on,
         when `unseen_scenes_ood` (MAV: indoor and transition are OOD); else all False."""
@@ -167,11 +180,11 @@ class OODEvaluation(pl.Callback):
         unseen = self._unseen(dm, split)
         parts: list[dict[str, Tensor]] = []
         for batch in loader:
-            batch = {k: v.to(module.device) for k, v in batch.items()}
             erase = torch.zeros_like(batch["corrupted"])
             if corrupt is not None:
-                erase = corrupt.to(module.device)[batch["index"]]
-            batch = dm.on_after_batch_transfer({**batch, "corrupted": erase}, 0)
+                erase = corrupt[batch["index"]]
+            batch = self._on_device(dm, {**batch, "corrupted": erase}, module.device)
+            erase = batch["corrupted"]
             part = self._score_batch(module, autoencoder, scores, batch)
             part["corrupted"] = erase | unseen.to(erase.device)[batch["source"]]
             parts.append({k: v.cpu() for k, v in part.items()})
@@ -191,7 +204,7 @@ class OODEvaluation(pl.Callback):
             "corrupted": torch.zeros(n, dtype=torch.bool),
             "boxes": torch.zeros(n, 2, 4, dtype=torch.long),
         }
-        batch = dm.on_after_batch_transfer({k: v.to(module.device) for k, v in batch.items()}, 0)
+        batch = self._on_device(dm, batch, module.device)
         return {
             k: v.cpu() for k, v in self._score_batch(module, autoencoder, scores, batch).items()
         }
@@ -218,26 +231,31 @@ class OODEvaluation(pl.Callback):
 
     def _evaluate(self, trainer, module, autoencoder):
         dm = trainer.datamodule
-        probe = module(dm.on_after_batch_transfer(
-            {k: v.to(module.device) for k, v in dm.sets["test"].__getitems__([0]).items()}, 0
-        )["input"])  # fmt: skip
         scores = available_scores(
-            self.score_names, probe.eigenvalues is not None, autoencoder is not None
+            self.score_names, module.head.defines_belief, autoencoder is not None
         )
+        n_train, n_test = len(dm.sets["train"]), len(dm.sets["test"])
         train_loader = dm.eval_loader("train")
-        if self.max_train_pairs and len(dm.sets["train"]) > self.max_train_pairs:
-            keep = np.linspace(0, len(dm.sets["train"]) - 1, self.max_train_pairs).astype(int)
-            subset = torch.utils.data.Subset(dm.sets["train"], keep.tolist())
-            train_loader = torch.utils.data.DataLoader(
-                subset, batch_size=dm.eval_batch_size, collate_fn=train_loader.collate_fn
-            )
-        sets = {"train": self._collect(trainer, module, autoencoder, scores, "train", train_loader)}
-        test_loader = dm.eval_loader("test")
-        sets["clean"] = self._collect(trainer, module, autoencoder, scores, "test", test_loader)
-        flags = corrupted_flags(len(dm.sets["test"]), self.corrupt_fraction)
-        sets["corrupted"] = self._collect(
-            trainer, module, autoencoder, scores, "test", test_loader, flags
-        )
+        if self.max_train_pairs and n_train > self.max_train_pairs:
+            keep = np.linspace(0, n_train - 1, self.max_train_pairs).astype(int).tolist()
+            batches = [
+                keep[i : i + dm.eval_batch_size] for i in range(0, len(keep), dm.eval_batch_size)
+            ]
+            train_loader = self._batch_loader(dm, "train", batches)
+        collect = functools.partial(self._collect, trainer, module, autoencoder, scores)
+        sets = {"train": collect("train", train_loader)}
+        sets["clean"] = collect("test", dm.eval_loader("test"))
+        # the corrupted set is the clean one, with the test batches that hold erased pairs
+        # scored again (the same batches as in the clean pass; the others are not rerun)
+        flags = corrupted_flags(n_test, self.corrupt_fraction)
+        size = dm.eval_batch_size
+        batches = [list(range(i, min(i + size, n_test))) for i in range(0, n_test, size)]
+        batches = [b for b in batches if flags[b].any()]
+        redone = collect("test", self._batch_loader(dm, "test", batches), flags)
+        rows = torch.tensor([i for b in batches for i in b], dtype=torch.long)
+        sets["corrupted"] = {k: v.clone() for k, v in sets["clean"].items()}
+        for key, values in redone.items():
+            sets["corrupted"][key][rows] = values
         sets["noise"] = self._noise(trainer, module, autoencoder, scores)
         rows = []
         for score in scores:
@@ -254,7 +272,6 @@ class OODEvaluation(pl.Callback):
                     )  # fmt: skip
                     rows.append({"set": test_set, "in_table": q == self._table_q(score.name),
                                  **row})  # fmt: skip
-        self.rows = rows
         return scores, sets, rows
 
     def _table_q(self, name: str) -> float:
@@ -275,8 +292,7 @@ class OODEvaluation(pl.Callback):
         frame = pd.DataFrame(rows)
         frame.insert(0, "rep", rep)
         write_text_atomic(run_dir / "ood.csv", frame.to_csv(index=False))
-        errors = {k: sets[k]["error"] for k in ("clean", "corrupted")}
-        write_text_atomic(run_dir / "ood.md", ood_markdown(rep, frame, errors))
+        write_text_atomic(run_dir / "ood.md", ood_markdown(rep, frame))
         log.info("OOD evaluation: %s", run_dir / "ood.md")
         self._calibrate_checkpoints(run_dir, frame)
         for logger in trainer.loggers:

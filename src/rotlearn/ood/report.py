@@ -40,16 +40,13 @@ def _fmt(value: Any, digits: int = 2) -> str:
     return str(value)
 
 
-def table_rows(
-    rep: str, frame: pd.DataFrame, errors: dict[str, Tensor] | None = None
-) -> list[dict]:
+def table_rows(rep: str, frame: pd.DataFrame) -> list[dict]:
     """Table I rows of one run: the head unfiltered, then the head + each score at its table q.
 
     Args:
         rep: the head's name.
-        frame: the callback's rows (columns of `rejection_row` plus set and in_table).
-        errors: optional {"clean": (N,), "corrupted": (N,)} errors for the unfiltered row; else
-            taken from the frame's err_mean_all.
+        frame: the callback's rows (columns of `rejection_row` plus set and in_table); the
+            unfiltered row takes their err_mean_all.
     """
     table = frame[frame["in_table"]]
 
@@ -58,8 +55,6 @@ def table_rows(
 
     clean_all = first(frame[frame["set"] == "clean"], "err_mean_all")
     corrupted_all = first(frame[frame["set"] == "corrupted"], "err_mean_all")
-    if errors is not None:
-        clean_all, corrupted_all = (float(errors[k].mean()) for k in ("clean", "corrupted"))
     rows = [{"method": rep, "q": "-", "clean err (deg)": clean_all, "clean kept %": 100.0,
              "corrupted err (deg)": corrupted_all, "corrupted kept %": 100.0,
              "precision %": math.nan, "recall %": 100.0, "AUROC": math.nan}]  # fmt: skip
@@ -87,7 +82,7 @@ def markdown_table(rows: list[dict], columns: list[str]) -> str:
     return "\n".join(lines)
 
 
-def ood_markdown(rep: str, frame: pd.DataFrame, errors: dict[str, Tensor]) -> str:
+def ood_markdown(rep: str, frame: pd.DataFrame) -> str:
     """`ood.md` of one run: Table I (paper) and every score at every quantile."""
     n = int(frame["n"].iloc[0]) if len(frame) else 0
     n_corrupted = (
@@ -102,7 +97,7 @@ def ood_markdown(rep: str, frame: pd.DataFrame, errors: dict[str, Tensor]) -> st
         "recall are of keeping clean pairs (spec section 6). Thresholds: quantile q of the "
         "training scores.",
         "## Table I",
-        markdown_table(table_rows(rep, frame, errors), TABLE_COLUMNS),
+        markdown_table(table_rows(rep, frame), TABLE_COLUMNS),
         "## Every score and quantile",
         markdown_table(frame.to_dict("records"), detail_columns),
     ]) + "\n"  # fmt: skip
