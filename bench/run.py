@@ -7,7 +7,9 @@
 - kitti_loader: first-time KITTI preprocessing rate and cached pairs/s with 2 workers
   (bench/kitti_loader.py).
 - paper: the paper's synthetic experiment (lr 5e-4, 50 epochs, phi_max 180) over 3 seeds per
-  representation, beside the numbers of the authors' code (spec section 10; issue 2).
+  representation (`--seeds 1-9` for more), beside the numbers of the authors' code (issue 2): the
+  median and mean over seeds, the 95 % interval of the mean, and whether that interval lies
+  below, level with or above the authors' value.
 
 Each benchmark prints a table and writes bench/results/<name>.json. Run it on an idle machine.
 """
@@ -97,6 +99,24 @@ def bench_heads(batch: int = 131072) -> dict:
     return {"batch": batch, "heads": rows}
 
 
+def mean_interval(values: list[float], level: float = 0.95) -> tuple[float, float, float]:
+    """Mean of `values` and its two-sided Student-t confidence interval (n >= 2)."""
+    from scipy.stats import t  # dev extra
+
+    mean = statistics.mean(values)
+    half = t.ppf(0.5 + level / 2, len(values) - 1) * statistics.stdev(values) / len(values) ** 0.5
+    return mean, float(mean - half), float(mean + half)
+
+
+def verdict(low: float, high: float, authors: str) -> str:
+    """Where a 95 % interval of our mean lies against the authors' value or range "a-b":
+    below / level (it overlaps) / above."""
+    bounds = [float(x) for x in authors.split("-")]
+    if high < bounds[0]:
+        return "below"
+    return "above" if low > bounds[-1] else "level"
+
+
 def bench_paper(reps: list[str], seeds: list[int]) -> dict:
     rows: dict[str, list[dict]] = {}
     with tempfile.TemporaryDirectory() as tmp:
@@ -109,19 +129,37 @@ def bench_paper(reps: list[str], seeds: list[int]) -> dict:
                     | {"seed": seed}
                 )
                 print(f"  {rep} seed {seed}: {m['test/err_mean']:.3f} deg", flush=True)
-    print("\nPaper synthetic setting (lr 5e-4, 50 epochs, phi_max 180): final test error, degrees")
-    print(
-        f"{'rep':6s} {'mean err per seed':>26s} {'median of':>10s} {'authors':>9s} {'s/epoch':>8s}"
-    )
+    print("\nPaper synthetic setting (lr 5e-4, 50 epochs, phi_max 180): final test mean error, deg")
+    print(f"seeds {','.join(map(str, seeds))}; interval: 95 % Student-t interval of the mean")
+    header = f"{'rep':6s} {'median':>7s} {'mean':>6s} {'95% interval':>14s} {'authors':>8s}"
+    print(f"{header} {'verdict':>8s} {'s/epoch':>8s}")
+    summary = {}
     for rep, runs in rows.items():
         errs = [r["test/err_mean"] for r in runs]
-        per_seed = " ".join(f"{e:.2f}" for e in errs)
         epoch = statistics.mean(r["epoch_time_s"] for r in runs)
         authors = AUTHORS.get(rep, ("-", "-"))[0]
+        row = {"median": statistics.median(errs), "mean": statistics.mean(errs)}
+        interval, judged = "-", "-"
+        if len(errs) > 1:
+            row["mean"], low, high = mean_interval(errs)
+            row["interval"] = [low, high]
+            interval = f"{low:.2f}-{high:.2f}"
+            judged = verdict(low, high, authors) if authors != "-" else "-"
+        summary[rep] = row | {"verdict": judged}
         print(
-            f"{rep:6s} {per_seed:>26s} {statistics.median(errs):10.2f} {authors:>9s} {epoch:8.3f}"
+            f"{rep:6s} {row['median']:7.2f} {row['mean']:6.2f} {interval:>14s} {authors:>8s} "
+            f"{judged:>8s} {epoch:8.3f}"
         )
-    return {"runs": rows, "authors": AUTHORS}
+    return {"runs": rows, "summary": summary, "authors": AUTHORS}
+
+
+def parse_seeds(text: str) -> list[int]:
+    """ "1,2,3" or "1-9" or "0,4-6" -> a list of seeds."""
+    seeds: list[int] = []
+    for part in text.split(","):
+        first, _, last = part.partition("-")
+        seeds.extend(range(int(first), int(last or first) + 1))
+    return seeds
 
 
 SCRIPTS = {
@@ -146,13 +184,13 @@ def main(argv: list[str] | None = None) -> None:
     default = ["epoch", "heads", *(n for n, f in SCRIPTS.items() if (RESULTS.parent / f).exists())]
     parser.add_argument("names", nargs="*", default=default, help="epoch heads bingham paper ...")
     parser.add_argument("--reps", default="a,sixd,quat")
-    parser.add_argument("--seeds", default="1,2,3")
+    parser.add_argument("--seeds", default="1,2,3", help='"1,2,3" or "1-9"')
     args = parser.parse_args(argv)
     warnings.filterwarnings("ignore")
     logging.getLogger("lightning").setLevel(logging.ERROR)
     logging.getLogger("lightning.pytorch").setLevel(logging.ERROR)
     reps = args.reps.split(",")
-    seeds = [int(s) for s in args.seeds.split(",")]
+    seeds = parse_seeds(args.seeds)
     benches = {
         "epoch": lambda: bench_epoch(reps),
         "heads": bench_heads,
