@@ -157,3 +157,44 @@ def test_pointnet_without_hidden_point_layers():
     torch.testing.assert_close(
         net(x), net.head_mlp(net.pool.linear(x).amax(dim=-2)), atol=1e-5, rtol=1e-5
     )
+
+
+def _layer_outputs(net: PointNet, x: torch.Tensor) -> list[torch.Tensor]:
+    """Every Linear's output (per point, pooled, hidden head layers), flattened to (rows, C)."""
+    outs, h = [], x
+    for layer in net.point_mlp or ():
+        h = layer(h)
+        if isinstance(layer, nn.Linear):
+            outs.append(h.reshape(-1, h.shape[-1]))
+    h = net.pool(h)
+    outs.append(h)
+    for layer in list(net.head_mlp)[:-1]:
+        h = layer(h)
+        if isinstance(layer, nn.Linear):
+            outs.append(h)
+    return outs
+
+
+@pytest.mark.parametrize("point_channels", [(8, 16, 32), (16,)], ids=str)
+def test_initialize_from_centres_every_hidden_layer_and_keeps_the_weights(point_channels):
+    torch.manual_seed(3)
+    net = PointNet(6, in_channels=6, point_channels=point_channels, head_channels=(16, 8))
+    x = torch.randn((20, 11, 6), generator=gen(4)).double()
+    net = net.double()
+    before = {k: v.clone() for k, v in net.state_dict().items()}
+    assert max(out.mean(0).abs().max() for out in _layer_outputs(net, x)) > 1e-2
+    net.initialize_from(x)
+    for out in _layer_outputs(net, x):
+        torch.testing.assert_close(out.mean(0), torch.zeros_like(out[0]), atol=1e-12, rtol=0)
+    after = net.state_dict()
+    changed = {k for k in before if not torch.equal(before[k], after[k])}
+    last = f"head_mlp.{len(net.head_mlp) - 1}"
+    assert changed and all(k.endswith(".bias") and not k.startswith(last) for k in changed)
+
+
+@pytest.mark.parametrize(("center_init", "batch"), [(False, 20), (True, 1)])
+def test_initialize_from_is_a_no_op_when_off_or_given_one_sample(center_init, batch):
+    net = PointNet(6, point_channels=(8, 16), head_channels=(8,), center_init=center_init)
+    before = {k: v.clone() for k, v in net.state_dict().items()}
+    net.initialize_from(torch.randn((batch, 5, 6), generator=gen(5)))
+    assert all(torch.equal(before[k], v) for k, v in net.state_dict().items())

@@ -44,6 +44,25 @@ def test_a_head_reports_how_well_dt_ranks_its_errors(make_cfg, loss):
     )
 
 
+def test_fit_centres_the_point_net_on_its_first_training_batch(make_cfg):
+    model, datamodule, trainer = build(make_cfg(["rep=sixd", *FAST, "trainer.max_epochs=1"]))
+    seen: dict[str, list[torch.Tensor]] = {"init": [], "train": []}
+    initialize_from, training_step = model.net.initialize_from, model.training_step
+
+    def spy_init(points):
+        seen["init"].append(points.clone())
+        initialize_from(points)
+
+    def spy_step(batch, batch_idx):
+        seen["train"].append(batch["input"].clone())
+        return training_step(batch, batch_idx)
+
+    model.net.initialize_from, model.training_step = spy_init, spy_step
+    trainer.fit(model, datamodule=datamodule)
+    assert len(seen["init"]) == 1
+    torch.testing.assert_close(seen["init"][0], seen["train"][0], rtol=0, atol=0)
+
+
 def test_bingham_loss_is_refused_for_heads_without_a_belief(make_cfg):
     with pytest.raises(
         ConfigError, match=r"loss\.rep: loss=bingham needs a head that defines a belief"

@@ -62,6 +62,16 @@ class RotationRegressor(RunStateHooks, pl.LightningModule):
     def forward(self, inputs: Tensor) -> RotationPrediction:
         return self.head(self.net(inputs))
 
+    def setup(self, stage: str) -> None:
+        """Before fitting, give a net with a data-dependent initialisation (`initialize_from`,
+        e.g. `PointNet`) the first training batch. Lightning restores a resumed run's checkpoint
+        after this hook, so a resumed run keeps its weights."""
+        datamodule = self.trainer.datamodule
+        if stage != "fit" or datamodule is None or not hasattr(self.net, "initialize_from"):
+            return
+        batch = next(iter(datamodule.train_dataloader()))
+        self.net.initialize_from(datamodule.on_after_batch_transfer(batch, 0)["input"])
+
     def _where(self, stage: str, batch_idx: int) -> str:
         return f"{stage} step {self.global_step} (epoch {self.current_epoch}, batch {batch_idx})"
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import itertools
 from collections.abc import Sequence
 
+import torch
 from torch import Tensor, nn
 
 from rotlearn.nets.pooling import LinearMaxPool
@@ -35,6 +36,9 @@ class PointNet(nn.Module):
         in_channels: features per point (6 for a matched pair (u_i, v_i)).
         point_channels: widths of the per-point layers (the last one is pooled).
         head_channels: widths of the hidden layers after pooling.
+        center_init: whether `initialize_from` centres the biases on a batch (the training
+            module calls it with the first training batch); False keeps PyTorch's initialisation,
+            as in the authors' code.
 
     Input (..., N, in_channels) points; output (..., out_dim).
     """
@@ -45,9 +49,11 @@ class PointNet(nn.Module):
         in_channels: int = 6,
         point_channels: Sequence[int] = (64, 128, 1024),
         head_channels: Sequence[int] = (256, 128),
+        center_init: bool = True,
     ) -> None:
         super().__init__()
         self.in_channels = in_channels
+        self.center_init = center_init
         *hidden, pooled = point_channels
         self.point_mlp = nn.Sequential(*mlp([in_channels, *hidden]), nn.PReLU()) if hidden else None
         self.pool = LinearMaxPool(hidden[-1] if hidden else in_channels, pooled)
@@ -56,3 +62,40 @@ class PointNet(nn.Module):
     def forward(self, points: Tensor) -> Tensor:
         features = self.point_mlp(points) if self.point_mlp is not None else points
         return self.head_mlp(self.pool(features))
+
+    @torch.no_grad()
+    def initialize_from(self, points: Tensor) -> None:
+        """Data-dependent initialisation (Kraehenbuehl et al., ICLR 2016): shift the bias of every
+        layer but the last so that, on `points`, each of its outputs has zero mean (over the batch,
+        and over the points for the per-point layers). Weights are untouched. A no-op when
+        `center_init` is False or the batch holds fewer than 2 samples.
+
+        Why: under PyTorch's default initialisation every max-pooled feature carries a large
+        offset shared by all inputs, so the output hardly depends on the input (its spread over a
+        batch is about 4 % of its mean). The net first learns the best constant rotation and
+        stays near that "predict identity" plateau for 12-15 of the paper's 50 synthetic epochs
+        with the 6D head. Centred features shorten the plateau; in the paper's synthetic setting
+        6D's final test error falls from 1.62 to 1.48 deg (mean of 9 seeds), see docs/results.md.
+
+        Args:
+            points: (..., N, in_channels) inputs, e.g. the first training batch.
+        """
+        flat = points.reshape(-1, *points.shape[-2:])
+        if not self.center_init or flat.shape[0] < 2:
+            return
+
+        def centre(layer: nn.Linear, out: Tensor) -> Tensor:
+            mean = out.reshape(-1, out.shape[-1]).mean(0)
+            layer.bias -= mean
+            return out - mean
+
+        features = flat
+        for layer in self.point_mlp or ():
+            features = layer(features)
+            if isinstance(layer, nn.Linear):
+                features = centre(layer, features)
+        features = centre(self.pool.linear, self.pool(features))
+        for layer in list(self.head_mlp)[:-1]:
+            features = layer(features)
+            if isinstance(layer, nn.Linear):
+                features = centre(layer, features)
