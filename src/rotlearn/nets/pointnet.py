@@ -75,7 +75,8 @@ class PointNet(nn.Module):
         batch is about 4 % of its mean). The net first learns the best constant rotation and
         stays near that "predict identity" plateau for 12-15 of the paper's 50 synthetic epochs
         with the 6D head. Centred features shorten the plateau; in the paper's synthetic setting
-        6D's final test error falls from 1.62 to 1.48 deg (mean of 9 seeds), see docs/results.md.
+        6D's final test mean error falls from 1.62 to 1.49 deg (mean over seeds 1-9), see
+        docs/results.md.
 
         Args:
             points: (..., N, in_channels) inputs, e.g. the first training batch.
