@@ -99,13 +99,13 @@ def bench_heads(batch: int = 131072) -> dict:
     return {"batch": batch, "heads": rows}
 
 
-def mean_interval(values: list[float], level: float = 0.95) -> tuple[float, float, float]:
-    """Mean of `values` and its two-sided Student-t confidence interval (n >= 2)."""
+def mean_interval(values: list[float], level: float = 0.95) -> tuple[float, float]:
+    """The two-sided Student-t confidence interval of the mean of `values` (n >= 2)."""
     from scipy.stats import t  # dev extra
 
     mean = statistics.mean(values)
     half = t.ppf(0.5 + level / 2, len(values) - 1) * statistics.stdev(values) / len(values) ** 0.5
-    return mean, float(mean - half), float(mean + half)
+    return float(mean - half), float(mean + half)
 
 
 def verdict(low: float, high: float, authors: str) -> str:
@@ -141,7 +141,7 @@ def bench_paper(reps: list[str], seeds: list[int]) -> dict:
         row = {"median": statistics.median(errs), "mean": statistics.mean(errs)}
         interval, judged = "-", "-"
         if len(errs) > 1:
-            row["mean"], low, high = mean_interval(errs)
+            low, high = mean_interval(errs)
             row["interval"] = [low, high]
             interval = f"{low:.2f}-{high:.2f}"
             judged = verdict(low, high, authors) if authors != "-" else "-"

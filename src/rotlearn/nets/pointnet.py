@@ -90,13 +90,13 @@ class PointNet(nn.Module):
             layer.bias -= mean
             return out - mean
 
-        features = flat
-        for layer in self.point_mlp or ():
-            features = layer(features)
-            if isinstance(layer, nn.Linear):
-                features = centre(layer, features)
+        def through(layers: Sequence[nn.Module], features: Tensor) -> Tensor:
+            for layer in layers:
+                features = layer(features)
+                if isinstance(layer, nn.Linear):
+                    features = centre(layer, features)
+            return features
+
+        features = through(self.point_mlp or (), flat)
         features = centre(self.pool.linear, self.pool(features))
-        for layer in list(self.head_mlp)[:-1]:
-            features = layer(features)
-            if isinstance(layer, nn.Linear):
-                features = centre(layer, features)
+        through(self.head_mlp[:-1], features)
