@@ -75,6 +75,7 @@ from torch.autograd.function import once_differentiable
 from rotlearn.errors import ConfigValueError, batch_index
 from rotlearn.geometry import quat_canonical, rotmat_to_quat
 from rotlearn.heads import HEADS, RotationPrediction
+from rotlearn.trust import config_target
 
 __all__ = [
     "LOG_AREA_S3",
@@ -474,6 +475,7 @@ def _guess_rep(prediction: RotationPrediction) -> str:
     return names[0] if len(names) == 1 else f"<head with out_dim {size}>"
 
 
+@config_target
 class BinghamNLLLoss(nn.Module):
     """Mean Bingham negative log-likelihood `nll(prediction.A, batch["q"])` (paper eq. 19).
 

@@ -1,19 +1,36 @@
-"""Reading checkpoints safely: tensors and plain data only, never arbitrary pickled code."""
+"""Reading checkpoints and run directories safely: the one loader every rebuild goes through.
+
+A checkpoint is read with `torch.load(weights_only=True)` (tensors and plain data, never pickled
+code), and the run config it carries is checked against rotlearn's allowlist of buildable
+components (`rotlearn.trust`) before anything is built from it. `rotlearn.load`, `rotlearn-predict`,
+`rotlearn-eval` and the OOD evaluation's auto-encoder all load through `load_run`.
+"""
 
 from __future__ import annotations
 
 import os
 import pickle
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import torch
+from torch import Tensor
 
-__all__ = ["UnsafeCheckpointError", "load_checkpoint", "resolve_checkpoint"]
+from rotlearn.trust import UntrustedConfigError, trusted_config
+
+__all__ = [
+    "SavedRun",
+    "UnsafeCheckpointError",
+    "UntrustedConfigError",
+    "load_checkpoint",
+    "load_run",
+    "resolve_checkpoint",
+]
 
 
-class UnsafeCheckpointError(pickle.UnpicklingError):
-    """The file holds pickled objects beyond tensors and plain data; it was not unpickled."""
+class UnsafeCheckpointError(pickle.UnpicklingError, ValueError):
+    """The file is not a checkpoint of tensors and plain data; it was not unpickled."""
 
 
 def resolve_checkpoint(path: str | os.PathLike) -> Path:
@@ -35,16 +52,118 @@ def load_checkpoint(path: str | os.PathLike, map_location: Any = "cpu") -> dict[
 
     Raises:
         FileNotFoundError: no such checkpoint.
-        UnsafeCheckpointError: the file carries objects that only a full unpickler could build
-            (such a file can run arbitrary code when loaded; rotlearn never loads it).
+        UnsafeCheckpointError: the file is not a dict of tensors and plain data: it carries
+            objects that only a full unpickler could build (such a file can run code when
+            loaded; rotlearn never loads it), or it is no checkpoint at all.
     """
     path = resolve_checkpoint(path)
     try:
-        return torch.load(path, map_location=map_location, weights_only=True)
+        checkpoint = torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as exc:
-        reason = next((line for line in str(exc).splitlines() if "GLOBAL" in line), str(exc))
+        reason = next((line for line in str(exc).splitlines() if "GLOBAL" in line), "")
+        detail = f" ({reason.strip()})" if reason else ""
         raise UnsafeCheckpointError(
-            f"refusing to load {path}: it contains pickled Python objects, not only tensors and "
-            f"plain data ({reason.strip()}). Loading it could run arbitrary code; rotlearn only "
-            "reads checkpoints with torch.load(weights_only=True)."
+            f"refusing to load {path}: it is not a checkpoint of tensors and plain data"
+            f"{detail}. A file that needs a full unpickler can run code when loaded; rotlearn "
+            "only reads checkpoints with torch.load(weights_only=True)."
         ) from None
+    except Exception as exc:  # a damaged or foreign file fails in many ways (KeyError, ...)
+        text = str(exc).strip()
+        first = text.splitlines()[0] if text else ""
+        if "weights_only" in first:  # never pass on torch's advice to unpickle
+            first = ""
+        raise UnsafeCheckpointError(
+            f"{path} is not a readable PyTorch checkpoint ({type(exc).__name__}"
+            + (f": {first}" if first else "")
+            + ")"
+        ) from None
+    if not isinstance(checkpoint, dict):
+        raise UnsafeCheckpointError(
+            f"{path} is not a checkpoint: it holds a {type(checkpoint).__name__}, not a dict"
+        )
+    return checkpoint
+
+
+@dataclass(frozen=True)
+class SavedRun:
+    """A trained run as read from its checkpoint, safe to rebuild.
+
+    Attributes:
+        path: the checkpoint file.
+        config: the run's resolved config (a `DictConfig`): no interpolations, and every
+            `_target_` on rotlearn's allowlist.
+        state_dict: the LightningModule's weights, name -> tensor.
+        ood: the calibrated OOD threshold stored by the OOD evaluation, {"score": str,
+            "threshold": float, "q": float}, or None.
+    """
+
+    path: Path
+    config: Any
+    state_dict: dict[str, Tensor]
+    ood: dict[str, Any] | None = field(default=None)
+
+    @property
+    def task(self) -> str:
+        return str(self.config.get("task", "rotation"))
+
+    def build(self, key: str) -> Any:
+        """Instantiate the config node `key` (e.g. "net", "rep")."""
+        from hydra.utils import instantiate
+        from omegaconf import OmegaConf
+
+        node = OmegaConf.select(self.config, key)
+        if node is None:
+            raise ValueError(f"{self.path}: the saved config has no {key!r} node")
+        return instantiate(node)
+
+    def weights(self, prefix: str) -> dict[str, Tensor]:
+        """The weights of the submodule `prefix` (e.g. "net"), with the prefix removed."""
+        start = f"{prefix}."
+        return {k[len(start) :]: v for k, v in self.state_dict.items() if k.startswith(start)}
+
+
+def _check_ood(ood: Any, path: Path) -> dict[str, Any] | None:
+    if ood is None:
+        return None
+    numbers = (int, float)
+    if (
+        not isinstance(ood, dict)
+        or not isinstance(ood.get("score"), str)
+        or not isinstance(ood.get("threshold"), numbers)
+        or isinstance(ood.get("threshold"), bool)
+    ):
+        raise ValueError(
+            f"{path}: rotlearn_ood must be {{score: str, threshold: number}}, got {ood!r}"
+        )
+    return dict(ood)
+
+
+def load_run(path: str | os.PathLike, task: str | None = None) -> SavedRun:
+    """Read a rotlearn checkpoint (or a run directory's last one) for rebuilding its model.
+
+    Args:
+        path: a `.ckpt` file or a run directory.
+        task: if given, the run's `task` must be this ("rotation" or "autoencoder").
+
+    Raises:
+        FileNotFoundError: no such checkpoint.
+        UnsafeCheckpointError: the file carries pickled code or is no checkpoint.
+        UntrustedConfigError: the saved config names a `_target_` off the allowlist, or holds an
+            interpolation; the message names the key path. Nothing was built.
+        ValueError: not a rotlearn checkpoint, or of another task.
+    """
+    ckpt = resolve_checkpoint(path)
+    checkpoint = load_checkpoint(ckpt)
+    saved = checkpoint.get("rotlearn_config")
+    if not saved:
+        raise ValueError(f"{ckpt} is not a rotlearn checkpoint (no saved config)")
+    config = trusted_config(saved, source=ckpt)
+    state_dict = checkpoint.get("state_dict")
+    if not isinstance(state_dict, dict) or not all(
+        isinstance(k, str) and isinstance(v, Tensor) for k, v in state_dict.items()
+    ):
+        raise ValueError(f"{ckpt}: state_dict must map names to tensors")
+    run = SavedRun(ckpt, config, state_dict, _check_ood(checkpoint.get("rotlearn_ood"), ckpt))
+    if task is not None and run.task != task:
+        raise ValueError(f"{ckpt} is a task={run.task!r} checkpoint, not task={task!r}")
+    return run

@@ -15,15 +15,17 @@ from typing import Any
 
 import numpy as np
 import torch
-from hydra.utils import instantiate
-from omegaconf import OmegaConf
 from torch import Tensor, nn
 
 from rotlearn.bingham import dispersion_from_eigenvalues
-from rotlearn.checkpoint import load_checkpoint
-from rotlearn.heads import RotationHead, RotationPrediction
+from rotlearn.checkpoint import load_run
+from rotlearn.heads import RotationHead
 
-__all__ = ["Predictor", "RotationEstimate", "load"]
+__all__ = ["CHUNK_ELEMENTS", "Predictor", "RotationEstimate", "load"]
+
+# Input numbers sent through the network at once: the Predictor splits larger batches into
+# chunks of about this many (at least one sample), so its memory stays bounded for any batch.
+CHUNK_ELEMENTS = 2**20
 
 
 @dataclass(frozen=True)
@@ -48,10 +50,10 @@ class RotationEstimate:
     keep: Tensor | None = None
 
 
-def _uncertainty(prediction: RotationPrediction) -> tuple[Tensor | None, Tensor | None]:
-    if prediction.eigenvalues is None:
+def _uncertainty(eigenvalues: Tensor | None) -> tuple[Tensor | None, Tensor | None]:
+    if eigenvalues is None:
         return None, None
-    dispersion = dispersion_from_eigenvalues(prediction.eigenvalues)
+    dispersion = dispersion_from_eigenvalues(eigenvalues)
     return dispersion, dispersion.sum(-1)  # the DT score, paper eq. 26
 
 
@@ -63,6 +65,8 @@ class Predictor:
         config: the run's resolved config (as saved in the checkpoint).
         ood: optional {"score": "dt", "threshold": float} calibrated on the training set.
         device: where to run.
+        chunk_elements: input numbers per forward pass; larger batches are split into chunks
+            of whole samples (at least one), so memory is bounded whatever the batch size.
     """
 
     def __init__(
@@ -72,7 +76,11 @@ class Predictor:
         config: dict[str, Any] | None = None,
         ood: dict[str, Any] | None = None,
         device: str | torch.device = "cpu",
+        chunk_elements: int = CHUNK_ELEMENTS,
     ) -> None:
+        if int(chunk_elements) < 1:
+            raise ValueError(f"chunk_elements must be a positive integer, got {chunk_elements}")
+        self.chunk_elements = int(chunk_elements)
         self.device = torch.device(device)
         self.net = net.to(self.device).eval()
         self.head = head.to(self.device).eval()
@@ -117,7 +125,7 @@ class Predictor:
                 "the input" if inputs.ndim == 2 else f"sample {int((~finite.all(-1)).nonzero()[0])}"
             )
             raise ValueError(f"inputs contain NaN or Inf (first at {bad})")
-        return inputs.to(self.device, self.dtype)
+        return inputs
 
     def _validate_images(self, inputs: Tensor) -> None:
         size, channels = self.image_size, self.in_channels
@@ -134,32 +142,44 @@ class Predictor:
         x = self._validate(inputs)
         if x.ndim == (3 if self.image_size is not None else 2):
             x = x.unsqueeze(0)
-        raw = self.net(x)
-        if not bool(torch.isfinite(raw).all()):
-            raise FloatingPointError("the network output is not finite for these inputs")
-        prediction = self.head(raw)
-        dispersion, dt = _uncertainty(prediction)
+        per_sample = max(1, x[:1].numel())
+        size = max(1, self.chunk_elements // per_sample)
+        parts = [self._predict(chunk) for chunk in x.split(size)]
+        R, q, eigenvalues = (
+            torch.cat(values) if values[0] is not None else None
+            for values in zip(*parts, strict=True)
+        )
+        dispersion, dt = _uncertainty(eigenvalues)
         keep = None
         if self.ood is not None and dt is not None and self.ood.get("score") == "dt":
             keep = dt < float(self.ood["threshold"])
-        return RotationEstimate(
-            R=prediction.R, q=prediction.q, dispersion=dispersion, dt=dt, keep=keep
-        )
+        return RotationEstimate(R=R, q=q, dispersion=dispersion, dt=dt, keep=keep)
+
+    def _predict(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
+        """R (b, 3, 3), q (b, 4) and the eigenvalues (b, 4) or None of one chunk of inputs."""
+        raw = self.net(x.to(self.device, self.dtype))
+        if not bool(torch.isfinite(raw).all()):
+            raise FloatingPointError("the network output is not finite for these inputs")
+        prediction = self.head(raw)
+        return prediction.R, prediction.q, prediction.eigenvalues
 
 
-def load(ckpt_path: str | os.PathLike, device: str | torch.device = "cpu") -> Predictor:
+def load(
+    ckpt_path: str | os.PathLike,
+    device: str | torch.device = "cpu",
+    chunk_elements: int = CHUNK_ELEMENTS,
+) -> Predictor:
     """Load a rotlearn checkpoint (or a run directory's last one) as a `Predictor`.
 
-    Reads with `torch.load(weights_only=True)`: a checkpoint carrying pickled code is refused
-    (`rotlearn.checkpoint.UnsafeCheckpointError`). The network and head are rebuilt from the
-    config saved in the checkpoint.
+    Goes through `rotlearn.checkpoint.load_run`: the file is read with
+    `torch.load(weights_only=True)` (pickled code is refused: `UnsafeCheckpointError`) and the
+    saved config may only name allowlisted components (`UntrustedConfigError`, naming the key),
+    checked before the network and head are rebuilt from it.
     """
-    checkpoint = load_checkpoint(ckpt_path, map_location="cpu")
-    config = checkpoint.get("rotlearn_config")
-    if not config:
-        raise ValueError(f"{ckpt_path} is not a rotlearn checkpoint (no saved config)")
-    cfg = OmegaConf.create(config)
-    net, head = instantiate(cfg.net), instantiate(cfg.rep)
-    state = checkpoint["state_dict"]
-    net.load_state_dict({k[len("net.") :]: v for k, v in state.items() if k.startswith("net.")})
-    return Predictor(net, head, config, ood=checkpoint.get("rotlearn_ood"), device=device)
+    from omegaconf import OmegaConf
+
+    run = load_run(ckpt_path, task="rotation")
+    net, head = run.build("net"), run.build("rep")
+    net.load_state_dict(run.weights("net"))
+    config = OmegaConf.to_container(run.config)
+    return Predictor(net, head, config, ood=run.ood, device=device, chunk_elements=chunk_elements)

@@ -7,10 +7,12 @@ from torch import Tensor, nn
 from rotlearn.bingham import BinghamNLLLoss
 from rotlearn.geometry import angle, chordal_distance_sq
 from rotlearn.heads import RotationPrediction
+from rotlearn.trust import config_target
 
 __all__ = ["AngularLoss", "BinghamNLLLoss", "ChordalLoss"]
 
 
+@config_target
 class ChordalLoss(nn.Module):
     """Mean |R - R*|_F^2 (paper eq. 17), for every head.
 
@@ -21,6 +23,7 @@ class ChordalLoss(nn.Module):
         return chordal_distance_sq(prediction.R, batch["R"]).mean()
 
 
+@config_target
 class AngularLoss(nn.Module):
     """Mean squared geodesic angle |Log(R R*^T)|^2 in rad^2 (paper eq. 18)."""
 

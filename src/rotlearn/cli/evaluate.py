@@ -17,7 +17,7 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from rotlearn.checkpoint import load_checkpoint, resolve_checkpoint
+from rotlearn.checkpoint import load_run
 from rotlearn.cli.schemas import ConfigError
 from rotlearn.io import write_json_atomic
 from rotlearn.paths import config_dir
@@ -27,6 +27,9 @@ __all__ = ["evaluate", "evaluation_config", "main"]
 log = logging.getLogger("rotlearn")
 
 DEFAULT_OOD = config_dir() / "callbacks" / "ood.yaml"
+# What the evaluation keeps of the trained run's trainer config (how it computes, not where it
+# writes: outputs go to the evaluation's own directory).
+SAVED_TRAINER_KEYS = ("_target_", "accelerator", "devices", "precision", "deterministic")
 
 
 def _set(node: DictConfig | None) -> dict[str, Any]:
@@ -35,9 +38,11 @@ def _set(node: DictConfig | None) -> dict[str, Any]:
     }
 
 
-def evaluation_config(cfg: DictConfig, saved: dict[str, Any]) -> DictConfig:
-    """The saved run config with the evaluation's overrides, OOD callback and output paths."""
-    run = OmegaConf.create(saved)
+def evaluation_config(cfg: DictConfig, saved: DictConfig) -> DictConfig:
+    """The saved run config (already checked: `rotlearn.checkpoint.load_run`) with the
+    evaluation's overrides, OOD callback and output paths. Of the saved trainer config only the
+    keys in `SAVED_TRAINER_KEYS` are kept; the rest comes from the evaluation's own command line."""
+    run = OmegaConf.create(OmegaConf.to_container(saved))
     if run.get("task", "rotation") != "rotation":
         raise ConfigError(f"ckpt={cfg.ckpt}: a {run.task} checkpoint, not a rotation model")
     if cfg.expect_rep is not None and cfg.expect_rep != run.rep.name:
@@ -49,8 +54,10 @@ def evaluation_config(cfg: DictConfig, saved: dict[str, Any]) -> DictConfig:
     if ood is None:
         ood = OmegaConf.load(DEFAULT_OOD).ood
     run.callbacks = {"ood": OmegaConf.merge(ood, _set(cfg.ood))}
+    run.data.pop("cache_dir", None)  # caches go where this command line says, or under data.root
     run.data = OmegaConf.merge(run.data, _set(cfg.data))
-    run.trainer = OmegaConf.merge(run.trainer, _set(cfg.trainer), {"default_root_dir": out})
+    trainer = {k: v for k, v in run.trainer.items() if k in SAVED_TRAINER_KEYS}
+    run.trainer = OmegaConf.merge(trainer, _set(cfg.trainer), {"default_root_dir": out})
     run.logger = {
         "tensorboard": {
             "_target_": "lightning.pytorch.loggers.TensorBoardLogger",
@@ -67,16 +74,13 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     from rotlearn.cli.train import build
 
     try:
-        ckpt = resolve_checkpoint(cfg.ckpt)
-    except FileNotFoundError as exc:
+        saved = load_run(cfg.ckpt)
+    except (FileNotFoundError, ValueError) as exc:  # unsafe file, untrusted config, other task
         raise ConfigError(f"ckpt={cfg.ckpt}: {exc}") from None
-    checkpoint = load_checkpoint(ckpt)
-    saved = checkpoint.get("rotlearn_config")
-    if not saved:
-        raise ConfigError(f"ckpt={cfg.ckpt}: {ckpt} is not a rotlearn checkpoint (no saved config)")
-    run = evaluation_config(cfg, saved)
+    ckpt = saved.path
+    run = evaluation_config(cfg, saved.config)
     model, datamodule, trainer = build(run)
-    model.load_state_dict(checkpoint["state_dict"])
+    model.load_state_dict(saved.state_dict)
     trainer.test(model, datamodule=datamodule, verbose=False)
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
     metrics.update({"ckpt": str(ckpt.resolve()), "rep": run.rep.name})

@@ -22,12 +22,14 @@ from lightning.pytorch.loggers import TensorBoardLogger
 from omegaconf import DictConfig, OmegaConf
 
 from rotlearn.checkpoint import resolve_checkpoint
+from rotlearn.cli.replay import saved_overrides
 from rotlearn.cli.schemas import ConfigError, validate
 from rotlearn.errors import ConfigValueError
 from rotlearn.io import write_json_atomic
 from rotlearn.lit import AutoEncoderModule, EpochTimer, RotationRegressor
 from rotlearn.nets import ConvAutoEncoder
 from rotlearn.paths import config_dir
+from rotlearn.trust import UntrustedConfigError
 
 __all__ = ["ConfigError", "build", "main", "resume_arguments", "train"]
 
@@ -253,13 +255,13 @@ def resume_arguments(argv: list[str], runs_root: Path = Path("outputs/runs")) ->
         except FileNotFoundError as exc:
             raise SystemExit(f"rotlearn-train: ckpt_path: {exc}") from None
     run_dir = ckpt.parent.parent if ckpt.parent.name == "checkpoints" else ckpt.parent
-    saved = run_dir / ".hydra" / "overrides.yaml"
-    if not saved.is_file():
-        raise SystemExit(f"rotlearn-train: ckpt_path: {run_dir} is not a rotlearn run (no {saved})")
-    previous = [o for o in OmegaConf.load(saved) if not str(o).startswith("ckpt_path=")]
+    try:  # the run directory is untrusted data: its overrides are checked before Hydra starts
+        previous = [o for o in saved_overrides(run_dir) if not o.startswith("ckpt_path=")]
+    except (FileNotFoundError, UntrustedConfigError) as exc:
+        raise SystemExit(f"rotlearn-train: ckpt_path: {exc}") from None
     new = [a for a in argv if not a.startswith("ckpt_path=")]
     return [
-        *map(str, previous),
+        *previous,
         *new,
         f"ckpt_path={ckpt.resolve()}",
         f"hydra.run.dir={run_dir.resolve()}",

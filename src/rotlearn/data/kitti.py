@@ -25,6 +25,7 @@ from rotlearn.errors import ConfigValueError, require_positive_ints
 from rotlearn.geometry import relative_rotation
 from rotlearn.heads.svd import special_orthogonalize
 from rotlearn.io import read_number_rows
+from rotlearn.trust import config_target
 
 __all__ = ["KittiOdometryDataModule", "read_kitti_poses", "sequence_name"]
 
@@ -65,6 +66,7 @@ def read_kitti_poses(path: str | Path) -> np.ndarray:
     return poses
 
 
+@config_target
 class KittiOdometryDataModule(ImagePairDataModule):
     """KITTI odometry frame pairs with their relative rotations (module docstring).
 

@@ -30,6 +30,7 @@ from rotlearn.data.images import frame_cache, resize_center_crop
 from rotlearn.data.pairs import ImagePairDataModule, PairIndex
 from rotlearn.errors import ConfigValueError, require_positive_ints
 from rotlearn.geometry import quat_normalize, quat_to_rotmat, relative_rotation
+from rotlearn.trust import config_target
 
 __all__ = ["MAVDataModule", "match_poses", "read_frame_list", "read_pair_file", "read_pose_file"]
 
@@ -144,6 +145,7 @@ class _Frames(NamedTuple):
     cache: Path  # the frame cache (.npy)
 
 
+@config_target
 class MAVDataModule(ImagePairDataModule):
     """MAV frame pairs with their relative rotations (module docstring).
 

@@ -25,6 +25,7 @@ from rotlearn.data.draws import SPLITS, DrawDataModule
 from rotlearn.errors import ConfigValueError, require_positive_ints
 from rotlearn.geometry import quat_to_rotmat, so3_exp_quat
 from rotlearn.io import read_number_rows, write_text_atomic
+from rotlearn.trust import config_target
 
 __all__ = ["AIRPLANE_SYNSET", "ShapeNetDataModule", "read_point_file", "sample_meshes"]
 
@@ -70,6 +71,7 @@ def sample_meshes(paths: list[Path], num_points: int, cache: Path, seed: int = 0
     return clouds
 
 
+@config_target
 class ShapeNetDataModule(DrawDataModule):
     """ShapeNet clouds under random rotations (spec section 4).
 

@@ -19,6 +19,7 @@ from rotlearn.geometry import (
     random_unit_vectors,
     so3_exp_quat,
 )
+from rotlearn.trust import config_target
 
 __all__ = ["SyntheticWahbaDataModule", "wahba_batch"]
 
@@ -50,6 +51,7 @@ def wahba_batch(
     return {"input": torch.cat((u, v), dim=-1), "R": R, "q": q}
 
 
+@config_target
 class SyntheticWahbaDataModule(DrawDataModule):
     """Synthetic Wahba data (spec section 3), drawn batch by batch on the model's device.
 

@@ -6,6 +6,7 @@ from torch import Tensor, nn
 
 from rotlearn.errors import ConfigValueError
 from rotlearn.geometry import rotmat_to_quat
+from rotlearn.trust import config_target
 
 __all__ = ["HEADS", "RotationHead", "RotationPrediction", "make_head", "register_head"]
 
@@ -75,6 +76,7 @@ def register_head(cls: type[RotationHead]) -> type[RotationHead]:
     return cls
 
 
+@config_target
 def make_head(name: str, out_dim: int | None = None, solver: str | None = None) -> RotationHead:
     """The head registered as `name` (the config's `rep.name`).
 

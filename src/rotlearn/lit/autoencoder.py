@@ -8,21 +8,21 @@ from typing import Any
 
 import lightning.pytorch as pl
 import torch
-from hydra.utils import instantiate
-from omegaconf import OmegaConf
 from torch import Tensor, nn
 from torchmetrics import MeanMetric
 
-from rotlearn.checkpoint import load_checkpoint, resolve_checkpoint
+from rotlearn.checkpoint import load_run
 from rotlearn.errors import NonFiniteError
 from rotlearn.lit.state import RunStateHooks
 from rotlearn.nets.autoencoder import ConvAutoEncoder
+from rotlearn.trust import config_target
 
 __all__ = ["AutoEncoderModule", "load_autoencoder"]
 
 OptimizerFactory = Callable[[Iterable[nn.Parameter]], torch.optim.Optimizer]
 
 
+@config_target
 class AutoEncoderModule(RunStateHooks, pl.LightningModule):
     """Reconstruct the FIRST image of each stacked pair; its mean L1 error is the OOD score.
 
@@ -102,26 +102,23 @@ def load_autoencoder(
     ckpt_path: str | os.PathLike, device: str | torch.device = "cpu"
 ) -> AutoEncoderModule:
     """An `AutoEncoderModule`, in eval mode on `device`, from a checkpoint of a `task=autoencoder`
-    run (or a run directory's last one). The net is rebuilt from the config saved in the
-    checkpoint; the file is read with `torch.load(weights_only=True)`.
+    run (or a run directory's last one), read through `rotlearn.checkpoint.load_run` (weights
+    only; the saved config may name allowlisted components only).
 
     Raises:
         FileNotFoundError: no such checkpoint.
+        UnsafeCheckpointError, UntrustedConfigError: see `load_run`.
         ValueError: the checkpoint is not from an auto-encoder run (the message names the path).
     """
-    path = resolve_checkpoint(ckpt_path)
-    checkpoint = load_checkpoint(path, map_location="cpu")
-    config = checkpoint.get("rotlearn_config")
-    if not config:
-        raise ValueError(f"{path} is not a rotlearn checkpoint (no saved config)")
-    task = config.get("task", "rotation")
-    if task != "autoencoder":
+    from omegaconf import OmegaConf
+
+    run = load_run(ckpt_path)
+    if run.task != "autoencoder":
         raise ValueError(
-            f"{path} is not an auto-encoder checkpoint: its run has task={task!r} "
+            f"{run.path} is not an auto-encoder checkpoint: its run has task={run.task!r} "
             "(train one with task=autoencoder, e.g. experiment=kitti_autoencoder)"
         )
-    net = instantiate(OmegaConf.create(config).net)
-    module = AutoEncoderModule(net)
-    module.load_state_dict(checkpoint["state_dict"])
-    module.run_config = config
+    module = AutoEncoderModule(run.build("net"))
+    module.load_state_dict(run.state_dict)
+    module.run_config = OmegaConf.to_container(run.config)
     return module.to(device).eval()

@@ -6,9 +6,12 @@ import time
 
 import lightning.pytorch as pl
 
+from rotlearn.trust import config_target
+
 __all__ = ["EpochTimer"]
 
 
+@config_target
 class EpochTimer(pl.Callback):
     """Wall-clock seconds per epoch (training and its validation), logged as `time/epoch_s`.
 

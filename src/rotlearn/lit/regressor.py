@@ -16,6 +16,7 @@ from rotlearn.geometry import angle_deg
 from rotlearn.heads import RotationHead, RotationPrediction
 from rotlearn.lit.state import RunStateHooks
 from rotlearn.metrics import AngularError
+from rotlearn.trust import config_target
 
 __all__ = ["RotationRegressor"]
 
@@ -23,6 +24,7 @@ OptimizerFactory = Callable[[Iterable[nn.Parameter]], torch.optim.Optimizer]
 SchedulerFactory = Callable[[torch.optim.Optimizer], Any]
 
 
+@config_target
 class RotationRegressor(RunStateHooks, pl.LightningModule):
     """Regress rotations: `head(net(batch["input"]))`, trained with `loss(prediction, batch)`.
 

@@ -10,6 +10,7 @@ from torch import Tensor, nn
 from rotlearn.errors import ConfigValueError, require_positive_ints
 from rotlearn.nets.pair_cnn import conv_encoder, encoded_size
 from rotlearn.nets.pointnet import mlp
+from rotlearn.trust import config_target
 
 __all__ = ["ConvAutoEncoder", "conv_decoder", "encoder_sizes"]
 
@@ -42,6 +43,7 @@ def conv_decoder(channels: Sequence[int], sizes: Sequence[int]) -> nn.Sequential
     return nn.Sequential(*layers)
 
 
+@config_target
 class ConvAutoEncoder(nn.Module):
     """Auto-encoder of ONE image of a pair, whose reconstruction error is an OOD score (spec 8).
 

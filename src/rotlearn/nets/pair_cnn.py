@@ -8,6 +8,7 @@ from collections.abc import Sequence
 from torch import Tensor, nn
 
 from rotlearn.nets.pointnet import mlp
+from rotlearn.trust import config_target
 
 __all__ = ["PairCNN", "conv_encoder", "encoded_size"]
 
@@ -32,6 +33,7 @@ def encoded_size(image_size: int, layers: int) -> int:
     return image_size
 
 
+@config_target
 class PairCNN(nn.Module):
     """Stacked image pair -> `out_dim` numbers (spec section 5).
 

@@ -9,6 +9,7 @@ import torch
 from torch import Tensor, nn
 
 from rotlearn.nets.pooling import LinearMaxPool
+from rotlearn.trust import config_target
 
 __all__ = ["PointNet", "mlp"]
 
@@ -23,6 +24,7 @@ def mlp(sizes: Sequence[int]) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
+@config_target
 class PointNet(nn.Module):
     """Shared per-point MLP, global max-pool, then an MLP to the head's `out_dim` numbers.
 

@@ -30,6 +30,7 @@ from rotlearn.geometry import angle_deg
 from rotlearn.io import write_text_atomic
 from rotlearn.ood.evaluation import rejection_row
 from rotlearn.ood.scores import SCORES, Score, available_scores
+from rotlearn.trust import config_target
 
 __all__ = ["OODEvaluation", "pr_quantiles"]
 
@@ -41,6 +42,7 @@ def pr_quantiles(start: float = 0.05, stop: float = 0.97, step: float = 0.02) ->
     return [round(q, 6) for q in np.arange(start, stop + step / 2, step)]
 
 
+@config_target
 class OODEvaluation(pl.Callback):
     """Score, threshold and evaluate OOD rejection when the test loop ends (module docstring).
 
