@@ -182,3 +182,20 @@ def test_predict_command_names_the_bad_line(trained_runs, tmp_path, capsys):
     assert predict_main([str(trained_runs["a"]), str(bad)]) == 2
     assert f"{bad}:1: not a number" in capsys.readouterr().err
     assert predict_main([str(trained_runs["a"]), os.fspath(tmp_path / "absent.txt")]) == 2
+
+
+def test_large_batches_run_in_chunks_of_bounded_size(trained_runs):
+    """Memory is bounded for any batch: the network sees chunks of at most chunk_elements input
+    numbers, and the result equals one pass over the whole batch."""
+    whole = rotlearn.load(trained_runs["a"], chunk_elements=10**9)
+    chunked = rotlearn.load(trained_runs["a"], chunk_elements=16 * 6 * 7)
+    seen: list[int] = []
+    chunked.net.register_forward_hook(lambda module, args, out: seen.append(args[0].shape[0]))
+    points = _points(n=50)
+    reference, estimate = whole(points), chunked(points)
+    assert seen == [7] * 7 + [1]
+    for key in ("R", "q", "dispersion", "dt"):
+        torch.testing.assert_close(getattr(estimate, key), getattr(reference, key))
+    assert estimate.R.shape == (50, 3, 3)
+    with pytest.raises(ValueError, match="chunk_elements"):
+        rotlearn.load(trained_runs["a"], chunk_elements=0)
