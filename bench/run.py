@@ -6,6 +6,8 @@
 - bingham: log N(Lambda) and its gradient per sample (bench/bingham.py).
 - kitti_loader: first-time KITTI preprocessing rate and cached pairs/s with 2 workers
   (bench/kitti_loader.py).
+- predictor: peak memory (RSS) and seconds of `rotlearn.inference.Predictor` on 10k and 100k
+  samples of 10 point pairs (PointNet + A head), each in a fresh process: chunking bounds memory.
 - paper: the paper's synthetic experiment (lr 5e-4, 50 epochs, phi_max 180) over 3 seeds per
   representation (`--seeds 1-9` for more), beside the numbers of the authors' code (issue 2): the
   median and mean over seeds, the 95 % interval of the mean, and whether that interval lies
@@ -99,6 +101,39 @@ def bench_heads(batch: int = 131072) -> dict:
     return {"batch": batch, "heads": rows}
 
 
+_PREDICTOR_RUN = """
+import resource, sys, time, torch
+from rotlearn.heads import make_head
+from rotlearn.inference import Predictor
+from rotlearn.nets import PointNet
+torch.manual_seed(0)
+predictor = Predictor(PointNet(out_dim=10), make_head("a", 10))
+x = torch.randn(int(sys.argv[1]), 10, 6)
+start = time.perf_counter()
+predictor(x)
+seconds = time.perf_counter() - start
+print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20, seconds)
+"""
+
+
+def bench_predictor(batches: tuple[int, ...] = (10_000, 100_000)) -> dict:
+    import subprocess
+
+    rows = {}
+    for batch in batches:
+        done = subprocess.run(
+            [sys.executable, "-c", _PREDICTOR_RUN, str(batch)],
+            capture_output=True, text=True, check=True,
+        )  # fmt: skip
+        peak_gb, seconds = map(float, done.stdout.split())
+        rows[batch] = {"peak_rss_gb": peak_gb, "seconds": seconds}
+    print("\nPredictor (PointNet + A head), 10 point pairs per sample: peak RSS of the process")
+    print(f"{'samples':>8s} {'peak GB':>8s} {'seconds':>8s}")
+    for batch, row in rows.items():
+        print(f"{batch:8d} {row['peak_rss_gb']:8.2f} {row['seconds']:8.1f}")
+    return {"pairs_per_sample": 10, "batches": rows}
+
+
 def mean_interval(values: list[float], level: float = 0.95) -> tuple[float, float]:
     """The two-sided Student-t confidence interval of the mean of `values` (n >= 2)."""
     from scipy.stats import t  # dev extra
@@ -181,7 +216,8 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawTextHelpFormatter
     )
-    default = ["epoch", "heads", *(n for n, f in SCRIPTS.items() if (RESULTS.parent / f).exists())]
+    scripts = [n for n, f in SCRIPTS.items() if (RESULTS.parent / f).exists()]
+    default = ["epoch", "heads", "predictor", *scripts]
     parser.add_argument("names", nargs="*", default=default, help="epoch heads bingham paper ...")
     parser.add_argument("--reps", default="a,sixd,quat")
     parser.add_argument("--seeds", default="1,2,3", help='"1,2,3" or "1-9"')
@@ -194,6 +230,7 @@ def main(argv: list[str] | None = None) -> None:
     benches = {
         "epoch": lambda: bench_epoch(reps),
         "heads": bench_heads,
+        "predictor": bench_predictor,
         "paper": lambda: bench_paper(reps, seeds),
     }
     unknown = set(args.names) - set(benches) - set(SCRIPTS)
