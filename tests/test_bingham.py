@@ -21,6 +21,7 @@ from rotlearn import bingham as bh
 from rotlearn.errors import ConfigValueError
 from rotlearn.geometry import quat_to_rotmat
 from rotlearn.heads import a_from_quat, a_min_eigvec, make_head
+from rotlearn.losses import BinghamNLLLoss
 
 F32, F64 = torch.float32, torch.float64
 
@@ -388,13 +389,13 @@ def test_loss_on_the_a_head():
     raw = torch.randn(16, 10, generator=gen(11), dtype=F64, requires_grad=True)
     pred = head(raw)
     q = torch.nn.functional.normalize(torch.randn(16, 4, generator=gen(12), dtype=F64), dim=-1)
-    loss = bh.BinghamNLLLoss(rep="a")(pred, {"q": q, "R": pred.R.detach()})
+    loss = BinghamNLLLoss(rep="a")(pred, {"q": q, "R": pred.R.detach()})
     assert loss.shape == ()
     torch.testing.assert_close(loss, bh.nll(pred.A, q).mean())
     loss.backward()
     assert torch.isfinite(raw.grad).all() and raw.grad.abs().sum() > 0
     # without "q" the targets come from "R"; either sign of q gives the same loss
-    from_r = bh.BinghamNLLLoss()(pred, {"R": quat_to_rotmat(-q)})
+    from_r = BinghamNLLLoss()(pred, {"R": quat_to_rotmat(-q)})
     torch.testing.assert_close(from_r, loss, rtol=0, atol=1e-12)
 
 
@@ -403,10 +404,10 @@ def test_loss_refuses_heads_without_a_belief(rep):
     pred = make_head(rep)(torch.randn(3, make_head(rep).out_dim, generator=gen(13)))
     message = f"loss=bingham needs a head that defines a belief (rep=a); rep={rep} does not"
     with pytest.raises(ValueError) as info:
-        bh.BinghamNLLLoss()(pred, {"q": pred.q})
+        BinghamNLLLoss()(pred, {"q": pred.q})
     assert str(info.value) == message
     with pytest.raises(ConfigValueError) as info:
-        bh.BinghamNLLLoss(rep=rep)
+        BinghamNLLLoss(rep=rep)
     assert info.value.key == "rep" and info.value.message == message
 
 
@@ -457,7 +458,30 @@ def test_sample_shapes_devices_and_reproducibility():
 
 
 def test_sample_round_cap(monkeypatch):
-    monkeypatch.setattr(bh, "_round_size", lambda remaining, rate: 1)
+    monkeypatch.setattr(bh.sampling, "_round_size", lambda remaining, rate: 1)
     A = torch.diag(torch.tensor([0.0, 1.0, 2.0, 3.0]))
     with pytest.raises(RuntimeError, match="did not produce 50 samples in 3 rounds"):
         bh.sample(A, 50, max_rounds=3)
+
+
+def test_mode_has_a_finite_gradient_where_the_two_smallest_eigenvalues_meet():
+    """The mode comes from the A head's solver: at l1 == l2 its gradient stays finite (eigh's is
+    NaN there), and it equals the head's quaternion."""
+    A = torch.diag(torch.tensor([1.0, 1.0, 2.0, 3.0], dtype=torch.float64)).requires_grad_(True)
+    bh.mode(A).sum().backward()
+    assert torch.isfinite(A.grad).all()
+    B = torch.randn(7, 4, 4, dtype=torch.float64)
+    B = B + B.mT
+    torch.testing.assert_close(bh.mode(B), a_min_eigvec(B)[1])
+
+
+def test_a_prediction_carries_the_uncertainty_of_its_belief():
+    """dispersion, dt and eigengap of a prediction are the Bingham module's, defined once."""
+    head = make_head("a")
+    prediction = head(torch.randn(5, 10, dtype=torch.float64))
+    torch.testing.assert_close(prediction.dispersion, bh.dispersion(prediction.A))
+    torch.testing.assert_close(prediction.dt, bh.dt_score(prediction.A))
+    torch.testing.assert_close(prediction.eigengap, bh.eigengap(prediction.A))
+    assert (prediction.dt <= 0).all() and (prediction.eigengap >= 0).all()
+    plain = make_head("sixd")(torch.randn(5, 6))
+    assert plain.dispersion is None and plain.dt is None and plain.eigengap is None

@@ -17,7 +17,6 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from rotlearn.bingham import dispersion_from_eigenvalues
 from rotlearn.checkpoint import load_run
 from rotlearn.heads import RotationHead
 
@@ -48,13 +47,6 @@ class RotationEstimate:
     dispersion: Tensor | None = None
     dt: Tensor | None = None
     keep: Tensor | None = None
-
-
-def _uncertainty(eigenvalues: Tensor | None) -> tuple[Tensor | None, Tensor | None]:
-    if eigenvalues is None:
-        return None, None
-    dispersion = dispersion_from_eigenvalues(eigenvalues)
-    return dispersion, dispersion.sum(-1)  # the DT score, paper eq. 26
 
 
 class Predictor:
@@ -145,23 +137,23 @@ class Predictor:
         per_sample = max(1, x[:1].numel())
         size = max(1, self.chunk_elements // per_sample)
         parts = [self._predict(chunk) for chunk in x.split(size)]
-        R, q, eigenvalues = (
+        R, q, dispersion, dt = (
             torch.cat(values) if values[0] is not None else None
             for values in zip(*parts, strict=True)
         )
-        dispersion, dt = _uncertainty(eigenvalues)
         keep = None
         if self.ood is not None and dt is not None and self.ood.get("score") == "dt":
             keep = dt < float(self.ood["threshold"])
         return RotationEstimate(R=R, q=q, dispersion=dispersion, dt=dt, keep=keep)
 
-    def _predict(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
-        """R (b, 3, 3), q (b, 4) and the eigenvalues (b, 4) or None of one chunk of inputs."""
+    def _predict(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None]:
+        """R (b, 3, 3), q (b, 4), dispersion (b, 3) and DT (b,) (None without a belief) of one
+        chunk of inputs."""
         raw = self.net(x.to(self.device, self.dtype))
         if not bool(torch.isfinite(raw).all()):
             raise FloatingPointError("the network output is not finite for these inputs")
         prediction = self.head(raw)
-        return prediction.R, prediction.q, prediction.eigenvalues
+        return prediction.R, prediction.q, prediction.dispersion, prediction.dt
 
 
 def load(

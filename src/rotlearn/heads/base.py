@@ -4,6 +4,11 @@ from __future__ import annotations
 
 from torch import Tensor, nn
 
+from rotlearn.bingham.descriptors import (
+    dispersion_from_eigenvalues,
+    dt_from_eigenvalues,
+    eigengap_from_eigenvalues,
+)
 from rotlearn.errors import ConfigValueError
 from rotlearn.geometry import rotmat_to_quat
 from rotlearn.trust import config_target
@@ -19,6 +24,9 @@ class RotationPrediction:
         raw: (..., out_dim) the network output the head was given.
         A: (..., 4, 4) symmetric matrices (A head only, paper eq. 8), else None.
         eigenvalues: (..., 4) ascending eigenvalues of A (A head only), else None.
+
+    Heads with a belief also give its uncertainty (`dispersion`, `dt`, `eigengap`; None for the
+    others), each from the one definition in `rotlearn.bingham.descriptors`.
     """
 
     __slots__ = ("A", "R", "_q", "eigenvalues", "raw")
@@ -39,6 +47,24 @@ class RotationPrediction:
         if self._q is None:
             self._q = rotmat_to_quat(self.R)
         return self._q
+
+    @property
+    def dispersion(self) -> Tensor | None:
+        """(..., 3) Bingham dispersion coefficients (l1 - l4, l1 - l3, l1 - l2) <= 0 (paper
+        III-C); more negative = more concentrated. None without a belief."""
+        return None if self.eigenvalues is None else dispersion_from_eigenvalues(self.eigenvalues)
+
+    @property
+    def dt(self) -> Tensor | None:
+        """(...,) dispersion-thresholding score tr(Lambda) = 3 l1 - l2 - l3 - l4 <= 0 (paper
+        eq. 26); lower = more confident. None without a belief."""
+        return None if self.eigenvalues is None else dt_from_eigenvalues(self.eigenvalues)
+
+    @property
+    def eigengap(self) -> Tensor | None:
+        """(...,) first eigen-gap l2 - l1 >= 0 (0: the mode is not unique). None without a
+        belief."""
+        return None if self.eigenvalues is None else eigengap_from_eigenvalues(self.eigenvalues)
 
     def detach(self) -> RotationPrediction:
         """The same prediction cut from the autograd graph."""

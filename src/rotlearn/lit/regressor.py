@@ -10,7 +10,6 @@ import torch
 from torch import Tensor, nn
 from torchmetrics import MeanMetric, SpearmanCorrCoef
 
-from rotlearn.bingham import dispersion_from_eigenvalues
 from rotlearn.errors import NonFiniteError
 from rotlearn.geometry import angle_deg
 from rotlearn.heads import RotationHead, RotationPrediction
@@ -112,8 +111,8 @@ class RotationRegressor(RunStateHooks, pl.LightningModule):
         self.test_err.update(prediction.R, batch["R"])
         identity = torch.eye(3, dtype=batch["R"].dtype, device=batch["R"].device)
         self.test_identity_err.update(identity.expand_as(batch["R"]), batch["R"])
-        if prediction.eigenvalues is not None:
-            dt = dispersion_from_eigenvalues(prediction.eigenvalues).sum(-1)
+        if prediction.dt is not None:
+            dt = prediction.dt
             errors = angle_deg(prediction.R, batch["R"])
             self.test_dt_spearman.update(dt.flatten().double(), errors.flatten().double())
 

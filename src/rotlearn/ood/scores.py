@@ -18,7 +18,6 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from rotlearn.bingham import dispersion_from_eigenvalues
 from rotlearn.heads import RotationPrediction
 
 __all__ = ["SCORES", "Score", "available_scores", "keep_mask", "quantile_threshold"]
@@ -37,13 +36,12 @@ class Score:
 
 def dt(prediction: RotationPrediction) -> Tensor:
     """tr(Lambda) = sum of the dispersion coefficients, 3 l1 - l2 - l3 - l4 <= 0 (paper eq. 26)."""
-    return dispersion_from_eigenvalues(prediction.eigenvalues).sum(-1)
+    return prediction.dt
 
 
 def first_eigengap(prediction: RotationPrediction) -> Tensor:
     """l2 - l1 >= 0, the gap that makes the mode unique."""
-    ev = prediction.eigenvalues
-    return ev[..., 1] - ev[..., 0]
+    return prediction.eigengap
 
 
 def raw_norm(prediction: RotationPrediction) -> Tensor:

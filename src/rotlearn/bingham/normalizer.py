@@ -1,0 +1,237 @@
+"""The Bingham normaliser N(lam) (paper eq. 14) and the likelihood (eq. 19).
+
+Quaternions are scalar LAST. N is taken over the uniform probability measure on S^3 (package
+docstring, `rotlearn.bingham`), computed by Talbot inversion of its Laplace transform on a fixed
+node set, batched on any device; its gradient (the second moments) comes from the same nodes.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+from torch.autograd.function import once_differentiable
+
+from rotlearn.bingham.descriptors import (
+    _check_A,
+    _check_lam,
+    _check_spread,
+    _float_dtype,
+    _raise_first,
+    _symmetric,
+    dispersion_from_eigenvalues,
+    eigenvalues,
+)
+
+__all__ = ["log_normalizer", "log_prob", "moments", "nll", "normalizer"]
+
+# ------------------------------------------------------------------- normalising constant N(lam)
+
+# Weideman (2006), "Optimizing Talbot's contours for the inversion of the Laplace transform":
+# z(theta) = n (SIGMA + MU theta cot(ALPHA theta) + i NU theta), error ~ 3.89^-n for n nodes.
+_SIGMA, _MU, _ALPHA, _NU = -0.6122, 0.5017, 0.6407, 0.2645
+# Nodes in the upper half plane (half of n by conjugate symmetry), per working dtype.
+_HALF_NODES = {torch.float32: 8, torch.float64: 12}
+_NODE_CACHE: dict[tuple[torch.dtype, torch.device], tuple[Tensor, Tensor, Tensor, Tensor]] = {}
+_CPU_CHUNK_ELEMENTS = 1 << 17  # (rows x nodes) per CPU block: the temporaries stay in cache
+
+
+def _talbot_nodes(
+    dtype: torch.dtype, device: torch.device
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """(Re z_k, Im z_k, Re c_k, Im c_k) with N(lam) ~ Re sum_k c_k prod_i (z_k - lam_i)^(-1/2).
+
+    c_k includes the midpoint weight, the contour derivative, e^{z_k} and the factor
+    z_k^(-1/2) of the implicit fourth coefficient 0; computed once in float64 and cached.
+    """
+    key = (dtype, device)
+    if key not in _NODE_CACHE:
+        m = _HALF_NODES[dtype]
+        n = 2 * m
+        h = 2.0 * math.pi / n
+        theta = (torch.arange(m, dtype=torch.float64) + 0.5) * h
+        at = _ALPHA * theta
+        z = torch.complex(n * (_SIGMA + _MU * theta / torch.tan(at)), n * _NU * theta)
+        dz = torch.complex(
+            n * _MU * (1.0 / torch.tan(at) - at / torch.sin(at) ** 2),
+            torch.full_like(theta, n * _NU),
+        )
+        # (1 / 2 pi i) * h * 2 (conjugate half) = h / (pi i)
+        c = (h / math.pi) * torch.exp(z) * dz / (1j * torch.sqrt(z))
+        _NODE_CACHE[key] = tuple(
+            t.to(device=device, dtype=dtype) for t in (z.real, z.imag, c.real, c.imag)
+        )
+    return _NODE_CACHE[key]
+
+
+def _talbot(lam: Tensor, need_moments: bool) -> tuple[Tensor, Tensor | None]:
+    """log N and E[x_i^2] for (B, 3) coefficients in [-MAX_DISPERSION, 0], in lam's dtype.
+
+    Each factor (z - lam_i)^(1/2) is the principal root of a number in the upper half plane,
+    taken without cancellation; their product is continuous along the contour. Blocks of rows
+    on the CPU keep every (rows, nodes) temporary in cache.
+    """
+    zr, zi, cr, ci = _talbot_nodes(lam.dtype, lam.device)
+    half_zi = 0.5 * zi
+    zi2 = zi * zi
+    rows = lam.shape[0]
+    block = rows if lam.device.type != "cpu" else max(1, _CPU_CHUNK_ELEMENTS // zr.numel())
+    log_n = torch.empty(rows, dtype=lam.dtype, device=lam.device)
+    mom = torch.empty(rows, 3, dtype=lam.dtype, device=lam.device) if need_moments else None
+    for start in range(0, rows, block):
+        part = lam[start : start + block]
+        qr = qi = None
+        xs, m2s = [], []
+        for i in range(3):
+            x = zr - part[:, i : i + 1]  # Re(z - lam_i); Im is zi > 0
+            m2 = torch.addcmul(zi2, x, x)  # |z - lam_i|^2
+            r = torch.sqrt(0.5 * (torch.sqrt(m2) + x.abs()))  # the larger root component
+            s = half_zi / r  # the smaller one: r s = Im / 2
+            right = x >= 0
+            a, b = torch.where(right, r, s), torch.where(right, s, r)  # sqrt(z - lam_i) = a + ib
+            if qr is None:
+                qr, qi = a, b
+            else:
+                qr, qi = qr * a - qi * b, qr * b + qi * a
+            xs.append(x)
+            m2s.append(m2)
+        den = torch.addcmul(qr * qr, qi, qi)
+        fr = (cr * qr + ci * qi) / den  # c / Q = c conj(Q) / |Q|^2
+        value = fr.sum(-1)
+        log_n[start : start + block] = torch.log(value)
+        if mom is not None:
+            fi = (ci * qr - cr * qi) / den
+            half_inv = 0.5 / value
+            for i in range(3):  # d/d lam_i: factor 1 / (2 (z - lam_i))
+                re = torch.addcmul(fr * xs[i], fi, zi) / m2s[i]
+                mom[start : start + block, i] = re.sum(-1) * half_inv
+    return log_n, mom
+
+
+class _LogNormalizer(torch.autograd.Function):
+    """log N(lam) for (B, 3) valid coefficients; backward multiplies by the saved moments."""
+
+    @staticmethod
+    def forward(ctx, lam: Tensor) -> Tensor:
+        log_n, mom = _talbot(lam, need_moments=ctx.needs_input_grad[0])
+        ctx.save_for_backward(mom if mom is not None else lam.new_empty(0))
+        return log_n
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad: Tensor) -> Tensor:
+        (mom,) = ctx.saved_tensors
+        return grad.unsqueeze(-1) * mom
+
+
+def _working_dtype(dtype: torch.dtype) -> torch.dtype:
+    return dtype if dtype in _HALF_NODES else torch.float32
+
+
+def _log_normalizer3(lam: Tensor) -> Tensor:
+    """`log_normalizer` of validated (..., 3) coefficients (autograd-aware)."""
+    work = _working_dtype(lam.dtype)
+    flat = lam.reshape(-1, 3).to(work)
+    if flat.shape[0] == 0:
+        return lam.new_zeros(lam.shape[:-1])
+    return _LogNormalizer.apply(flat).reshape(lam.shape[:-1]).to(lam.dtype)
+
+
+def log_normalizer(lam: Tensor) -> Tensor:
+    """log N(lam), N = E_mu[exp(sum_i lam_i x_i^2)] over the uniform probability measure on S^3.
+
+    N is the normaliser of paper eq. (14) (Talbot inversion, see the module docstring).
+
+    Args:
+        lam: (..., 3) dispersion coefficients in [-MAX_DISPERSION, 0] (any order; the fourth
+            coefficient is 0), or (..., 4) any real coefficients with spread
+            max - min <= MAX_DISPERSION, for which N(lam + c) = e^c N(lam).
+
+    Returns:
+        (...,) log N in lam's dtype; N(0) = 1. Differentiable once: the gradient is the vector
+        of second moments E[x_i^2] (`moments`).
+
+    Raises:
+        ValueError: NaN/Inf, a positive (..., 3) coefficient, or one out of range; the message
+            names the first offending batch index.
+    """
+    _check_lam(lam)
+    if lam.shape[-1] == 3:
+        return _log_normalizer3(lam)
+    # The top coefficient from the sort, not amax: at ties amax would split its gradient.
+    ordered = torch.sort(lam, dim=-1, descending=True).values
+    top = ordered[..., :1]
+    return top.squeeze(-1) + _log_normalizer3(ordered[..., 1:] - top)
+
+
+def normalizer(lam: Tensor) -> Tensor:
+    """exp(`log_normalizer`(lam)): N w.r.t. the uniform probability measure (N(0) = 1).
+
+    For large |lam| N underflows long before log N does; prefer `log_normalizer`.
+    """
+    return torch.exp(log_normalizer(lam))
+
+
+def moments(lam: Tensor) -> Tensor:
+    """Second moments E[x_i^2] = d log N / d lam_i of the Bingham density with coefficients lam.
+
+    Args:
+        lam: as in `log_normalizer`.
+
+    Returns:
+        (..., 3) or (..., 4), like lam, in lam's dtype; for (..., 4) input they sum to 1, for
+        (..., 3) the implicit zero coefficient has 1 - sum. No autograd through this function.
+    """
+    _check_lam(lam)
+    work = _working_dtype(lam.dtype)
+    with torch.no_grad():
+        if lam.shape[-1] == 3:
+            flat = lam.reshape(-1, 3).to(work)
+            mom = _talbot(flat, need_moments=True)[1]
+            return mom.reshape(lam.shape).to(lam.dtype)
+        ordered, order = torch.sort(lam, dim=-1, descending=True)
+        rest = (ordered[..., 1:] - ordered[..., :1]).reshape(-1, 3).to(work)
+        m3 = _talbot(rest, need_moments=True)[1].reshape(*lam.shape[:-1], 3)
+        m4 = torch.cat((1.0 - m3.sum(-1, keepdim=True), m3), dim=-1)
+        return torch.empty_like(m4).scatter_(-1, order, m4).to(lam.dtype)
+
+
+# -------------------------------------------------------------------------- likelihood (eq. 19)
+
+
+def _quad_form(A: Tensor, q: Tensor) -> Tensor:
+    return (q.unsqueeze(-2) @ A @ q.unsqueeze(-1)).squeeze(-1).squeeze(-1)
+
+
+def log_prob(A: Tensor, q: Tensor) -> Tensor:
+    """log p(q; A) = -q^T A q + l1 - log N(lam) w.r.t. the uniform probability measure on S^3.
+
+    Args:
+        A: (..., 4, 4) symmetric matrices (their symmetric part is used), finite, eigenvalue
+            spread l4 - l1 <= MAX_DISPERSION.
+        q: (..., 4) unit quaternions (x, y, z, w), batch shape broadcast against A's; not
+            renormalised.
+
+    Returns:
+        (...,) log densities; exp integrates to 1 against the uniform probability measure
+        (subtract `LOG_AREA_S3` for the surface measure). Invariant to q -> -q and A -> A + cI.
+        Differentiable in A (through eigenvalues only, well defined at repeated ones) and q.
+    """
+    _check_A(A)
+    _float_dtype(q, "q")
+    if q.shape[-1] != 4:
+        raise ValueError(f"q must have shape (..., 4), got {tuple(q.shape)}")
+    _raise_first(~torch.isfinite(q).all(-1), "q has NaN or Inf")
+    ev = eigenvalues(A)
+    _check_spread(ev)
+    lam = dispersion_from_eigenvalues(ev).clamp_max(0.0)
+    return ev[..., 0] - _quad_form(_symmetric(A).to(A.dtype), q) - _log_normalizer3(lam)
+
+
+def nll(A: Tensor, q: Tensor) -> Tensor:
+    """Negative log-likelihood q^T A q - l1 + log N(lam) (paper eq. 19 with log N and the sign).
+
+    Args and returns as `log_prob` (this is its negative).
+    """
+    return -log_prob(A, q)
