@@ -194,7 +194,8 @@ def _resolved(cfg: DictConfig, key: str) -> Any:
         if isinstance(value, DictConfig | ListConfig):
             value = OmegaConf.to_container(value, resolve=True)
     except OmegaConfBaseException as exc:
-        raise ConfigError(f"config key {key}: cannot be resolved: {exc}") from None
+        reason = str(exc).splitlines()[0]
+        raise ConfigError(f"config key {key}: cannot be resolved: {reason}") from None
     return value
 
 

@@ -147,10 +147,19 @@ def parameters(target: Callable[..., Any]) -> dict[str, tuple[Any, Any]]:
     function = target.__init__ if inspect.isclass(target) else target
     hints = _hints(function)
     return {
-        name: (hints.get(name, p.annotation), p.default)
+        name: (hints.get(name, _from_default(p)), p.default)
         for name, p in inspect.signature(function).parameters.items()
         if name != "self" and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)
     }
+
+
+def _from_default(p: inspect.Parameter) -> Any:
+    """An unannotated argument's type, read from its default (bool, a number or str)."""
+    if p.annotation is not p.empty:
+        return p.annotation
+    if isinstance(p.default, bool):
+        return bool
+    return {int: float, float: float, str: str}.get(type(p.default), Any)
 
 
 def takes_kwargs(target: Callable[..., Any]) -> bool:
