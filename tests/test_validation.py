@@ -43,13 +43,13 @@ BAD = [
     ("trainer.fast_dev_run=-2", r"trainer\.fast_dev_run: must be true, false or a number"),
     ("trainer.num_sanity_val_steps=-2", r"trainer\.num_sanity_val_steps: must be an integer >= -1"),
     ("+trainer.logger=false", r"trainer\.logger: unknown"),  # rotlearn passes the loggers
-    ("float32_matmul_precision=bogus", r"float32_matmul_precision: expected one of 'highest', "),
+    ("float32_matmul_precision=bogus", r"float32_matmul_precision: must be 'highest', 'high' or"),
     ("seed=abc", r"config key seed: expected int, got 'abc'"),
     ("seed=-1", r"config key seed: must lie in \[0, 4294967295\], got -1"),
     ("+bogus_top=1", r"config key bogus_top: unknown; allowed: callbacks, ckpt_path, data, "),
     ("+sed=1", r"config key sed: unknown \(did you mean seed\?\)"),
-    ("test_ckpt=worst", r"config key test_ckpt: expected one of 'last', 'best', got 'worst'"),
-    ("task=regression", r"config key task: expected one of 'rotation', 'autoencoder'"),
+    ("test_ckpt=worst", r"config key test_ckpt: must be 'last' or 'best', got 'worst'"),
+    ("task=regression", r"config key task: must be 'rotation' or 'autoencoder', got 'regression'"),
     ("ckpt_path=5", r"config key ckpt_path: expected str or None, got 5"),
     ("+paths.log_dir=x", r"config key paths\.log_dir: unknown; allowed: output_dir"),
     (

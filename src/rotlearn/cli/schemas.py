@@ -12,7 +12,7 @@ constructor.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
-from typing import Any, Literal
+from typing import Any, Literal, get_args, get_origin
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException, ValidationError
@@ -269,7 +269,12 @@ def _check_top_level(cfg: DictConfig) -> None:
             raise ConfigError(f"config key {name} is missing")
     for name, annotation in TOP_LEVEL.items():
         if name in cfg and not accepts(value := _resolved(cfg, name), annotation):
-            raise ConfigError(f"config key {name}: expected {describe(annotation)}, got {value!r}")
+            if get_origin(annotation) is Literal:
+                *first, last = map(repr, get_args(annotation))
+                expected = f"must be {', '.join(first)} or {last}"
+            else:
+                expected = f"expected {describe(annotation)}"
+            raise ConfigError(f"config key {name}: {expected}, got {value!r}")
     for name, (low, high) in BOUNDS.items():
         if name in cfg and not low <= (value := _resolved(cfg, name)) <= high:
             raise ConfigError(f"config key {name}: must lie in [{low}, {high}], got {value!r}")
