@@ -166,3 +166,9 @@ def test_a_resumed_run_is_validated_before_it_trains(make_cfg, tmp_path, monkeyp
     monkeypatch.setattr(pl.Trainer, "fit", lambda *a, **k: pytest.fail("trained"))
     with pytest.raises(ConfigError, match=r"config key optim\.lr: must be a positive number"):
         train(make_cfg([f"ckpt_path={ckpt}", "data=tiny", "optim.lr=fast"]))
+
+
+def test_the_ood_callback_is_checked_under_any_name(make_cfg):
+    ood = "+callbacks.mine={_target_: rotlearn.ood.OODEvaluation, noise_pairs: many}"
+    with pytest.raises(ConfigError, match=r"callbacks\.mine\.noise_pairs: expected int"):
+        validate(make_cfg(["data=kitti", ood]))

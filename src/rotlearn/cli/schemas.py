@@ -167,7 +167,7 @@ SCHEMAS: dict[str, dict[str, type]] = {
     "loss": {c._target_: c for c in (ChordalLossConfig, AngularLossConfig, BinghamLossConfig)},
     "callbacks.ood": {OODConfig._target_: OODConfig},
 }
-OPTIONAL = {"callbacks.ood", "scheduler"}  # checked when present
+OPTIONAL = {"scheduler"}  # checked when present
 NODES = ("rep", "net", "data", "loss", "optim", "scheduler", "trainer", "logger", "callbacks")
 
 # Top-level keys (defaults in conf/train.yaml; trial, trials, sweep_seed, lr_range from sweep=lr).
@@ -232,7 +232,14 @@ def _check_node(cfg: DictConfig, key: str, group: str | None = None) -> None:
     if values is None:
         return
     group = group or key
-    schema = SCHEMAS.get(group, {}).get(values["_target_"])
+    schema = next(
+        (
+            schemas[values["_target_"]]
+            for name, schemas in SCHEMAS.items()
+            if (name == group or name.startswith(f"{group}.")) and values["_target_"] in schemas
+        ),
+        None,
+    )  # callbacks.<any name> with OODEvaluation's _target_ is checked by OODConfig
     if schema is not None:
         _check_dataclass(cfg, key, schema)
         return
@@ -254,16 +261,11 @@ def _check_collection(cfg: DictConfig, key: str) -> None:
                 f"config key {key}.{name}: must be a mapping with a _target_, got None "
                 f"(to drop it: ~{key}.{name})"
             )
-        schemas = SCHEMAS.get(f"{key}.{name}", {})
-        target = OmegaConf.select(node, f"{name}._target_")
-        if target in schemas:
-            _check_node(cfg, f"{key}.{name}")
-        else:
-            _check_node(cfg, f"{key}.{name}", group=key)
+        _check_node(cfg, f"{key}.{name}", group=key)
 
 
 def _check_top_level(cfg: DictConfig) -> None:
-    check_keys("", cfg, sorted([*TOP_LEVEL, *NODES, "paths", "hydra"]))
+    check_keys("", [k for k in cfg if k != "hydra"], sorted([*TOP_LEVEL, *NODES, "paths"]))
     for name in REQUIRED:
         if name not in cfg:
             raise ConfigError(f"config key {name} is missing")

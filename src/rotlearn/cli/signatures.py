@@ -297,7 +297,7 @@ TRAINER_RANGES = {
     "accumulate_grad_batches": positive_int,
     "reload_dataloaders_every_n_epochs": non_negative_int,
     "gradient_clip_val": optional(non_negative),
-    "gradient_clip_algorithm": lambda v: _one_of(None, "norm", "value")(v),
+    "gradient_clip_algorithm": _one_of(None, "norm", "value"),
     "limit_train_batches": _batches,
     "limit_val_batches": _batches,
     "limit_test_batches": _batches,
@@ -390,7 +390,9 @@ def targets() -> dict[str, dict[str, Spec]]:
             SCHEDULER_RANGES,
         ),
         "trainer": specs(
-            {"lightning.pytorch.Trainer": pl.Trainer}, ["callbacks", "logger"], TRAINER_RANGES
+            {"lightning.pytorch.Trainer": pl.Trainer, "lightning.Trainer": pl.Trainer},
+            ["callbacks", "logger"],
+            TRAINER_RANGES,
         ),
         "net": specs(_classes(nets, torch.nn.Module, "rotlearn.nets"), ranges=NET_RANGES),
         "logger": specs(
