@@ -3,8 +3,9 @@
 The allowed keys of a node and, where the annotations say, their types come from
 `inspect.signature` of its `_target_` (torch optimizers and schedulers, the Lightning Trainer,
 loggers and callbacks, rotlearn's nets), so they follow the installed versions. rotlearn adds only
-the value ranges it needs (`RANGES`). Only targets listed in `targets()` are checked: a config read
-from a run directory is not trusted, so nothing named in it is imported here.
+the value ranges it needs (`OPTIM_RANGES`, `TRAINER_RANGES`, ...). Only the targets listed in
+`targets()` are checked: a config read from a run directory is not trusted, so nothing named in
+it is imported here.
 """
 
 from __future__ import annotations
