@@ -1,28 +1,35 @@
-"""Structured-config schemas (dataclasses) for the `rep`, `data` and `loss` nodes.
+"""Config validation: every node of a composed config is checked before anything is built.
 
-`validate(cfg)` checks a composed config against them before anything is built, so that a
-misspelt key or a value of the wrong type stops the run at once with the full key, what was
-expected and the allowed keys. A node whose `_target_` has no schema here (a user's own class)
-is left to its constructor.
+rotlearn's own components (`rep`, `data`, `loss`, `callbacks.ood`) have dataclass schemas here
+(a test holds their fields and defaults to their constructors' signatures); the library classes
+(`optim`, `scheduler`, `trainer`, `logger.*`, `callbacks.*`) and the nets are read from their
+signatures (`rotlearn.cli.signatures`); the top-level keys are in `TOP_LEVEL`. `validate(cfg)`
+stops a misspelt key or a bad value at once with the full key, what was expected and the
+allowed keys. A node whose `_target_` is not known here (a user's own class) is left to its
+constructor.
 """
 
 from __future__ import annotations
 
-import difflib
 from dataclasses import dataclass, field, fields
-from typing import Any
+from typing import Any, Literal, get_args, get_origin
 
-from omegaconf import DictConfig, OmegaConf
-from omegaconf.errors import ValidationError
+from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException, ValidationError
 
+from rotlearn.cli.signatures import (
+    HYDRA_KEYS,
+    ConfigError,
+    accepts,
+    check_keys,
+    check_values,
+    describe,
+    targets,
+)
 from rotlearn.errors import ConfigValueError
 from rotlearn.heads import make_head
 
-__all__ = ["SCHEMAS", "ConfigError", "validate"]
-
-
-class ConfigError(ValueError):
-    """A config value that cannot be used; the message names its full key."""
+__all__ = ["SCHEMAS", "TOP_LEVEL", "ConfigError", "validate"]
 
 
 @dataclass
@@ -160,48 +167,144 @@ SCHEMAS: dict[str, dict[str, type]] = {
     "loss": {c._target_: c for c in (ChordalLossConfig, AngularLossConfig, BinghamLossConfig)},
     "callbacks.ood": {OODConfig._target_: OODConfig},
 }
-OPTIONAL = {"callbacks.ood"}  # checked when present
+OPTIONAL = {"scheduler"}  # checked when present
+NODES = ("rep", "net", "data", "loss", "optim", "scheduler", "trainer", "logger", "callbacks")
+
+# Top-level keys (defaults in conf/train.yaml; trial, trials, sweep_seed, lr_range from sweep=lr).
+TOP_LEVEL: dict[str, Any] = {
+    "task": Literal["rotation", "autoencoder"],
+    "ckpt_path": str | None,
+    "seed": int,
+    "test_ckpt": Literal["last", "best"],
+    "float32_matmul_precision": Literal["highest", "high", "medium"],
+    "trial": int,
+    "trials": int,
+    "sweep_seed": int,
+    "lr_range": tuple[float, float],
+}
+REQUIRED = ("seed", "paths")
+BOUNDS = {"seed": (0, 2**32 - 1), "trial": (0, 2**31), "trials": (1, 2**31)}  # seed: numpy's
+PATHS: dict[str, Any] = {"output_dir": str}
 
 
-def _check_node(cfg: DictConfig, key: str) -> None:
+def _resolved(cfg: DictConfig, key: str) -> Any:
+    """The value at `key` with interpolations resolved, as plain Python."""
+    try:
+        value = OmegaConf.select(cfg, key, throw_on_resolution_failure=True)
+        if isinstance(value, DictConfig | ListConfig):
+            value = OmegaConf.to_container(value, resolve=True)
+    except OmegaConfBaseException as exc:
+        reason = str(exc).splitlines()[0]
+        raise ConfigError(f"config key {key}: cannot be resolved: {reason}") from None
+    return value
+
+
+def _mapping(cfg: DictConfig, key: str) -> dict[str, Any] | None:
+    """The node at `key` as a resolved dict with a `_target_` (None where absent and optional)."""
     node = OmegaConf.select(cfg, key)
     if node is None and key in OPTIONAL:
-        return
+        return None
     if node is None:
         raise ConfigError(f"config key {key} is missing")
     if not isinstance(node, DictConfig) or "_target_" not in node:
         raise ConfigError(f"config key {key} must be a mapping with a _target_, got {node!r}")
-    schema = SCHEMAS[key].get(node._target_)
-    if schema is None:
-        return
-    allowed = [f.name for f in fields(schema)]
     for name in node:
-        if name not in allowed:
-            close = difflib.get_close_matches(str(name), allowed, n=1)
-            hint = f" (did you mean {key}.{close[0]}?)" if close else ""
-            raise ConfigError(
-                f"config key {key}.{name}: unknown{hint}; allowed: {', '.join(allowed)}"
-            )
+        _resolved(cfg, f"{key}.{name}")  # names the key whose interpolation fails
+    return OmegaConf.to_container(node, resolve=True)
+
+
+def _check_dataclass(cfg: DictConfig, key: str, schema: type) -> None:
+    node = OmegaConf.select(cfg, key)
+    check_keys(key, node, [f.name for f in fields(schema)])
     try:
         OmegaConf.merge(OmegaConf.structured(schema), node)
     except ValidationError as exc:
-        field = next(f for f in fields(schema) if f.name == exc.key)
+        field_ = next(f for f in fields(schema) if f.name == exc.key)
         value = OmegaConf.to_container(node, resolve=True)[exc.key]
         raise ConfigError(
-            f"config key {key}.{exc.key}: expected {field.type}, got {value!r}"
+            f"config key {key}.{exc.key}: expected {field_.type}, got {value!r}"
         ) from None
 
 
+def _check_node(cfg: DictConfig, key: str, group: str | None = None) -> None:
+    """Check the node at `key` against the dataclass schema or signature of its `_target_`."""
+    values = _mapping(cfg, key)
+    if values is None:
+        return
+    group = group or key
+    schema = next(
+        (
+            schemas[values["_target_"]]
+            for name, schemas in SCHEMAS.items()
+            if (name == group or name.startswith(f"{group}.")) and values["_target_"] in schemas
+        ),
+        None,
+    )  # callbacks.<any name> with OODEvaluation's _target_ is checked by OODConfig
+    if schema is not None:
+        _check_dataclass(cfg, key, schema)
+        return
+    spec = targets().get(group, {}).get(values["_target_"])
+    if spec is not None:
+        check_values(key, {k: v for k, v in values.items() if k not in HYDRA_KEYS}, spec)
+
+
+def _check_collection(cfg: DictConfig, key: str) -> None:
+    """`logger` and `callbacks`: a mapping of names to nodes, each checked by its `_target_`."""
+    node = OmegaConf.select(cfg, key)
+    if node is None:
+        return
+    if not isinstance(node, DictConfig):
+        raise ConfigError(f"config key {key} must be a mapping of names to nodes, got {node!r}")
+    for name in node:
+        if OmegaConf.select(node, str(name)) is None:
+            raise ConfigError(
+                f"config key {key}.{name}: must be a mapping with a _target_, got None "
+                f"(to drop it: ~{key}.{name})"
+            )
+        _check_node(cfg, f"{key}.{name}", group=key)
+
+
+def _check_top_level(cfg: DictConfig) -> None:
+    check_keys("", [k for k in cfg if k != "hydra"], sorted([*TOP_LEVEL, *NODES, "paths"]))
+    for name in REQUIRED:
+        if name not in cfg:
+            raise ConfigError(f"config key {name} is missing")
+    for name, annotation in TOP_LEVEL.items():
+        if name in cfg and not accepts(value := _resolved(cfg, name), annotation):
+            if get_origin(annotation) is Literal:
+                *first, last = map(repr, get_args(annotation))
+                expected = f"must be {', '.join(first)} or {last}"
+            else:
+                expected = f"expected {describe(annotation)}"
+            raise ConfigError(f"config key {name}: {expected}, got {value!r}")
+    for name, (low, high) in BOUNDS.items():
+        if name in cfg and not low <= (value := _resolved(cfg, name)) <= high:
+            raise ConfigError(f"config key {name}: must lie in [{low}, {high}], got {value!r}")
+    paths = _resolved(cfg, "paths")
+    if not isinstance(paths, dict):
+        raise ConfigError(f"config key paths: must be a mapping with output_dir, got {paths!r}")
+    check_keys("paths", paths, list(PATHS))
+    for name, annotation in PATHS.items():
+        if not accepts(value := paths.get(name), annotation) or not value:
+            raise ConfigError(
+                f"config key paths.{name}: expected a non-empty {describe(annotation)}, "
+                f"got {value!r}"
+            )
+
+
 def validate(cfg: DictConfig) -> None:
-    """Check the `rep`, `data`, `loss` (and `callbacks.ood`) nodes against their schemas.
+    """Check every node of a composed train config: the top-level keys, then `rep`, `net`,
+    `data`, `loss`, `optim`, `scheduler` (optional), `trainer`, each `logger.*` and each
+    `callbacks.*`. Nothing is built but a (stateless) head.
 
     Raises:
-        ConfigError: naming the full key, and the allowed keys or the expected type.
+        ConfigError: naming the full key, and the allowed keys or what was expected.
     """
-    for key in SCHEMAS:
+    _check_top_level(cfg)
+    for key in ("rep", "net", "data", "loss", "optim", "scheduler", "trainer"):
         _check_node(cfg, key)
-    if cfg.get("test_ckpt", "last") not in ("last", "best"):
-        raise ConfigError(f"config key test_ckpt: must be 'last' or 'best', got {cfg.test_ckpt!r}")
+    for key in ("logger", "callbacks"):
+        _check_collection(cfg, key)
     try:  # the registry knows the names and sizes; heads are stateless and cheap to make
         make_head(cfg.rep.name, cfg.rep.out_dim, cfg.rep.get("solver"))
     except ConfigValueError as exc:
