@@ -406,8 +406,10 @@ def _newest_resumable_run(root: Path) -> Path:
     completed = [run for run in runs if _is_completed(run)]
     resumable = [run for run in runs if run not in completed]
     if not resumable:
-        why = f"; {len(completed)} have one but are COMPLETED (newest: {completed[-1]})" * bool(
-            completed
+        why = (
+            f"; {len(completed)} have one but are COMPLETED (newest: {completed[-1]})"
+            if completed
+            else ""
         )
         raise _refuse(
             f"ckpt_path=last, but no run under {root} can be resumed (a last.ckpt and not "
