@@ -23,7 +23,7 @@ from tests.test_resume import ARGS, _checkpoint_epoch, _train
 # --- signals -----------------------------------------------------------------------------------
 
 
-@pytest.mark.slow  # about 25 s each alone, a minute each on a busy machine
+# about 20 s each on an idle machine (two trainings of 3 short epochs), up to a minute when busy
 @pytest.mark.parametrize(("sig", "code"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
 def test_a_signal_leaves_an_interrupted_status_and_a_resume_command_that_works(tmp_path, sig, code):
     run = tmp_path / "run"
@@ -160,3 +160,24 @@ GOOD = {"test/err_mean": 3.0, "test/identity_err_mean": 90.9}
 def test_divergence_flags_worse_than_identity_or_a_loss_that_grew(metrics, losses, diverged):
     reasons = divergence(metrics, losses)
     assert bool(reasons) is diverged, reasons
+
+
+# --- SLURM requeue ------------------------------------------------------------------------------
+
+
+def test_a_requeued_slurm_job_continues_its_own_run(make_cfg, monkeypatch):
+    from rotlearn.cli.train import train
+
+    overrides = ["data=tiny", "trainer=cpu", "trainer.enable_progress_bar=false", "logger=none",
+                 "net.point_channels=[16,32,64]", "net.head_channels=[32,16]"]  # fmt: skip
+    cfg = make_cfg([*overrides, "trainer.max_epochs=1"])
+    train(cfg)
+    run = Path(cfg.paths.output_dir)
+    (run / "metrics.json").unlink()  # as if SLURM had stopped it after its last.ckpt
+    again = make_cfg([*overrides, "trainer.max_epochs=2"], run_dir=run)
+    with pytest.raises(FileExistsError, match="already holds a run"):
+        train(again)  # not on SLURM: a run directory is never reused
+    for name, value in {"SLURM_RESTART_COUNT": "1", "SLURM_NTASKS": "1",
+                        "SLURM_JOB_NAME": "rotlearn", "SLURM_JOB_ID": "7"}.items():  # fmt: skip
+        monkeypatch.setenv(name, value)
+    assert train(again)["epochs"] == 2  # the requeued job picks up from last.ckpt

@@ -197,7 +197,7 @@ def _interruptions_recorded(trainer: pl.Trainer, run_dir: Path):
         raise stop from None
 
 
-def _requeued_on_slurm(run_dir: Path) -> bool:
+def _requeued_on_slurm() -> bool:
     """A SLURM job that was requeued (preemption, time-out) and runs again in its own directory:
     it continues that run (Lightning's hpc checkpoint, else last.ckpt) instead of refusing it."""
     restarts = os.environ.get("SLURM_RESTART_COUNT", "0")
@@ -217,7 +217,7 @@ def _checkpoint_to_resume(cfg: DictConfig, run_dir: Path) -> str | None:
         log.info("resuming from %s", resume)
         return resume
     if (run_dir / "checkpoints").exists():
-        if _requeued_on_slurm(run_dir):
+        if _requeued_on_slurm():
             if list(run_dir.glob("hpc_ckpt_*.ckpt")):
                 return None  # Lightning restores its SIGUSR1 (hpc) checkpoint itself
             last = run_dir / "checkpoints" / "last.ckpt"
@@ -472,7 +472,7 @@ def _refuse_an_invalid_config(run_dir: Path, args: list[str]) -> None:
 
     if GlobalHydra.instance().is_initialized():  # inside another Hydra app: `build` validates
         return
-    overrides = [a for a in args if not a.lstrip("+~").startswith("hydra.")]
+    overrides = [a for a in args if not a.lstrip("+~").startswith(("hydra.", "hydra/"))]
     try:
         with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
             validate(compose("train", [*overrides, f"paths.output_dir={run_dir}"]))
