@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import signal
@@ -13,7 +14,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from rotlearn.cli.train import resume_arguments
+from rotlearn.cli.train import keep_earlier_records, resume_arguments
 from tests.conftest import SMALL_NET
 
 ARGS = [
@@ -119,3 +120,105 @@ def test_a_finished_run_is_not_resumed(make_cfg):
     again = make_cfg(["data=tiny", "logger=none", *SMALL_NET, f"ckpt_path={run}"], run_dir=run)
     with pytest.raises(FileExistsError, match="finished run"):
         train(again)
+
+
+# --- issue 13: a refused resume changes nothing; a completed run only trains longer -----------
+
+ONE_EPOCH = ["data=tiny", "trainer.max_epochs=1", "trainer.enable_progress_bar=false",
+             "logger=csv", *SMALL_NET]  # fmt: skip
+
+
+def _hashes(run: Path) -> dict[str, str]:
+    """sha256 of every file below `run`, by relative path."""
+    return {
+        str(p.relative_to(run)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(run.rglob("*"))
+        if p.is_file()
+    }
+
+
+def _completed_run(cwd: Path, name: str) -> Path:
+    """A finished one-epoch run, made by the CLI in `<cwd>/outputs/runs/<name>`."""
+    run = cwd / "outputs" / "runs" / name
+    job = _train([*ONE_EPOCH, f"hydra.run.dir={run}"], cwd)
+    assert job.wait(timeout=300) == 0, job.stderr.read()
+    assert json.loads((run / "status.json").read_text())["status"] == "COMPLETED"
+    return run
+
+
+@pytest.fixture(scope="module")
+def completed(tmp_path_factory) -> Path:
+    cwd = tmp_path_factory.mktemp("completed")
+    _completed_run(cwd, "2026-01-02_00-00-00-000000")
+    return cwd
+
+
+def test_a_refused_resume_from_the_command_line_leaves_the_run_byte_identical(completed):
+    run = completed / "outputs" / "runs" / "2026-01-02_00-00-00-000000"
+    before = _hashes(run)
+    job = _train([f"ckpt_path={run}", "optim.lr=0.5", "seed=99"], completed)
+    assert job.wait(timeout=300) != 0
+    message = job.stderr.read()
+    assert f"refusing to resume {run}" in message and "COMPLETED" in message
+    assert "optim.lr=0.5 seed=99" in message
+    assert _hashes(run) == before
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["ckpt_path=RUN", "optim.lr=0.5", "seed=99"], "also sets optim.lr=0.5 seed=99"),
+        (["ckpt_path=RUN"], "trainer.max_epochs=<more>, above 1"),
+        (["ckpt_path=RUN", "trainer.max_epochs=1"], "trainer.max_epochs=1 is not above 1"),
+        (["ckpt_path=last"], "no run under .* can be resumed .*1 have one but are COMPLETED"),
+        (["ckpt_path=last", "trainer.max_epochs=5"], "no run under .* can be resumed"),
+    ],
+)
+def test_resuming_a_completed_run_is_refused_before_anything_is_written(
+    completed, monkeypatch, argv, message
+):
+    monkeypatch.chdir(completed)
+    runs = completed / "outputs" / "runs"
+    run = runs / "2026-01-02_00-00-00-000000"
+    before = _hashes(run)
+    argv = [a.replace("RUN", str(run)) for a in argv]
+    with pytest.raises(SystemExit, match=message):
+        resume_arguments(argv, runs_root=runs)
+    assert _hashes(run) == before
+
+
+def test_ckpt_path_last_skips_completed_runs_and_names_its_pick(tmp_path, capsys):
+    older = _fake_run(tmp_path, "2026-01-01_00-00-00-000000", ["rep=sixd"])
+    (older / "status.json").write_text(json.dumps({"status": "INTERRUPTED"}))
+    newer = _fake_run(tmp_path, "2026-01-02_00-00-00-000000", ["rep=quat"])
+    (newer / "metrics.json").write_text(json.dumps({"epochs": 3}))
+    args = resume_arguments(["ckpt_path=last"], runs_root=tmp_path)
+    assert args[-1] == f"hydra.run.dir={older.resolve()}" and args[0] == "rep=sixd"
+    said = capsys.readouterr().err
+    assert f"resuming {older}" in said and "skipped 1 newer COMPLETED" in said
+
+
+def test_a_completed_run_trains_longer_and_keeps_its_earlier_records(tmp_path):
+    run = _completed_run(tmp_path, "2026-01-03_00-00-00-000000")
+    records = ["metrics.json", "status.json", "timing.json", "test_errors.json",
+               ".hydra/config.yaml", ".hydra/overrides.yaml", ".hydra/hydra.yaml"]  # fmt: skip
+    before = {name: (run / name).read_bytes() for name in records}
+    job = _train([f"ckpt_path={run}", "trainer.max_epochs=2"], tmp_path)
+    assert job.wait(timeout=300) == 0, job.stderr.read()
+    for name, content in before.items():  # the first attempt's records, unchanged
+        assert (run / "history" / "1" / name).read_bytes() == content, name
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["epochs"] == 2 and json.loads(before["metrics.json"])["epochs"] == 1
+    assert json.loads((run / "status.json").read_text())["status"] == "COMPLETED"
+    assert "trainer.max_epochs=2" in (run / ".hydra" / "overrides.yaml").read_text()
+
+
+def test_keep_earlier_records_numbers_each_attempt(tmp_path):
+    run = _fake_run(tmp_path, "run", ["rep=a"])
+    for attempt in (1, 2):
+        (run / "status.json").write_text(json.dumps({"attempt": attempt}))
+        assert keep_earlier_records(run) == run / "history" / str(attempt)
+        assert not (run / "status.json").exists()
+        assert (run / ".hydra" / "overrides.yaml").is_file()  # Hydra rewrites it; kept till then
+    assert json.loads((run / "history" / "2" / "status.json").read_text()) == {"attempt": 2}
+    assert (run / "history" / "1" / ".hydra" / "overrides.yaml").read_text() == "- rep=a\n"

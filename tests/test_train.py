@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pandas as pd
 import pytest
 import torch
 from omegaconf import OmegaConf
@@ -115,6 +116,19 @@ def test_same_config_and_seeds_give_identical_metrics(make_cfg, tmp_path):
     assert (tmp_path / "third" / "metrics.json").read_text() != texts[0]
 
 
+def test_per_epoch_training_losses_are_kept_in_the_checkpoint(make_cfg):
+    cfg = make_cfg([*FAST, "trainer.max_epochs=3", "logger=csv"])
+    metrics = train(cfg)
+    checkpoint = torch.load(Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt")
+    losses = checkpoint["callbacks"]["EpochLosses"]["losses"]
+    assert len(losses) == 3 and all(math.isfinite(v) for v in losses)
+    frame = pd.read_csv(Path(cfg.paths.output_dir) / "csv" / "metrics.csv")
+    # the CSV log's per-epoch train/loss (the regressor's own mean over the epoch)
+    logged = frame.dropna(subset=["train/loss"]).groupby("epoch")["train/loss"].last()
+    assert losses == pytest.approx(logged.tolist(), rel=1e-5)
+    assert isinstance(metrics["diverged"], bool)
+
+
 def test_a_run_directory_is_never_reused(make_cfg):
     cfg = make_cfg([*FAST, "trainer.fast_dev_run=true"])
     train(cfg)
@@ -190,6 +204,9 @@ def test_a_failing_job_keeps_the_others_and_is_listed(tmp_path):
     assert result.returncode != 0  # the sweep reports the failure...
     summary = json.loads((sweep / "jobs.json").read_text())
     assert (summary["completed"], summary["failed"]) == (2, 1)
+    assert summary["pending"] == summary["running"] == 0  # every planned job ran
+    planned = json.loads((sweep / "planned_jobs.json").read_text())
+    assert [job["overrides"] for job in planned] == [job["overrides"] for job in summary["jobs"]]
     failed = [job for job in summary["jobs"] if job["status"] == "FAILED"]
     assert failed[0]["num"] == 1 and "data.phi_max_deg" in failed[0]["error"]
     for num in (0, 2):  # ...and the other jobs' results are all there

@@ -1,69 +1,177 @@
-"""Hydra callbacks: a record of every job, so a sweep with a failed job loses nothing."""
+"""Hydra callbacks: a record of every job, so a sweep with a failed, killed or unstarted job loses
+nothing.
+
+Files: `<job dir>/status.json` (one job: RUNNING, COMPLETED, FAILED or INTERRUPTED, written by the
+job itself), `<sweep dir>/planned_jobs.json` (every job of a basic-sweeper sweep, written once
+before the first starts) and `<sweep dir>/jobs.json` (rebuilt from those two: jobs without a
+status.json are PENDING).
+"""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
+from hydra.core.hydra_config import HydraConfig
 from hydra.core.utils import JobReturn, JobStatus
 from hydra.experimental.callback import Callback
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from rotlearn.io import write_json_atomic
 
-__all__ = ["JobStatusCallback", "ReportCallback", "summarise_jobs"]
+__all__ = [
+    "JobStatusCallback",
+    "ReportCallback",
+    "planned_jobs",
+    "record_job",
+    "summarise_jobs",
+]
 
 log = logging.getLogger("rotlearn")
+PLANNED = "planned_jobs.json"
+STATUSES = ("PENDING", "RUNNING", "COMPLETED", "FAILED", "INTERRUPTED", "UNREADABLE")
+_BASIC_SWEEPER = "hydra._internal.core_plugins.basic_sweeper.BasicSweeper"
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+
+
+@contextlib.contextmanager
+def _sweep_lock(sweep_dir: Path):
+    """An exclusive lock on `<sweep_dir>/.jobs.lock` (POSIX flock; no lock where there is none),
+    so that parallel jobs rebuilding jobs.json never write a snapshot older than another's."""
+    try:
+        import fcntl
+    except ImportError:  # Windows: the next rebuild repairs a lost update
+        yield
+        return
+    with open(sweep_dir / ".jobs.lock", "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def _started_jobs(sweep_dir: Path) -> list[dict[str, Any]]:
+    jobs = []
+    for path in sorted(sweep_dir.glob("*/status.json")):
+        job = _read_json(path)
+        if not isinstance(job, dict):  # a job killed mid-write leaves no file, or a damaged one
+            job = {"dir": str(path.parent), "status": "UNREADABLE", "error": f"cannot read {path}"}
+        jobs.append(job)
+    return jobs
 
 
 def summarise_jobs(sweep_dir: str | Path) -> dict[str, Any]:
-    """Collect `<sweep_dir>/*/status.json` into `<sweep_dir>/jobs.json`; returns the summary.
+    """Rebuild `<sweep_dir>/jobs.json` from the jobs' `*/status.json` and `planned_jobs.json`
+    (a planned job without a status.json is PENDING); returns the summary.
 
     The per-job files are the record (each written atomically by its own job, whatever the
-    launcher); jobs.json is rebuilt from them, so a crashed or parallel sweep still adds up.
+    launcher); jobs.json is rebuilt from them under a lock, so a crashed or parallel sweep still
+    adds up. The summary counts every status: completed, failed, interrupted, running, pending.
     """
     sweep_dir = Path(sweep_dir)
-    jobs = []
-    for path in sorted(sweep_dir.glob("*/status.json")):
-        try:
-            jobs.append(json.loads(path.read_text()))
-        except (OSError, json.JSONDecodeError) as exc:  # a job killed mid-write leaves no file
-            jobs.append({"dir": str(path.parent), "status": "UNREADABLE", "error": repr(exc)})
-    jobs.sort(key=lambda job: (job.get("num") is None, job.get("num"), job.get("dir")))
-    failed = [job for job in jobs if job.get("status") != "COMPLETED"]
-    summary = {"jobs": jobs, "completed": len(jobs) - len(failed), "failed": len(failed)}
-    write_json_atomic(sweep_dir / "jobs.json", summary)
+    sweep_dir.mkdir(parents=True, exist_ok=True)
+    with _sweep_lock(sweep_dir):
+        jobs = _started_jobs(sweep_dir)
+        started = {job.get("num") for job in jobs} | {job.get("dir") for job in jobs}
+        for job in _read_json(sweep_dir / PLANNED) or []:
+            if job.get("num") not in started and (job.get("dir") or "?") not in started:
+                jobs.append({**job, "status": "PENDING"})
+        jobs.sort(key=lambda job: (job.get("num") is None, job.get("num"), job.get("dir") or ""))
+        counts = Counter(job.get("status") for job in jobs)
+        summary = {
+            "jobs": jobs,
+            **{status.lower(): counts.get(status, 0) for status in STATUSES},
+        }
+        write_json_atomic(sweep_dir / "jobs.json", summary)
     return summary
 
 
+def _job_dir(config: DictConfig, sweep_dir: Path, num: int) -> str | None:
+    """A planned job's directory, when the sweep's subdir is Hydra's default (the job number)."""
+    node = config.hydra.sweep._get_node("subdir")
+    raw = node._value() if node is not None else None
+    return str((sweep_dir / str(num)).resolve()) if raw == "${hydra.job.num}" else None
+
+
+def planned_jobs(config: DictConfig) -> list[dict[str, Any]] | None:
+    """Every job of a multirun with Hydra's basic sweeper, in its job order (as BasicSweeper
+    expands `hydra.sweeper.params` and the command line); None for other sweepers (Optuna), whose
+    jobs are not known ahead and are listed as they start."""
+    if OmegaConf.select(config, "hydra.sweeper._target_") != _BASIC_SWEEPER:
+        return None
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    params = OmegaConf.select(config, "hydra.sweeper.params") or {}
+    arguments = [f"{k}={v}" for k, v in params.items()] + list(config.hydra.overrides.task)
+    overrides = OverridesParser.create().parse_overrides(arguments)
+    batches = BasicSweeper.split_arguments(overrides, None)
+    sweep_dir = Path(config.hydra.sweep.dir)
+    return [
+        {"num": num, "dir": _job_dir(config, sweep_dir, num), "overrides": list(job)}
+        for num, job in enumerate(job for batch in batches for job in batch)
+    ]
+
+
+def record_job(job_dir: str | Path, status: str, **fields: Any) -> dict[str, Any]:
+    """Write `<job_dir>/status.json` (status, the job's number and overrides when run by Hydra,
+    `error`, and `fields`) and, in a multirun, rebuild the sweep's jobs.json. Returns the record."""
+    hydra_cfg = HydraConfig.get() if HydraConfig.initialized() else None
+    record = {
+        "num": OmegaConf.select(hydra_cfg, "job.num") if hydra_cfg is not None else None,
+        "dir": str(Path(job_dir).resolve()),
+        "overrides": list(hydra_cfg.overrides.task) if hydra_cfg is not None else [],
+        "status": status,
+        "error": None,
+        **fields,
+    }
+    write_json_atomic(Path(job_dir) / "status.json", record)
+    mode = OmegaConf.select(hydra_cfg, "mode") if hydra_cfg is not None else None
+    if getattr(mode, "name", None) == "MULTIRUN":
+        summary = summarise_jobs(hydra_cfg.sweep.dir)
+        log.info(
+            "sweep so far: %d completed, %d failed, %d interrupted, %d running, %d pending",
+            *(summary[k] for k in ("completed", "failed", "interrupted", "running", "pending")),
+        )
+    return record
+
+
 class JobStatusCallback(Callback):
-    """Writes `status.json` (COMPLETED or FAILED, with the error) in every job's directory and,
-    in a multirun, refreshes the sweep's `jobs.json` and logs which jobs failed."""
+    """Records every job: the sweep's planned jobs at the start of a multirun (PENDING), each job's
+    `status.json` when it starts (RUNNING) and ends (COMPLETED, or FAILED with the error), and the
+    sweep's `jobs.json` after each. (A signal's INTERRUPTED is written by `rotlearn.cli.train`.)"""
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        jobs = planned_jobs(config)
+        if jobs is None:
+            return
+        sweep_dir = Path(config.hydra.sweep.dir)
+        sweep_dir.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(sweep_dir / PLANNED, jobs)
+        summarise_jobs(sweep_dir)
+
+    def on_job_start(self, config: DictConfig, **kwargs: Any) -> None:
+        record_job(config.hydra.runtime.output_dir, "RUNNING")
 
     def on_job_end(self, config: DictConfig, job_return: JobReturn, **kwargs: Any) -> None:
-        hydra_cfg = config.hydra
-        job_dir = Path(hydra_cfg.runtime.output_dir)
+        job_dir = Path(config.hydra.runtime.output_dir)
         failed = job_return.status != JobStatus.COMPLETED
         error = getattr(job_return, "_return_value", None) if failed else None
-        status = {
-            "num": hydra_cfg.job.get("num"),
-            "dir": str(job_dir),
-            "overrides": list(job_return.overrides or []),
-            "status": "FAILED" if failed else "COMPLETED",
-            "error": f"{type(error).__name__}: {error}" if error is not None else None,
-        }
-        write_json_atomic(job_dir / "status.json", status)
-        if hydra_cfg.mode.name == "MULTIRUN":
-            summary = summarise_jobs(hydra_cfg.sweep.dir)
-            if failed:
-                log.error(
-                    "job %s failed (%s); the other jobs' results are kept", job_dir, status["error"]
-                )
-            log.info(
-                "sweep so far: %d completed, %d failed", summary["completed"], summary["failed"]
-            )
+        message = f"{type(error).__name__}: {error}" if error is not None else None
+        if failed:
+            log.error("job %s failed (%s); the other jobs' results are kept", job_dir, message)
+        record_job(job_dir, "FAILED" if failed else "COMPLETED", error=message)
 
 
 class ReportCallback(Callback):

@@ -1,10 +1,11 @@
 """`rotlearn-report <sweep dir>`: tables and plots of a sweep, made from its run directories alone.
 
-Writes into the sweep directory (or --out): `summary.csv` (one row per job, failed ones too),
-`report.md` (per-representation percentiles of the final test error over trials, a table per
-phi_max when it was swept, the failed jobs), `curves.png` (paper Fig. 3: per-epoch median over
-trials with a 10-90 % band, train and validation) and `phi_max_box.png` (paper Fig. 4: box plots of
-log10 per-sample test error per phi_max) when the sweep has what they need.
+Writes into the sweep directory (or --out): `summary.csv` (one row per job, failed, interrupted and
+never-run ones too), `report.md` (per-representation percentiles of the final test error over
+trials, a table per phi_max when it was swept, the jobs that failed, were interrupted or never
+ran: those listed PENDING in the sweep's jobs.json), `curves.png` (paper Fig. 3: per-epoch median
+over trials with a 10-90 % band, train and validation) and `phi_max_box.png` (paper Fig. 4: box
+plots of log10 per-sample test error per phi_max) when the sweep has what they need.
 """
 
 from __future__ import annotations
@@ -57,7 +58,7 @@ def collect_runs(root: str | Path) -> pd.DataFrame:
             "job": run.name,
             "dir": str(run),
             "status": state,
-            "error": status.get("error"),
+            "error": status.get("error"),  # INTERRUPTED: the signal, the epoch, the resume command
             "overrides": " ".join(OmegaConf.load(run / ".hydra" / "overrides.yaml"))
             if (run / ".hydra" / "overrides.yaml").is_file()
             else "",
@@ -72,7 +73,28 @@ def collect_runs(root: str | Path) -> pd.DataFrame:
             row["lr"] = np.nan
         row.update({k: v for k, v in metrics.items() if isinstance(v, (int, float))})
         rows.append(row)
-    return pd.DataFrame(rows)
+    return pd.DataFrame(rows + _unstarted_jobs(Path(root), {row["job"] for row in rows}))
+
+
+def _unstarted_jobs(root: Path, seen: set[str]) -> list[dict[str, Any]]:
+    """Rows for the jobs that `<root>/jobs.json` lists but that have no run directory (yet): those
+    that never ran (PENDING), or died before Hydra wrote their config."""
+    summary = _read_json(root / "jobs.json") or {}
+    rows = []
+    for job in summary.get("jobs", []):
+        name = Path(job["dir"]).name if job.get("dir") else str(job.get("num"))
+        if name in seen:
+            continue
+        rows.append(
+            {
+                "job": name,
+                "dir": job.get("dir"),
+                "status": job.get("status", "PENDING"),
+                "error": job.get("error") or "never ran",
+                "overrides": " ".join(job.get("overrides") or []),
+            }
+        )
+    return rows
 
 
 def _curves(run: Path, tag: str) -> np.ndarray | None:
@@ -256,10 +278,13 @@ def make_report(root: str | Path, out: str | Path | None = None) -> dict[str, Pa
     files = {"summary": write_text_atomic(out / "summary.csv", runs.to_csv(index=False))}
     done = runs[(runs["status"] == "COMPLETED") & runs.get("test/err_mean", pd.Series()).notna()]
     failed = runs[runs["status"] != "COMPLETED"]
+    others = ", ".join(
+        f"{n} {status.lower()}" for status, n in failed["status"].value_counts().items()
+    )
     md = [
         f"# Report: {root}",
         "",
-        f"{len(runs)} jobs: {len(done)} completed, {len(failed)} failed or incomplete.",
+        f"{len(runs)} jobs: {len(done)} completed" + (f", {others}" if others else "") + ".",
         "",
     ]
     if not done.empty:
@@ -278,7 +303,10 @@ def make_report(root: str | Path, out: str | Path | None = None) -> dict[str, Pa
         md += ["## OOD rejection (paper Table I)", "", _ood_note(), "",
                markdown_table(ood.to_dict("records"), ["job", *TABLE_COLUMNS]), ""]  # fmt: skip
     if not failed.empty:
-        md += ["## Failed or incomplete jobs", "", "| job | status | overrides | error |",
+        md += ["## Failed, interrupted or never-run jobs", "",
+               "PENDING: never ran; RUNNING: started, never finished (killed); INTERRUPTED: "
+               "stopped by a signal, resumable with the command shown.", "",
+               "| job | status | overrides | error |",
                "|---|---|---|---|"]  # fmt: skip
         for _, row in failed.iterrows():
             md.append(f"| {row['job']} | {row['status']} | {row['overrides']} | {row['error']} |")

@@ -139,9 +139,9 @@ class AngularLossConfig:
 
 @dataclass
 class BinghamLossConfig:
-    """`loss=bingham`: `rotlearn.bingham.BinghamNLLLoss`; `rep` is interpolated from `rep.name`."""
+    """`loss=bingham`: `rotlearn.losses.BinghamNLLLoss`; `rep` is interpolated from `rep.name`."""
 
-    _target_: str = "rotlearn.bingham.BinghamNLLLoss"
+    _target_: str = "rotlearn.losses.BinghamNLLLoss"
     rep: str | None = None
 
 

@@ -1,14 +1,18 @@
-"""Small training callbacks."""
+"""Small training callbacks: epoch timing, per-epoch training loss, and the record of a signal."""
 
 from __future__ import annotations
 
+import signal
 import time
+from typing import Any
 
 import lightning.pytorch as pl
+import torch
+from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from rotlearn.trust import config_target
 
-__all__ = ["EpochTimer"]
+__all__ = ["EpochLosses", "EpochTimer", "InterruptRecorder"]
 
 
 @config_target
@@ -29,3 +33,96 @@ class EpochTimer(pl.Callback):
     def on_train_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         self.epoch_times.append(time.perf_counter() - self._start)
         pl_module.log("time/epoch_s", self.epoch_times[-1], on_step=False, on_epoch=True)
+
+
+class EpochLosses(pl.Callback):
+    """The mean training loss of every finished epoch, in `losses` (one float per epoch).
+
+    Batch losses are summed on the device (no host sync per step); the epoch's mean is read once,
+    when its last batch is done: at the end-of-epoch validation (before `ModelCheckpoint` saves, so
+    a checkpoint holds every finished epoch's loss) or else at `on_train_epoch_end`. The list is
+    part of the checkpoint (`state_dict`), so a resumed run keeps the epochs before the resume.
+    """
+
+    def __init__(self) -> None:
+        self.losses: list[float] = []
+        self._sum: torch.Tensor | None = None
+        self._count = 0
+
+    def on_train_epoch_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        self._sum, self._count = None, 0
+
+    def on_train_batch_end(
+        self, trainer: pl.Trainer, pl_module: pl.LightningModule, outputs: Any, batch: Any, i: int
+    ) -> None:
+        loss = outputs.get("loss") if isinstance(outputs, dict) else outputs
+        if isinstance(loss, torch.Tensor):
+            loss = loss.detach().float()
+            self._sum = loss if self._sum is None else self._sum + loss
+            self._count += 1
+
+    def on_validation_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        if not trainer.sanity_checking and self._count == trainer.num_training_batches:
+            self._close_epoch()
+
+    def on_train_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        self._close_epoch()
+
+    def _close_epoch(self) -> None:
+        if self._sum is not None and self._count:
+            self.losses.append(float(self._sum) / self._count)
+        self._sum, self._count = None, 0
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"losses": list(self.losses)}
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        self.losses = [float(v) for v in state_dict.get("losses", [])]
+
+
+class InterruptRecorder(pl.Callback):
+    """Turns SIGTERM and SIGINT during `fit`/`test` into a clean stop, and remembers which came.
+
+    SIGTERM: Lightning's own handler sets `trainer.received_sigterm`, and its loops raise
+    `SIGTERMException` at the next batch boundary. SIGINT (Ctrl+C): this callback routes the first
+    one into the same flag, so the run also stops at a batch boundary instead of wherever the
+    `KeyboardInterrupt` would land (a second Ctrl+C is Python's `KeyboardInterrupt` again, which
+    Lightning catches too). Either way no checkpoint is half-written: `last.ckpt` stays what
+    `ModelCheckpoint` saved at the end of the last finished epoch, the last safe point.
+
+    After the stop `signal_name` is "SIGTERM" or "SIGINT" (None when no signal stopped the run);
+    the CLI writes the run's status.json from it. Under SLURM, Lightning's SIGUSR1 requeue
+    handler is left alone (this callback touches SIGINT only).
+    """
+
+    def __init__(self) -> None:
+        self.signal_name: str | None = None
+        self._previous: Any = None
+
+    def setup(self, trainer: pl.Trainer, pl_module: pl.LightningModule, stage: str) -> None:
+        self.signal_name = None
+        try:
+            self._previous = signal.signal(signal.SIGINT, self._graceful_sigint(trainer))
+        except ValueError:  # not the main thread: leave SIGINT to Python and Lightning
+            self._previous = None
+
+    def teardown(self, trainer: pl.Trainer, pl_module: pl.LightningModule, stage: str) -> None:
+        if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
+            self._previous = None
+
+    def _graceful_sigint(self, trainer: pl.Trainer) -> Any:
+        def handler(signum: int, frame: Any) -> None:
+            self.signal_name = "SIGINT"
+            signal.signal(signal.SIGINT, signal.default_int_handler)  # a second Ctrl+C is hard
+            trainer._signal_connector.received_sigterm = True  # Lightning's graceful stop
+
+        return handler
+
+    def on_exception(
+        self, trainer: pl.Trainer, pl_module: pl.LightningModule, exception: BaseException
+    ) -> None:
+        if isinstance(exception, KeyboardInterrupt):
+            self.signal_name = "SIGINT"
+        elif isinstance(exception, SIGTERMException) and self.signal_name is None:
+            self.signal_name = "SIGTERM"

@@ -1,0 +1,183 @@
+"""SIGTERM and SIGINT during training leave a record and a resume command; sweeps list every job;
+a diverged run says so."""
+
+from __future__ import annotations
+
+import json
+import math
+import multiprocessing
+import signal
+import time
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf, open_dict
+
+from rotlearn.cli.callbacks import JobStatusCallback, summarise_jobs
+from rotlearn.cli.report import make_report
+from rotlearn.cli.train import divergence
+from tests.conftest import CONFIG_DIR
+from tests.test_resume import ARGS, _checkpoint_epoch, _train
+
+# --- signals -----------------------------------------------------------------------------------
+
+
+# about 20 s each on an idle machine (two trainings of 3 short epochs), up to a minute when busy
+@pytest.mark.parametrize(("sig", "code"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_signal_leaves_an_interrupted_status_and_a_resume_command_that_works(tmp_path, sig, code):
+    run = tmp_path / "run"
+    job = _train([*ARGS, "trainer.max_epochs=3", f"hydra.run.dir={run}"], tmp_path)
+    last = run / "checkpoints" / "last.ckpt"
+    deadline = time.monotonic() + 300
+    while _checkpoint_epoch(last) < 0:  # the first checkpoint (end of epoch 0)
+        assert job.poll() is None, f"training ended before the signal: {job.stderr.read()}"
+        assert time.monotonic() < deadline
+        time.sleep(0.02)
+    job.send_signal(sig)
+    assert job.wait(timeout=120) == code, job.stderr.read()
+
+    status = json.loads((run / "status.json").read_text())
+    assert status["status"] == "INTERRUPTED" and status["signal"] == sig.name
+    assert status["last_finished_epoch"] == _checkpoint_epoch(last) < 2
+    assert status["resume_command"] == f"rotlearn-train ckpt_path={run.resolve()}"
+    assert not (run / "metrics.json").exists()
+
+    command = status["resume_command"].split()
+    assert command[0] == "rotlearn-train"
+    resumed = _train(command[1:], tmp_path)  # the same arguments, through python -m
+    assert resumed.wait(timeout=300) == 0, resumed.stderr.read()
+    assert json.loads((run / "status.json").read_text())["status"] == "COMPLETED"
+    assert json.loads((run / "metrics.json").read_text())["epochs"] == 3
+    earlier = json.loads((run / "history" / "1" / "status.json").read_text())
+    assert earlier["status"] == "INTERRUPTED"  # the interrupted attempt's record is kept
+
+
+# --- sweeps ------------------------------------------------------------------------------------
+
+
+def _multirun_config(sweep: Path, task_overrides: list[str]):
+    """The config a multirun hands its callbacks: composed, with the sweep's overrides set."""
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        cfg = compose("train", return_hydra_config=True)
+    with open_dict(cfg):
+        cfg.hydra.sweep.dir = str(sweep)
+        cfg.hydra.overrides.task = task_overrides
+    return cfg
+
+
+def _write_job(sweep: Path, num: int, overrides: list[str], status: dict) -> Path:
+    job = sweep / str(num)
+    (job / ".hydra").mkdir(parents=True)
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        cfg = compose("train", overrides=[*overrides, f"paths.output_dir={job}"])
+    OmegaConf.save(cfg, job / ".hydra" / "config.yaml")
+    (job / ".hydra" / "overrides.yaml").write_text("".join(f"- {o}\n" for o in overrides))
+    (job / "status.json").write_text(
+        json.dumps({"num": num, "dir": str(job), "overrides": overrides, **status})
+    )
+    return job
+
+
+def test_a_multirun_lists_every_job_as_pending_before_it_runs(tmp_path):
+    sweep = tmp_path / "sweep"
+    cfg = _multirun_config(sweep, ["rep=a,sixd", "seed=1,2", "trainer.max_epochs=1"])
+    JobStatusCallback().on_multirun_start(cfg)
+    summary = json.loads((sweep / "jobs.json").read_text())
+    assert summary["pending"] == 4 and summary["completed"] == 0
+    assert [job["status"] for job in summary["jobs"]] == ["PENDING"] * 4
+    assert [job["overrides"] for job in summary["jobs"]] == [
+        [f"rep={rep}", f"seed={seed}", "trainer.max_epochs=1"]
+        for rep in ("a", "sixd")
+        for seed in (1, 2)
+    ]
+    assert summary["jobs"][3]["dir"] == str((sweep / "3").resolve())
+
+    _write_job(sweep, 0, summary["jobs"][0]["overrides"], {"status": "COMPLETED"})
+    stop = {"status": "INTERRUPTED", "error": "stopped by SIGTERM after epoch 0; resume: X"}
+    _write_job(sweep, 1, summary["jobs"][1]["overrides"], stop)
+    summary = summarise_jobs(sweep)
+    assert [job["status"] for job in summary["jobs"]] == [
+        "COMPLETED", "INTERRUPTED", "PENDING", "PENDING"
+    ]  # fmt: skip
+
+    report = make_report(sweep)["report"].read_text()
+    assert "4 jobs: 0 completed" in report and "2 pending" in report
+    assert "| 1 | INTERRUPTED |" in report and "stopped by SIGTERM" in report
+    assert "| 2 | PENDING | rep=sixd seed=1 trainer.max_epochs=1 | never ran |" in report
+    assert "| 3 | PENDING | rep=sixd seed=2" in report
+
+
+def test_a_sweep_whose_jobs_are_not_known_ahead_plans_nothing(tmp_path):
+    cfg = _multirun_config(tmp_path / "sweep", ["seed=1,2"])
+    with open_dict(cfg):
+        cfg.hydra.sweeper = {"_target_": "hydra_plugins.hydra_optuna_sweeper.OptunaSweeper"}
+    JobStatusCallback().on_multirun_start(cfg)
+    assert not (tmp_path / "sweep" / "jobs.json").exists()
+
+
+def _finish_job(sweep: Path, num: int) -> None:
+    job = sweep / str(num)
+    job.mkdir()
+    (job / "status.json").write_text(json.dumps({"num": num, "status": "COMPLETED"}))
+    summarise_jobs(sweep)
+
+
+def test_parallel_jobs_never_lose_each_others_updates(tmp_path):
+    sweep = tmp_path / "sweep"
+    sweep.mkdir()
+    (sweep / "planned_jobs.json").write_text(json.dumps([{"num": n} for n in range(8)]))
+    context = multiprocessing.get_context("fork")
+    jobs = [context.Process(target=_finish_job, args=(sweep, n)) for n in range(8)]
+    for job in jobs:
+        job.start()
+    for job in jobs:
+        job.join(timeout=60)
+        assert job.exitcode == 0
+    summary = json.loads((sweep / "jobs.json").read_text())
+    assert summary["completed"] == 8 and summary["pending"] == 0
+
+
+# --- divergence --------------------------------------------------------------------------------
+
+GOOD = {"test/err_mean": 3.0, "test/identity_err_mean": 90.9}
+
+
+@pytest.mark.parametrize(
+    ("metrics", "losses", "diverged"),
+    [
+        (GOOD, [1.0, 0.1, 0.05], False),
+        ({"test/err_mean": 133.6, "test/identity_err_mean": 90.9}, [1.0, 0.9], True),
+        ({"test/err_mean": math.nan, "test/identity_err_mean": 90.9}, [], True),
+        (GOOD, [1.0, 0.01, 1.5], True),  # 150x its lowest epoch
+        (GOOD, [1.0, 0.01, 0.9], False),  # 90x: not orders of magnitude
+        (GOOD, [-5.0, -8.0, 900.0], True),  # a negative NLL that blew up
+        (GOOD, [-5.0, -8.0, -7.0], False),
+        (GOOD, [1.0, math.inf], True),
+        ({"test/recon_mean": 0.1}, [0.5, 0.4], False),  # the auto-encoder: no rotation error
+    ],
+)
+def test_divergence_flags_worse_than_identity_or_a_loss_that_grew(metrics, losses, diverged):
+    reasons = divergence(metrics, losses)
+    assert bool(reasons) is diverged, reasons
+
+
+# --- SLURM requeue ------------------------------------------------------------------------------
+
+
+def test_a_requeued_slurm_job_continues_its_own_run(make_cfg, monkeypatch):
+    from rotlearn.cli.train import train
+
+    overrides = ["data=tiny", "trainer=cpu", "trainer.enable_progress_bar=false", "logger=none",
+                 "net.point_channels=[16,32,64]", "net.head_channels=[32,16]"]  # fmt: skip
+    cfg = make_cfg([*overrides, "trainer.max_epochs=1"])
+    train(cfg)
+    run = Path(cfg.paths.output_dir)
+    (run / "metrics.json").unlink()  # as if SLURM had stopped it after its last.ckpt
+    again = make_cfg([*overrides, "trainer.max_epochs=2"], run_dir=run)
+    with pytest.raises(FileExistsError, match="already holds a run"):
+        train(again)  # not on SLURM: a run directory is never reused
+    for name, value in {"SLURM_RESTART_COUNT": "1", "SLURM_NTASKS": "1",
+                        "SLURM_JOB_NAME": "rotlearn", "SLURM_JOB_ID": "7"}.items():  # fmt: skip
+        monkeypatch.setenv(name, value)
+    assert train(again)["epochs"] == 2  # the requeued job picks up from last.ckpt
