@@ -8,6 +8,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
+from rotlearn.errors import NonFiniteError
 from rotlearn.nets.pooling import LinearMaxPool
 
 __all__ = ["PointNet", "mlp"]
@@ -80,10 +81,36 @@ class PointNet(nn.Module):
 
         Args:
             points: (..., N, in_channels) inputs, e.g. the first training batch.
+
+        Raises:
+            NonFiniteError: if `points` holds NaN or inf, or the centred biases would (a batch that
+                overflows the layers); the biases are then left as they were. Centring on such
+                a batch would make every later output non-finite, whatever the data.
         """
         flat = points.reshape(-1, *points.shape[-2:])
         if not self.center_init or flat.shape[0] < 2:
             return
+        if not bool(torch.isfinite(flat).all()):
+            n_bad = int((~torch.isfinite(flat)).sum())
+            raise NonFiniteError(
+                f"PointNet.initialize_from: {n_bad} NaN/inf entries among {flat.numel()} of the "
+                f"batch (shape {tuple(points.shape)}): the input batch is itself non-finite "
+                "(check the dataset files); biases left unchanged"
+            )
+        saved = {name: p.clone() for name, p in self.named_parameters() if name.endswith("bias")}
+        self._centre_biases(flat)
+        bad = [name for name, p in self.named_parameters() if not bool(torch.isfinite(p).all())]
+        if bad:
+            for name, p in self.named_parameters():
+                if name in saved:
+                    p.copy_(saved[name])
+            raise NonFiniteError(
+                f"PointNet.initialize_from: centring on this batch makes {bad[0]} non-finite "
+                "(the finite inputs overflow the layers): biases left unchanged"
+            )
+
+    def _centre_biases(self, flat: Tensor) -> None:
+        """Shift each hidden layer's bias by the mean of its output on `flat` (B, N, C)."""
 
         def centre(layer: nn.Linear, out: Tensor) -> Tensor:
             mean = out.reshape(-1, out.shape[-1]).mean(0)
