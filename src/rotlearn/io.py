@@ -75,7 +75,7 @@ def require_finite(values: np.ndarray, lines: np.ndarray, where: str, layout: st
         row = values[bad[0]].ravel().tolist()
         raise ValueError(
             f"{where}:{int(lines[bad[0]])}: not finite ({layout}): {row} "
-            f"(NaN, inf or a number beyond float64); {len(bad)} such row(s) in all"
+            f"(NaN, inf, or beyond the range of {values.dtype}); {len(bad)} such row(s) in all"
         )
     return values
 

@@ -97,13 +97,17 @@ class PointNet(nn.Module):
                 f"batch (shape {tuple(points.shape)}): the input batch is itself non-finite "
                 "(check the dataset files); biases left unchanged"
             )
-        saved = {name: p.clone() for name, p in self.named_parameters() if name.endswith("bias")}
+        biases = {name: p for name, p in self.named_parameters() if name.endswith("bias")}
+        saved = {name: p.clone() for name, p in biases.items()}
         self._centre_biases(flat)
-        bad = [name for name, p in self.named_parameters() if not bool(torch.isfinite(p).all())]
+        bad = [  # made non-finite by the centring (one already non-finite is not this batch's)
+            name
+            for name, p in biases.items()
+            if bool(saved[name].isfinite().all()) and not bool(p.isfinite().all())
+        ]
         if bad:
-            for name, p in self.named_parameters():
-                if name in saved:
-                    p.copy_(saved[name])
+            for name, p in biases.items():
+                p.copy_(saved[name])
             raise NonFiniteError(
                 f"PointNet.initialize_from: centring on this batch makes {bad[0]} non-finite "
                 "(the finite inputs overflow the layers): biases left unchanged"
