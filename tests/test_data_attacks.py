@@ -418,3 +418,15 @@ def test_a_non_finite_output_blames_the_weights_only_when_they_are_not_finite(ma
         next(model.net.parameters())[0] = math.nan
     with pytest.raises(NonFiniteError, match=r"weights are not \(first: net\."):
         model._check_finite("loss", bad_output, finite, "train", 0)
+
+
+def test_a_shipped_cache_symlink_cannot_send_the_default_cache_out_of_the_root(demo_data, tmp_path):
+    root = copy_demo(demo_data, "kitti", tmp_path)
+    elsewhere = tmp_path / "home"
+    elsewhere.mkdir()
+    (root / ".rotlearn_cache").symlink_to(elsewhere, target_is_directory=True)
+    dm = KittiOdometryDataModule(str(root), train_sequences=["02"], test_sequences=["00"],
+                                 image_size=8, num_workers=0)  # fmt: skip
+    with pytest.raises(ValueError, match=r"data\.cache_dir \(sequence '02'\): .*outside"):
+        dm.setup()
+    assert list(elsewhere.iterdir()) == []

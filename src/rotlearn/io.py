@@ -228,14 +228,22 @@ def resolve_inside(root: str | os.PathLike, path: str | os.PathLike, where: str)
     return real
 
 
-def cache_file(cache_dir: str | os.PathLike, stem: str, where: str) -> Path:
+def cache_file(
+    cache_dir: str | os.PathLike, stem: str, where: str, root: str | os.PathLike | None = None
+) -> Path:
     """`cache_dir / stem`, the stem of a cache built from dataset names (sequence, synset):
-    checked to be a plain name whose `.npy` and `.json` resolve inside `cache_dir`.
+    checked to be a plain name whose `.npy` and `.json` resolve inside `cache_dir`, and inside
+    `root` too when `cache_dir` lies in it (the default `<root>/.rotlearn_cache`: a dataset that
+    ships that folder as a symlink cannot send the cache elsewhere).
 
     Raises:
         ValueError: naming `where` (the config keys the stem is built from).
     """
     path = Path(cache_dir) / plain_name(stem, where)
-    for suffix in (".npy", ".json"):
-        resolve_inside(cache_dir, path.with_suffix(suffix), where)
+    within = [cache_dir]
+    if root is not None and Path(os.path.abspath(cache_dir)).is_relative_to(os.path.abspath(root)):
+        within.append(root)
+    for folder in within:
+        for suffix in (".npy", ".json"):
+            resolve_inside(folder, path.with_suffix(suffix), where)
     return path

@@ -171,6 +171,7 @@ class KittiOdometryDataModule(ImagePairDataModule):
             self.cache_dir,
             f"{sequence}_{self.camera}_{self.image_size}",
             f"data.cache_dir (sequence {sequence!r})",
+            self.root,
         )
         frame_cache(
             files,

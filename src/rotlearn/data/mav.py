@@ -251,9 +251,8 @@ class MAVDataModule(ImagePairDataModule):
             pose_stamps, quats = read_pose_file(self._file("pose", "data.csv"))
             nearest, gaps = match_poses(stamps, pose_stamps)
             q = quat_normalize(torch.from_numpy(quats[nearest]))
-            cache = cache_file(
-                self.cache_dir, f"flea3_{self.resize}_{self.image_size}", "data.cache_dir"
-            )
+            stem = f"flea3_{self.resize}_{self.image_size}"
+            cache = cache_file(self.cache_dir, stem, "data.cache_dir", self.root)
             frame_cache(
                 self._frame_files(names, lines),
                 cache,

@@ -237,7 +237,7 @@ class ShapeNetDataModule(DrawDataModule):
         if not test:
             raise ValueError(f"{folder} holds {len(paths)} meshes: none left for the test split")
         stem = f"{self.synset}_{self.num_points}_seed{self.seed}"
-        cache = cache_file(self.cache_dir, stem, "data.cache_dir (data.synset)")
+        cache = cache_file(self.cache_dir, stem, "data.cache_dir (data.synset)", self.root)
         clouds = torch.from_numpy(sample_meshes(train + test, self.num_points, cache, self.seed))
         return list(clouds[: len(train)]), list(clouds[len(train) :])
 
