@@ -31,13 +31,16 @@ def read_image(path: Path, gray: bool = False) -> np.ndarray:
     """An image file as uint8: (H, W, 3) RGB, or (H, W) for `gray`.
 
     Raises:
-        ValueError: naming the file, if it is missing or not a decodable image.
+        FileNotFoundError: naming the file, if it is missing.
+        ValueError: naming the file, if it is not a decodable image (empty, truncated, garbage).
     """
     import cv2
 
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"{path}: no such image file")
     image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR)
-    if image is None:
-        raise ValueError(f"{path}: cannot be read as an image (missing, empty or corrupt)")
+    if image is None or image.size == 0:
+        raise ValueError(f"{path}: cannot be read as an image (empty, truncated or corrupt)")
     return image if gray else cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
@@ -61,8 +64,31 @@ def resize_center_crop(image: np.ndarray, resize: int, crop: int) -> np.ndarray:
     return resized[top : top + crop, left : left + crop]
 
 
+def require_same_size(image: np.ndarray, first: np.ndarray, files: Sequence[Path], i: int) -> None:
+    """Refuse frame `i` of one sequence if its (H, W) differs from frame 0's: a stray image
+    would be resized with another aspect ratio and silently distort the geometry.
+
+    Raises:
+        ValueError: naming the file, the frame index and both sizes.
+    """
+    if image.shape[:2] != first.shape[:2]:
+        (h, w), (h0, w0) = image.shape[:2], first.shape[:2]
+        raise ValueError(
+            f"{files[i]}: frame {i} is {w}x{h} pixels, but frame 0 ({files[0].name}) is "
+            f"{w0}x{h0}: the frames of one sequence must share one size"
+        )
+
+
+def _stat(files: Sequence[Path], i: int) -> os.stat_result:
+    """The stat of frame `i`; a missing one raises a FileNotFoundError naming it."""
+    try:
+        return files[i].stat()
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{files[i]}: frame {i}: no such image file") from None
+
+
 def _manifest(files: Sequence[Path], recipe: dict) -> dict:
-    stats = [f.stat() for f in files]
+    stats = [_stat(files, i) for i in range(len(files))]
     return {
         "recipe": recipe,
         "files": [str(f) for f in files],
@@ -90,7 +116,9 @@ def frame_cache(
         desc: the progress bar's label.
 
     Raises:
-        ValueError: naming the first file that cannot be decoded (nothing is left in the cache).
+        FileNotFoundError: naming the first missing file (nothing is left in the cache).
+        ValueError: naming the first file that cannot be decoded, or whose size differs from
+            the first frame's (nothing is left in the cache).
     """
     array_path, manifest_path = cache.with_suffix(".npy"), cache.with_suffix(".json")
     manifest = _manifest(files, {**recipe, "gray": gray})
@@ -106,9 +134,12 @@ def frame_cache(
     manifest_path.unlink(missing_ok=True)
     tmp = array_path.with_name(f".{array_path.name}.{os.getpid()}.tmp")
     try:
-        out = None
+        out = first = None
         for i, path in enumerate(tqdm(files, desc=desc, unit="frame", mininterval=1.0)):
-            frame = preprocess(read_image(path, gray))
+            image = read_image(path, gray)
+            first = image if first is None else first
+            require_same_size(image, first, files, i)
+            frame = preprocess(image)
             frame = frame[None] if gray else frame.transpose(2, 0, 1)
             if out is None:
                 out = np.lib.format.open_memmap(

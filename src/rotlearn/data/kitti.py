@@ -24,7 +24,7 @@ from rotlearn.data.pairs import ImagePairDataModule, PairIndex
 from rotlearn.errors import ConfigValueError, require_positive_ints
 from rotlearn.geometry import relative_rotation
 from rotlearn.heads.svd import special_orthogonalize
-from rotlearn.io import read_number_rows
+from rotlearn.io import cache_file, plain_name, read_number_rows, resolve_inside
 from rotlearn.trust import config_target
 
 __all__ = ["KittiOdometryDataModule", "read_kitti_poses", "sequence_name"]
@@ -48,8 +48,8 @@ def read_kitti_poses(path: str | Path) -> np.ndarray:
         (N, 3, 4) float64; each R is projected onto SO(3) (it is orthonormal to 1e-3 already).
 
     Raises:
-        ValueError: naming the file and line of a line that is not 12 numbers or whose R is
-            not a rotation.
+        ValueError: naming the file and line of a line that is not 12 finite numbers or whose R
+            is not a rotation.
     """
     path = Path(path)
     poses = read_number_rows(path, 12, "a row-major 3x4 [R|t]").reshape(-1, 3, 4)
@@ -64,6 +64,15 @@ def read_kitti_poses(path: str | Path) -> np.ndarray:
         )
     poses[:, :, :3] = special_orthogonalize(torch.from_numpy(R)).numpy()
     return poses
+
+
+def _sequence_names(key: str, sequences: Sequence[int | str]) -> list[str]:
+    """`sequence_name` of each entry of the config list `key`, each a plain folder name.
+
+    Raises:
+        ConfigValueError: on `key`, for a name with a path separator, "." or "..".
+    """
+    return [plain_name(sequence_name(s), key=key) for s in sequences]
 
 
 @config_target
@@ -106,9 +115,11 @@ class KittiOdometryDataModule(ImagePairDataModule):
                 "pair_channels", f"KITTI pairs have 6 channels, got {pair_channels}"
             )
         self.root, self.camera = Path(root), camera
-        self.test_sequences = [sequence_name(s) for s in test_sequences]
+        self.test_sequences = _sequence_names("test_sequences", test_sequences)
         self.train_sequences = [
-            name for name in map(sequence_name, train_sequences) if name not in self.test_sequences
+            name
+            for name in _sequence_names("train_sequences", train_sequences)
+            if name not in self.test_sequences
         ]
         for key, names in (
             ("train_sequences", self.train_sequences),
@@ -123,9 +134,15 @@ class KittiOdometryDataModule(ImagePairDataModule):
         """(H, W, 3) RGB frame -> (S, S, 3), resized with OpenCV's area filter."""
         return resize_square(image, self.image_size)
 
+    def _inside(self, path: Path, sequence: str) -> Path:
+        """`path` (of `sequence`) unchanged, if it resolves inside data.root (symlinks followed)."""
+        key = "train_sequences" if sequence in self.train_sequences else "test_sequences"
+        resolve_inside(self.root, path, f"data.{key} entry {sequence!r}")
+        return path
+
     def frames(self, sequence: str) -> list[Path]:
-        """The image files of a sequence, in order."""
-        folder = self.root / "sequences" / sequence / self.camera
+        """The image files of a sequence, in order, each checked to lie inside data.root."""
+        folder = self._inside(self.root / "sequences" / sequence / self.camera, sequence)
         if not folder.is_dir():
             raise FileNotFoundError(
                 f"sequence {sequence}: no directory {folder} (data.root={self.root}, "
@@ -134,12 +151,12 @@ class KittiOdometryDataModule(ImagePairDataModule):
         files = sorted(folder.glob("*.png"))
         if not files:
             raise FileNotFoundError(f"sequence {sequence}: no .png frames in {folder}")
-        return files
+        return [self._inside(f, sequence) for f in files]
 
     def sequence_pairs(self, sequence: str) -> PairIndex:
         """The pairs (i, i + delta) of one sequence, its frames cached."""
         files = self.frames(sequence)
-        poses_path = self.root / "poses" / f"{sequence}.txt"
+        poses_path = self._inside(self.root / "poses" / f"{sequence}.txt", sequence)
         if not poses_path.is_file():
             raise FileNotFoundError(f"sequence {sequence}: no poses file {poses_path}")
         poses = read_kitti_poses(poses_path)
@@ -152,7 +169,12 @@ class KittiOdometryDataModule(ImagePairDataModule):
             raise ValueError(
                 f"sequence {sequence}: {len(files)} frames, none with a frame {self.delta} later"
             )
-        cache = self.cache_dir / f"{sequence}_{self.camera}_{self.image_size}"
+        cache = cache_file(
+            self.cache_dir,
+            f"{sequence}_{self.camera}_{self.image_size}",
+            f"data.cache_dir (sequence {sequence!r})",
+            self.root,
+        )
         frame_cache(
             files,
             cache,

@@ -30,16 +30,23 @@ from rotlearn.data.images import frame_cache, resize_center_crop
 from rotlearn.data.pairs import ImagePairDataModule, PairIndex
 from rotlearn.errors import ConfigValueError, require_positive_ints
 from rotlearn.geometry import quat_normalize, quat_to_rotmat, relative_rotation
+from rotlearn.io import (
+    cache_file,
+    plain_name,
+    read_text_lines,
+    require_finite,
+    resolve_inside,
+    strict_int,
+)
 from rotlearn.trust import config_target
 
 __all__ = ["MAVDataModule", "match_poses", "read_frame_list", "read_pair_file", "read_pose_file"]
 
 
 def _rows(path: Path, columns: int | None = None, min_columns: int = 1):
-    """(line number, fields) of a CSV file's rows, skipping blank lines and `#` comments."""
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such file")
-    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+    """(line number, fields) of a CSV file's rows, skipping blank lines and `#` comments; the
+    field count checked (`rotlearn.io.read_text_lines` raises for a missing or non-text file)."""
+    for lineno, line in enumerate(read_text_lines(path), start=1):
         text = line.strip()
         if not text or text.startswith("#"):
             continue
@@ -52,20 +59,19 @@ def _rows(path: Path, columns: int | None = None, min_columns: int = 1):
         yield lineno, fields
 
 
-def _int(path: Path, lineno: int, text: str) -> int:
-    try:
-        return int(text)
-    except ValueError:
-        raise ValueError(f"{path}:{lineno}: not an integer: {text!r}") from None
-
-
 def read_frame_list(path: str | Path) -> tuple[np.ndarray, list[str], np.ndarray]:
-    """Frames of `flea3/data.csv`: timestamps (N,) int64 ns, file names, and line numbers (N,)."""
+    """Frames of `flea3/data.csv`: timestamps (N,) int64 ns, file names, and line numbers (N,).
+
+    Raises:
+        ValueError: naming the file and line of a row that is not "integer,filename", or whose
+            file name is not a plain name (a path separator, "." or "..": it could leave
+            `flea3/data`).
+    """
     path = Path(path)
     stamps, names, lines = [], [], []
     for lineno, (stamp, name) in _rows(path, columns=2):
-        stamps.append(_int(path, lineno, stamp))
-        names.append(name)
+        stamps.append(strict_int(stamp, f"{path}:{lineno}"))
+        names.append(plain_name(name, f"{path}:{lineno}"))
         lines.append(lineno)
     if not stamps:
         raise ValueError(f"{path}: no frames")
@@ -74,23 +80,36 @@ def read_frame_list(path: str | Path) -> tuple[np.ndarray, list[str], np.ndarray
 
 def read_pose_file(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """Poses of `pose/data.csv`: timestamps (M,) int64 ns (sorted) and unit quaternions (M, 4),
-    converted to rotlearn's (x, y, z, w) from the file's trailing qw, qx, qy, qz columns."""
+    converted to rotlearn's (x, y, z, w) from the file's trailing qw, qx, qy, qz columns.
+
+    Raises:
+        ValueError: naming the file and line of a row whose time stamp is not an integer, whose
+            quaternion is not four finite numbers or is not unit (to 10 %).
+    """
     path = Path(path)
-    stamps, quats = [], []
+    stamps, quats, lines = [], [], []
     for lineno, fields in _rows(path, min_columns=5):
-        stamps.append(_int(path, lineno, fields[0]))
+        stamps.append(strict_int(fields[0], f"{path}:{lineno}"))
         try:
-            qw, qx, qy, qz = (float(f) for f in fields[-4:])
+            quats.append([float(f) for f in fields[-4:]])
         except ValueError:
             raise ValueError(f"{path}:{lineno}: not a number among {fields[-4:]}") from None
-        if not 0.9 < (qw * qw + qx * qx + qy * qy + qz * qz) ** 0.5 < 1.1:
-            raise ValueError(f"{path}:{lineno}: the quaternion (qw, qx, qy, qz) is not unit")
-        quats.append((qx, qy, qz, qw))
+        lines.append(lineno)
     if not stamps:
         raise ValueError(f"{path}: no poses")
+    lines = np.asarray(lines)
+    wxyz = require_finite(np.asarray(quats, dtype=np.float64), lines, str(path), "qw qx qy qz")
+    norm = np.linalg.norm(wxyz, axis=1)
+    bad = np.flatnonzero(~((norm > 0.9) & (norm < 1.1)))
+    if len(bad):
+        raise ValueError(
+            f"{path}:{lines[bad[0]]}: the quaternion (qw, qx, qy, qz) is not unit "
+            f"(norm {norm[bad[0]]:.4g}); {len(bad)} such row(s) in all"
+        )
+    quats = wxyz[:, [1, 2, 3, 0]]
     stamps = np.asarray(stamps, dtype=np.int64)
     order = np.argsort(stamps, kind="stable")
-    return stamps[order], np.asarray(quats, dtype=np.float64)[order]
+    return stamps[order], quats[order]
 
 
 def match_poses(frame_stamps: np.ndarray, pose_stamps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -122,19 +141,22 @@ def read_pair_file(
         ValueError: naming the file and line of a pair that refers to a frame that does not exist.
     """
     path = Path(path)
-    pairs = []
+    pairs, lines = [], []
     for lineno, fields in _rows(path, columns=2):
-        ids = [_int(path, lineno, f) for f in fields]
-        for i in ids:
-            if not 0 <= i < num_frames:
-                raise ValueError(
-                    f"{path}:{lineno}: frame {i} does not exist ({frame_list} lists {num_frames} "
-                    f"frames, 0 to {num_frames - 1})"
-                )
-        pairs.append(ids)
+        pairs.append([strict_int(f, f"{path}:{lineno}") for f in fields])
+        lines.append(lineno)
     if not pairs:
         raise ValueError(f"{path}: no pairs")
-    return np.asarray(pairs, dtype=np.int64)
+    pairs = np.asarray(pairs, dtype=np.int64)
+    bad = np.flatnonzero(((pairs < 0) | (pairs >= num_frames)).any(axis=1))
+    if len(bad):
+        row = pairs[bad[0]]
+        i = int(row[(row < 0) | (row >= num_frames)][0])
+        raise ValueError(
+            f"{path}:{lines[bad[0]]}: frame {i} does not exist ({frame_list} lists {num_frames} "
+            f"frames, 0 to {num_frames - 1}); {len(bad)} such pair(s) in all"
+        )
+    return pairs
 
 
 class _Frames(NamedTuple):
@@ -194,7 +216,8 @@ class MAVDataModule(ImagePairDataModule):
             if not scenes:
                 raise ConfigValueError(key, "lists no scene")
         self.root = Path(root)
-        self.train_scenes, self.test_scenes = list(train_scenes), list(test_scenes)
+        self.train_scenes = [plain_name(s, key="train_scenes") for s in train_scenes]
+        self.test_scenes = [plain_name(s, key="test_scenes") for s in test_scenes]
         self.test_fraction, self.pose_tolerance_ms = float(test_fraction), float(pose_tolerance_ms)
         self.resize, self.image_size = int(resize), int(image_size)
         self.cache_dir = Path(cache_dir) if cache_dir else self.root / ".rotlearn_cache"
@@ -207,17 +230,33 @@ class MAVDataModule(ImagePairDataModule):
         """(H, W) gray frame -> (S, S): Resize(resize) -> CenterCrop(image_size)."""
         return resize_center_crop(image, self.resize, self.image_size)
 
+    def _file(self, *parts: str, where: str = "data.root") -> Path:
+        """`root / parts`, checked to resolve inside data.root (symlinks followed)."""
+        path = self.root.joinpath(*parts)
+        resolve_inside(self.root, path, where)
+        return path
+
+    def _frame_files(self, names: list[str], lines: np.ndarray) -> list[Path]:
+        """`flea3/data/<name>` of each listed frame, each inside data.root (the error names the
+        line of `flea3/data.csv` that lists it)."""
+        listing = self.root / "flea3" / "data.csv"
+        return [
+            self._file("flea3", "data", name, where=f"{listing}:{line}")
+            for name, line in zip(names, lines, strict=True)
+        ]
+
     def _frame_rotations(self) -> _Frames:
         """Every frame's rotation, pose gap, time stamp and `data.csv` line, and the cache; read
         and cached once."""
         if self._frames is None:
-            stamps, names, lines = read_frame_list(self.root / "flea3" / "data.csv")
-            pose_stamps, quats = read_pose_file(self.root / "pose" / "data.csv")
+            stamps, names, lines = read_frame_list(self._file("flea3", "data.csv"))
+            pose_stamps, quats = read_pose_file(self._file("pose", "data.csv"))
             nearest, gaps = match_poses(stamps, pose_stamps)
             q = quat_normalize(torch.from_numpy(quats[nearest]))
-            cache = self.cache_dir / f"flea3_{self.resize}_{self.image_size}"
+            stem = f"flea3_{self.resize}_{self.image_size}"
+            cache = cache_file(self.cache_dir, stem, "data.cache_dir", self.root)
             frame_cache(
-                [self.root / "flea3" / "data" / name for name in names],
+                self._frame_files(names, lines),
                 cache,
                 self.preprocess,
                 {"resize": self.resize, "center_crop": self.image_size},
@@ -241,11 +280,13 @@ class MAVDataModule(ImagePairDataModule):
                 f"data.pose_tolerance_ms); {len(late)} frame(s) in all"
             )
 
-    def _scene(self, scene: str) -> tuple[np.ndarray, np.ndarray]:
-        """A scene's pairs (P, 2), checked, and which are test pairs (P,): read once."""
+    def _scene(self, scene: str, key: str) -> tuple[np.ndarray, np.ndarray]:
+        """A scene's pairs (P, 2), checked, and which are test pairs (P,): read once. `key`,
+        the config key listing the scene, is named if its file lies outside data.root."""
         if scene not in self._scenes:
             frames = self._frame_rotations()
-            pairs = read_pair_file(self.root / "pairs" / f"{scene}.csv", len(frames.R))
+            where = f"data.{key} entry {scene!r}"
+            pairs = read_pair_file(self._file("pairs", f"{scene}.csv", where=where), len(frames.R))
             self._check_gaps(pairs)
             rng = np.random.default_rng(draw_seed(self.seed, *scene.encode()))
             n_test = max(1, round(self.test_fraction * len(pairs)))
@@ -257,7 +298,7 @@ class MAVDataModule(ImagePairDataModule):
     def scene_pairs(self, scene: str, split: str) -> PairIndex:
         """The training or test part of one scene's pairs."""
         frames = self._frame_rotations()
-        pairs, is_test = self._scene(scene)
+        pairs, is_test = self._scene(scene, "test_scenes" if split == "test" else "train_scenes")
         pairs = pairs[is_test if split == "test" else ~is_test]
         R = torch.from_numpy(frames.R)
         C = relative_rotation(R[pairs[:, 0]], R[pairs[:, 1]])

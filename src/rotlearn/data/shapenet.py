@@ -12,6 +12,7 @@ under `test_rotations` fixed, seeded rotations.
 
 from __future__ import annotations
 
+import io
 import json
 import os
 from pathlib import Path
@@ -24,10 +25,18 @@ from torch.utils.data import DataLoader
 from rotlearn.data.draws import SPLITS, DrawDataModule
 from rotlearn.errors import ConfigValueError, require_positive_ints
 from rotlearn.geometry import quat_to_rotmat, so3_exp_quat
-from rotlearn.io import read_number_rows, write_text_atomic
+from rotlearn.io import (
+    cache_file,
+    parse_number_rows,
+    plain_name,
+    read_number_rows,
+    read_text_lines,
+    resolve_inside,
+    write_text_atomic,
+)
 from rotlearn.trust import config_target
 
-__all__ = ["AIRPLANE_SYNSET", "ShapeNetDataModule", "read_point_file", "sample_meshes"]
+__all__ = ["AIRPLANE_SYNSET", "ShapeNetDataModule", "read_mesh", "read_point_file", "sample_meshes"]
 
 AIRPLANE_SYNSET = "02691156"
 POINT_SUFFIXES = (".pts", ".xyz")
@@ -38,15 +47,81 @@ def read_point_file(path: str | os.PathLike) -> np.ndarray:
     as normals, are ignored).
 
     Raises:
-        ValueError: naming the file and line of the first malformed row.
+        ValueError: naming the file and line of the first malformed row (not 3 numbers, or a
+            NaN / infinity, also one that only float32 overflows).
     """
-    return read_number_rows(path, 3, "x y z", extra_ok=True).astype(np.float32)
+    return read_number_rows(path, 3, "x y z", extra_ok=True, dtype=np.float32)
+
+
+def _obj_vertices(path: Path, lines: list[str]) -> np.ndarray:
+    """The "v x y z" rows of an OBJ file's lines, (V, 3) float64, checked to be finite numbers
+    (`rotlearn.io.parse_number_rows` names the line at fault)."""
+    rows = []
+    for lineno, line in enumerate(lines, start=1):
+        words = line.split("#", 1)[0].split()
+        if words and words[0] == "v":
+            rows.append((lineno, words[1:]))
+    return parse_number_rows(rows, str(path), 3, "v x y z", extra_ok=True)
+
+
+def _parse_obj(path: Path, text: str):
+    """trimesh's Trimesh of OBJ `text`, unprocessed; referenced files (mtllib) are not read.
+
+    Raises:
+        ValueError: naming the file, whatever trimesh raised (never a missing-module message).
+    """
+    import trimesh
+
+    try:
+        mesh = trimesh.load(
+            io.BytesIO(text.encode("utf-8")), file_type="obj", force="mesh", process=False
+        )
+    except ImportError:
+        raise ValueError(f"{path}: cannot be read as an OBJ mesh") from None
+    except Exception as exc:
+        detail = f"{type(exc).__name__}: {exc}"
+        raise ValueError(f"{path}: cannot be read as an OBJ mesh ({detail})") from None
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise ValueError(f"{path}: no triangle mesh in it (trimesh read a {type(mesh).__name__})")
+    return mesh
+
+
+def read_mesh(path: str | os.PathLike):
+    """A mesh file (OBJ, UTF-8 text) as a trimesh.Trimesh, checked for sampling.
+
+    Checked: UTF-8 text; every "v" line three finite numbers; trimesh parses it to a triangle
+    mesh; at least one face, every face index a vertex; every vertex finite; a positive, finite
+    total area.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: naming the file (and the line, for a vertex or an encoding error).
+    """
+    path = Path(path)
+    lines = read_text_lines(path)
+    _obj_vertices(path, lines)
+    mesh = _parse_obj(path, "\n".join(lines))
+    faces, vertices = np.asarray(mesh.faces), np.asarray(mesh.vertices)
+    if faces.shape[0] == 0:
+        raise ValueError(f"{path}: the mesh has no faces")
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise ValueError(f"{path}: a face refers to a vertex that does not exist")
+    if not np.isfinite(vertices).all():
+        raise ValueError(f"{path}: the mesh has non-finite vertices")
+    area = np.asarray(mesh.area_faces).sum()
+    if not (np.isfinite(area) and area > 0):
+        raise ValueError(
+            f"{path}: the mesh's total area is {area} ({len(faces)} degenerate faces): "
+            "no surface to sample"
+        )
+    return mesh
 
 
 def sample_meshes(paths: list[Path], num_points: int, cache: Path, seed: int = 0) -> np.ndarray:
     """Surface samples of meshes, (M, num_points, 3) float32, cached in `cache` (.npy + .json).
 
-    The cache is reused only if its manifest lists the same files, point count and seed.
+    The cache is reused only if its manifest lists the same files, point count and seed. Each
+    mesh is checked by `read_mesh`; an error leaves no cache behind.
     """
     manifest = {"files": [str(p) for p in paths], "num_points": num_points, "seed": seed}
     array_path, manifest_path = cache.with_suffix(".npy"), cache.with_suffix(".json")
@@ -58,15 +133,15 @@ def sample_meshes(paths: list[Path], num_points: int, cache: Path, seed: int = 0
 
     clouds = np.empty((len(paths), num_points, 3), dtype=np.float32)
     for i, path in enumerate(tqdm(paths, desc="sampling ShapeNet meshes", unit="mesh")):
-        mesh = trimesh.load(path, force="mesh")
-        if mesh.faces.shape[0] == 0:
-            raise ValueError(f"{path}: the mesh has no faces")
-        points, _ = trimesh.sample.sample_surface(mesh, num_points, seed=seed + i)
+        points, _ = trimesh.sample.sample_surface(read_mesh(path), num_points, seed=seed + i)
         clouds[i] = points
     cache.parent.mkdir(parents=True, exist_ok=True)
-    tmp = array_path.with_name(f".{array_path.name}.tmp.npy")
-    np.save(tmp, clouds)
-    os.replace(tmp, array_path)
+    tmp = array_path.with_name(f".{array_path.name}.{os.getpid()}.tmp.npy")
+    try:
+        np.save(tmp, clouds)
+        os.replace(tmp, array_path)
+    finally:
+        tmp.unlink(missing_ok=True)
     write_text_atomic(manifest_path, json.dumps(manifest))
     return clouds
 
@@ -120,7 +195,8 @@ class ShapeNetDataModule(DrawDataModule):
             iterations_per_epoch=iterations_per_epoch,
             test_rotations=test_rotations,
         )
-        self.root, self.format, self.synset = Path(root), format, synset
+        self.root, self.format = Path(root), format
+        self.synset = plain_name(synset, key="synset")
         self.num_train, self.num_test = int(num_train), int(num_test)
         self.point_fraction, self.num_points = float(point_fraction), int(num_points)
         self.rotations_per_cloud = int(rotations_per_cloud)
@@ -132,6 +208,7 @@ class ShapeNetDataModule(DrawDataModule):
 
     def _load_pts(self, split: str, limit: int) -> list[Tensor]:
         folder = self.root / split
+        resolve_inside(self.root, folder, "data.root")
         files = sorted(p for p in folder.glob("*") if p.suffix in POINT_SUFFIXES)[:limit]
         if not files:
             raise FileNotFoundError(
@@ -140,14 +217,17 @@ class ShapeNetDataModule(DrawDataModule):
             )
         clouds = []
         for path in files:
-            points = read_point_file(path)
+            points = read_point_file(resolve_inside(self.root, path, "data.root"))
             keep = max(1, int(len(points) * self.point_fraction))
             clouds.append(torch.from_numpy(points[:keep]))
         return clouds
 
     def _load_meshes(self) -> tuple[list[Tensor], list[Tensor]]:
         folder = self.root / self.synset
+        resolve_inside(self.root, folder, "data.synset")
         paths = sorted(folder.glob("*/models/model_normalized.obj"))
+        for path in paths:
+            resolve_inside(self.root, path, "data.synset")
         if not paths:
             raise FileNotFoundError(
                 f"no meshes {folder}/<model_id>/models/model_normalized.obj "
@@ -158,7 +238,8 @@ class ShapeNetDataModule(DrawDataModule):
         test = [paths[i] for i in order[self.num_train : self.num_train + self.num_test]]
         if not test:
             raise ValueError(f"{folder} holds {len(paths)} meshes: none left for the test split")
-        cache = self.cache_dir / f"{self.synset}_{self.num_points}_seed{self.seed}"
+        stem = f"{self.synset}_{self.num_points}_seed{self.seed}"
+        cache = cache_file(self.cache_dir, stem, "data.cache_dir (data.synset)", self.root)
         clouds = torch.from_numpy(sample_meshes(train + test, self.num_points, cache, self.seed))
         return list(clouds[: len(train)]), list(clouds[len(train) :])
 

@@ -82,13 +82,26 @@ class RotationRegressor(RunStateHooks, pl.LightningModule):
         n_nan, n_inf = int(value.isnan().sum()), int(value.isinf().sum())
         shape = tuple(value.shape)
         detail = f"{n_nan} NaN and {n_inf} inf among {value.numel()} entries of shape {shape}"
-        inputs = batch.get("input")
-        cause = (
-            "the input batch is itself non-finite"
-            if inputs is not None and not bool(torch.isfinite(inputs).all())
-            else "the inputs are finite: the weights diverged (try a lower optim.lr)"
+        raise NonFiniteError(
+            f"non-finite {name} at {self._where(stage, idx)}: {detail}; {self._cause(batch)}"
         )
-        raise NonFiniteError(f"non-finite {name} at {self._where(stage, idx)}: {detail}; {cause}")
+
+    def _cause(self, batch: dict) -> str:
+        """Why an output is non-finite: the batch, weights already non-finite, or an overflow
+        from finite inputs and weights. Only the last two blame the training."""
+        inputs = batch.get("input")
+        if inputs is not None and not bool(torch.isfinite(inputs).all()):
+            return "the input batch is itself non-finite (check the dataset files)"
+        bad = next((n for n, p in self.named_parameters() if not bool(p.isfinite().all())), None)
+        if bad is not None:
+            return (
+                f"the inputs are finite, but the weights are not (first: {bad}): they diverged "
+                "in an earlier step (try a lower optim.lr) or were initialised from bad data"
+            )
+        return (
+            "the inputs and the weights are finite: the computation overflowed "
+            "(try a lower optim.lr)"
+        )
 
     def _step(self, batch: dict[str, Tensor], stage: str, batch_idx: int) -> RotationPrediction:
         raw = self.net(batch["input"])

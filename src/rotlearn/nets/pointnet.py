@@ -8,6 +8,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
+from rotlearn.errors import NonFiniteError
 from rotlearn.nets.pooling import LinearMaxPool
 from rotlearn.trust import config_target
 
@@ -82,10 +83,40 @@ class PointNet(nn.Module):
 
         Args:
             points: (..., N, in_channels) inputs, e.g. the first training batch.
+
+        Raises:
+            NonFiniteError: if `points` holds NaN or inf, or the centred biases would (a batch that
+                overflows the layers); the biases are then left as they were. Centring on such
+                a batch would make every later output non-finite, whatever the data.
         """
         flat = points.reshape(-1, *points.shape[-2:])
         if not self.center_init or flat.shape[0] < 2:
             return
+        if not bool(torch.isfinite(flat).all()):
+            n_bad = int((~torch.isfinite(flat)).sum())
+            raise NonFiniteError(
+                f"PointNet.initialize_from: {n_bad} NaN/inf entries among {flat.numel()} of the "
+                f"batch (shape {tuple(points.shape)}): the input batch is itself non-finite "
+                "(check the dataset files); biases left unchanged"
+            )
+        biases = {name: p for name, p in self.named_parameters() if name.endswith("bias")}
+        saved = {name: p.clone() for name, p in biases.items()}
+        self._centre_biases(flat)
+        bad = [  # made non-finite by the centring (one already non-finite is not this batch's)
+            name
+            for name, p in biases.items()
+            if bool(saved[name].isfinite().all()) and not bool(p.isfinite().all())
+        ]
+        if bad:
+            for name, p in biases.items():
+                p.copy_(saved[name])
+            raise NonFiniteError(
+                f"PointNet.initialize_from: centring on this batch makes {bad[0]} non-finite "
+                "(the finite inputs overflow the layers): biases left unchanged"
+            )
+
+    def _centre_biases(self, flat: Tensor) -> None:
+        """Shift each hidden layer's bias by the mean of its output on `flat` (B, N, C)."""
 
         def centre(layer: nn.Linear, out: Tensor) -> Tensor:
             mean = out.reshape(-1, out.shape[-1]).mean(0)

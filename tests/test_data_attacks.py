@@ -1,0 +1,432 @@
+"""Untrusted datasets (issue 13): crafted bad files and escaping names, for every loader.
+
+Each test copies a valid demo dataset (the session's `demo_data`) into tmp_path, corrupts one
+file or names a path outside the root, and checks the error type, that the message names the file
+and line (or frame, or the config key), and that nothing was written outside the cache folder
+(and no partial cache left in it).
+"""
+
+from __future__ import annotations
+
+import math
+import shutil
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from rotlearn.data import KittiOdometryDataModule, MAVDataModule, ShapeNetDataModule
+from rotlearn.errors import ConfigValueError, NonFiniteError
+from rotlearn.io import plain_name, read_number_rows, resolve_inside
+from rotlearn.nets.pointnet import PointNet
+
+cv2 = pytest.importorskip("cv2")
+
+
+# ---- helpers ------------------------------------------------------------------------------------
+
+
+def copy_demo(demo_data: dict[str, Path], name: str, tmp_path: Path) -> Path:
+    """A private copy of a demo dataset, `<tmp_path>/data/<dataset>`."""
+    source = demo_data[name]
+    root = tmp_path / "data" / source.name
+    shutil.copytree(source, root, ignore=shutil.ignore_patterns(".rotlearn_cache"))
+    return root
+
+
+def files_under(folder: Path) -> set[Path]:
+    return {p for p in folder.rglob("*") if p.is_file() or p.is_symlink()}
+
+
+@contextmanager
+def writes_only_complete_caches(tmp_path: Path, cache_dir: Path) -> Iterator[None]:
+    """Assert that the block creates files only inside `cache_dir`, and there only whole caches
+    (each `.npy` with its `.json` manifest, no temporary file)."""
+    before = files_under(tmp_path)
+    try:
+        yield
+    finally:
+        new = files_under(tmp_path) - before
+        outside = [p for p in new if not p.is_relative_to(cache_dir)]
+        assert outside == [], f"files written outside the cache folder: {outside}"
+        assert not [p for p in new if ".tmp" in p.name], f"partial cache left: {new}"
+        stems = lambda suffix: {p.with_suffix("") for p in new if p.suffix == suffix}  # noqa: E731
+        assert stems(".npy") == stems(".json"), f"a cache without its manifest: {new}"
+
+
+def set_line(path: Path, lineno: int, text: str) -> None:
+    """Replace line `lineno` (1-based) of a text file."""
+    lines = path.read_text().splitlines()
+    lines[lineno - 1] = text
+    path.write_text("\n".join(lines) + "\n")
+
+
+def refuses(make, tmp_path, cache, error, pattern):
+    """Run `make()` (build + setup a datamodule) expecting `error` matching `pattern`, with
+    nothing written outside `cache`; returns the error."""
+    with writes_only_complete_caches(tmp_path, cache), pytest.raises(error, match=pattern) as e:
+        make()
+    return e.value
+
+
+# ---- KITTI --------------------------------------------------------------------------------------
+
+
+def kitti(root: Path, cache: Path, **kw) -> KittiOdometryDataModule:
+    args = {"train_sequences": ["02"], "test_sequences": ["00"], "image_size": 8, **kw}
+    dm = KittiOdometryDataModule(str(root), num_workers=0, cache_dir=str(cache), **args)
+    dm.setup()
+    return dm
+
+
+@pytest.mark.parametrize(
+    ("column", "word", "pattern"),
+    [
+        (0, "nan", "not finite"),
+        (5, "inf", "not finite"),
+        (3, "nan", "not finite"),  # the translation: not used, still refused
+        (4, "1e999", "not finite"),
+        (7, "one", "not a number"),
+        (11, None, "expected 12 numbers .* got 11"),
+    ],
+)
+def test_kitti_pose_lines_are_checked(demo_data, tmp_path, column, word, pattern):
+    root, cache = copy_demo(demo_data, "kitti", tmp_path), tmp_path / "cache"
+    poses = root / "poses" / "00.txt"
+    numbers = poses.read_text().splitlines()[2].split()
+    tail = [] if word is None else [word, *numbers[column + 1 :]]
+    numbers = numbers[:column] + tail
+    set_line(poses, 3, " ".join(numbers))
+    refuses(lambda: kitti(root, cache), tmp_path, cache, ValueError, rf"00\.txt:3: {pattern}")
+
+
+def test_kitti_too_few_pose_lines_name_the_file(demo_data, tmp_path):
+    root, cache = copy_demo(demo_data, "kitti", tmp_path), tmp_path / "cache"
+    poses = root / "poses" / "00.txt"
+    poses.write_text("\n".join(poses.read_text().splitlines()[:-1]) + "\n")
+    pattern = r"00\.txt: 5 poses, but .*image_2 holds 6 frames"
+    refuses(lambda: kitti(root, cache), tmp_path, cache, ValueError, pattern)
+
+
+def _png_bytes(width: int, height: int) -> bytes:
+    image = np.random.default_rng(0).integers(0, 256, (height, width, 3), dtype=np.uint8)
+    return cv2.imencode(".png", image)[1].tobytes()
+
+
+@pytest.mark.parametrize(
+    ("content", "pattern"),
+    [
+        (b"", "cannot be read as an image"),
+        ("truncated", "cannot be read as an image"),
+        (b"\x89PNG\r\n\x1a\n" + bytes(range(256)) * 4, "cannot be read as an image"),
+        ("other size", r"frame 3 is 40x30 pixels, but frame 0 .* is 62x19"),
+    ],
+    ids=["zero-byte", "truncated", "garbage", "other-size"],
+)
+def test_kitti_bad_frames_are_named(demo_data, tmp_path, content, pattern):
+    root, cache = copy_demo(demo_data, "kitti", tmp_path), tmp_path / "cache"
+    frame = root / "sequences" / "00" / "image_2" / "000003.png"
+    if content == "truncated":
+        content = frame.read_bytes()[: frame.stat().st_size // 2]
+    elif content == "other size":
+        content = _png_bytes(40, 30)
+    frame.write_bytes(content)
+    message = str(refuses(lambda: kitti(root, cache), tmp_path, cache, ValueError, pattern))
+    assert str(frame) in message
+    assert not (cache.exists() and any(p.name.startswith("00_") for p in cache.iterdir()))
+
+
+def plant_kitti_sequence(root: Path, target: Path) -> None:
+    """A valid sequence folder at `target` (a copy of sequence 00), outside or inside root."""
+    shutil.copytree(root / "sequences" / "00", target)
+
+
+@pytest.mark.parametrize("key", ["train_sequences", "test_sequences"])
+@pytest.mark.parametrize("name", ["../../x", "..", "/abs/x", "a\\b"])
+def test_kitti_sequence_names_cannot_leave_the_root(demo_data, tmp_path, key, name):
+    root, cache = copy_demo(demo_data, "kitti", tmp_path), tmp_path / "cache"
+    plant_kitti_sequence(root, tmp_path / "data" / "x")  # what sequences/../../x would read
+    shutil.copy(root / "poses" / "00.txt", tmp_path / "data" / "x.txt")
+    make = lambda: kitti(root, cache, **{key: [name]})  # noqa: E731
+    error = refuses(make, tmp_path, cache, ConfigValueError, "not a plain file or folder name")
+    assert error.key == key
+
+
+def test_kitti_traversal_from_the_command_line_names_the_config_key(demo_data, tmp_path, make_cfg):
+    from rotlearn.cli.train import ConfigError, build
+
+    root = copy_demo(demo_data, "kitti", tmp_path)
+    plant_kitti_sequence(root, tmp_path / "data" / "x")
+    cfg = make_cfg(["data=kitti", f"data.root={root}", "data.train_sequences=[../../x]"])
+    with pytest.raises(ConfigError, match=r"data\.train_sequences: '\.\./\.\./x' is not a plain"):
+        build(cfg)
+
+
+def test_kitti_symlinked_sequence_outside_the_root_is_refused(demo_data, tmp_path):
+    root, cache = copy_demo(demo_data, "kitti", tmp_path), tmp_path / "cache"
+    outside = tmp_path / "elsewhere" / "03"
+    plant_kitti_sequence(root, outside)
+    (root / "sequences" / "03").symlink_to(outside, target_is_directory=True)
+    shutil.copy(root / "poses" / "00.txt", root / "poses" / "03.txt")
+    pattern = r"data\.train_sequences entry '03': .*sequences/03/image_2 resolves to .*outside"
+    make = lambda: kitti(root, cache, train_sequences=["03"])  # noqa: E731
+    refuses(make, tmp_path, cache, ValueError, pattern)
+    kitti(root, cache, train_sequences=["02"])  # the same dataset loads without the link
+
+
+def test_kitti_symlinked_frame_outside_the_root_is_refused(demo_data, tmp_path):
+    root, cache = copy_demo(demo_data, "kitti", tmp_path), tmp_path / "cache"
+    frame = root / "sequences" / "00" / "image_2" / "000002.png"
+    outside = tmp_path / "secret.png"
+    shutil.move(frame, outside)
+    frame.symlink_to(outside)
+    pattern = r"data\.test_sequences entry '00': .*000002\.png resolves to .*outside"
+    refuses(lambda: kitti(root, cache), tmp_path, cache, ValueError, pattern)
+
+
+# ---- MAV ----------------------------------------------------------------------------------------
+
+
+def mav(root: Path, cache: Path, **kw) -> MAVDataModule:
+    args = {"resize": 10, "image_size": 8, "test_fraction": 0.25, **kw}
+    dm = MAVDataModule(str(root), num_workers=0, cache_dir=str(cache), **args)
+    dm.setup()
+    return dm
+
+
+def test_mav_nan_quaternion_names_the_line(demo_data, tmp_path):
+    root, cache = copy_demo(demo_data, "mav", tmp_path), tmp_path / "cache"
+    path = root / "pose" / "data.csv"
+    fields = path.read_text().splitlines()[6].split(",")
+    set_line(path, 7, ",".join([*fields[:-4], "nan", *fields[-3:]]))
+    pattern = r"pose/data\.csv:7: not finite \(qw qx qy qz\)"
+    refuses(lambda: mav(root, cache), tmp_path, cache, ValueError, pattern)
+
+
+@pytest.mark.parametrize(
+    ("line", "pattern"),
+    [
+        ("1.5e18,x.png", r"data\.csv:3: not an integer: '1\.5e18'"),
+        ("1_403_636_580,x.png", r"data\.csv:3: not an integer"),
+        ("1403636580000000000,../../x.png", r"data\.csv:3: '\.\./\.\./x\.png' is not a plain"),
+        ("1403636580000000000,ABSOLUTE", r"data\.csv:3: '/.*x\.png' is not a plain"),
+        ("1403636580000000000,..", r"data\.csv:3: '\.\.' is not a plain"),
+    ],
+    ids=["float-stamp", "underscores", "traversal", "absolute", "dotdot"],
+)
+def test_mav_frame_list_rows_are_checked(demo_data, tmp_path, line, pattern):
+    root, cache = copy_demo(demo_data, "mav", tmp_path), tmp_path / "cache"
+    target = tmp_path / "data" / "x.png"  # what flea3/data/../../x.png would read
+    shutil.copy(next((root / "flea3" / "data").glob("*.png")), target)
+    set_line(root / "flea3" / "data.csv", 3, line.replace("ABSOLUTE", str(target)))
+    refuses(lambda: mav(root, cache), tmp_path, cache, ValueError, pattern)
+
+
+def test_mav_symlinked_frame_outside_the_root_names_the_line(demo_data, tmp_path):
+    root, cache = copy_demo(demo_data, "mav", tmp_path), tmp_path / "cache"
+    name = (root / "flea3" / "data.csv").read_text().splitlines()[4].split(",")[1]
+    frame, outside = root / "flea3" / "data" / name, tmp_path / "secret.png"
+    shutil.move(frame, outside)
+    frame.symlink_to(outside)
+    pattern = rf"flea3/data\.csv:5: .*{name} resolves to .*outside"
+    refuses(lambda: mav(root, cache), tmp_path, cache, ValueError, pattern)
+
+
+def test_mav_pair_index_out_of_range_names_the_line(demo_data, tmp_path):
+    root, cache = copy_demo(demo_data, "mav", tmp_path), tmp_path / "cache"
+    set_line(root / "pairs" / "outdoor.csv", 2, "0,999")
+    pattern = r"outdoor\.csv:2: frame 999 does not exist .*40 frames"
+    refuses(lambda: mav(root, cache), tmp_path, cache, ValueError, pattern)
+
+
+def test_mav_non_integer_pair_index_names_the_line(demo_data, tmp_path):
+    root, cache = copy_demo(demo_data, "mav", tmp_path), tmp_path / "cache"
+    set_line(root / "pairs" / "outdoor.csv", 2, "0,1.0")
+    pattern = r"outdoor\.csv:2: not an integer: '1\.0'"
+    refuses(lambda: mav(root, cache), tmp_path, cache, ValueError, pattern)
+
+
+@pytest.mark.parametrize("key", ["train_scenes", "test_scenes"])
+def test_mav_scene_names_cannot_leave_the_root(demo_data, tmp_path, key):
+    root, cache = copy_demo(demo_data, "mav", tmp_path), tmp_path / "cache"
+    shutil.copy(root / "pairs" / "outdoor.csv", root / "x.csv")  # what pairs/../x.csv would read
+    make = lambda: mav(root, cache, **{key: ["../x"]})  # noqa: E731
+    error = refuses(make, tmp_path, cache, ConfigValueError, r"'\.\./x' is not a plain")
+    assert error.key == key
+
+
+def test_mav_symlinked_scene_file_outside_the_root_is_refused(demo_data, tmp_path):
+    root, cache = copy_demo(demo_data, "mav", tmp_path), tmp_path / "cache"
+    outside = tmp_path / "outdoor.csv"
+    shutil.move(root / "pairs" / "outdoor.csv", outside)
+    (root / "pairs" / "outdoor.csv").symlink_to(outside)
+    pattern = r"data\.train_scenes entry 'outdoor': .*resolves to .*outside"
+    refuses(lambda: mav(root, cache), tmp_path, cache, ValueError, pattern)
+
+
+# ---- ShapeNet -----------------------------------------------------------------------------------
+
+
+def shapenet(root: Path, cache: Path, **kw) -> ShapeNetDataModule:
+    args = {"num_train": 6, "num_test": 3, "num_points": 16, "rotations_per_cloud": 2, **kw}
+    dm = ShapeNetDataModule(str(root), cache_dir=str(cache), **args)
+    dm.setup("fit")
+    return dm
+
+
+@pytest.mark.parametrize(
+    ("text", "pattern"),
+    [
+        ("nan 0 0", "not finite"),
+        ("0 inf 0", "not finite"),
+        ("0 0 1e999", "not finite"),
+        ("1e39 0 0", "not finite"),  # beyond float32, the dtype of the clouds
+        ("0 zero 0", "not a number"),
+        ("0 0", "expected 3 numbers"),
+    ],
+)
+def test_pts_rows_are_checked(demo_data, tmp_path, text, pattern):
+    root, cache = copy_demo(demo_data, "pts", tmp_path), tmp_path / "cache"
+    path = sorted((root / "test").glob("*.pts"))[1]
+    set_line(path, 3, text)
+    message = str(refuses(lambda: shapenet(root, cache), tmp_path, cache, ValueError, pattern))
+    assert f"{path}:3:" in message
+
+
+def test_a_non_utf8_pts_file_names_the_line(demo_data, tmp_path):
+    root, cache = copy_demo(demo_data, "pts", tmp_path), tmp_path / "cache"
+    path = sorted((root / "train").glob("*.pts"))[0]
+    path.write_bytes(b"0 0 1\n1 2 3\n\xff\xfe 0 0\n")
+    pattern = rf"{path.name}:3: not UTF-8 text"
+    refuses(lambda: shapenet(root, cache), tmp_path, cache, ValueError, pattern)
+
+
+CUBE_VERTICES = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n"
+
+
+@pytest.mark.parametrize(
+    ("content", "pattern"),
+    [
+        (b"\xff\xfe\x00\x81garbage\x80\n", r":1: not UTF-8 text"),
+        (b"hello world\nfoo bar\n", r": no rows of numbers \(v x y z\)"),
+        (CUBE_VERTICES.encode(), ": the mesh has no faces"),
+        ((CUBE_VERTICES + "f 1 2 9\n").encode(), ": cannot be read as an OBJ mesh|does not exist"),
+        (b"v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n", r": the mesh's total area is 0\.0"),
+        (b"v 0 0 0\nv 1 0 0\n# x\nv nan 1 0\nf 1 2 3\n", r":4: not finite \(v x y z\)"),
+        (b"v 0 0 0\nv 1 0 0\nv 0 1e999 0\nf 1 2 3\n", r":3: not finite \(v x y z\)"),
+    ],
+    ids=["binary", "text", "no-faces", "bad-index", "zero-area", "nan-vertex", "inf-vertex"],
+)
+def test_bad_meshes_are_refused_naming_the_file(demo_data, tmp_path, content, pattern):
+    root, cache = copy_demo(demo_data, "mesh", tmp_path), tmp_path / "cache"
+    path = sorted(root.glob("02691156/*/models/model_normalized.obj"))[4]
+    path.write_bytes(content)
+    make = lambda: shapenet(root, cache, format="mesh")  # noqa: E731
+    message = str(refuses(make, tmp_path, cache, ValueError, pattern))
+    assert message.startswith(str(path)) and "module" not in message
+    assert not cache.exists() or not list(cache.iterdir())
+
+
+def test_mtllib_outside_the_root_is_never_read(demo_data, tmp_path):
+    root, cache = copy_demo(demo_data, "mesh", tmp_path), tmp_path / "cache"
+    path = sorted(root.glob("02691156/*/models/model_normalized.obj"))[0]
+    path.write_text("mtllib ../../../../../../no/such/dir/evil.mtl\n" + path.read_text())
+    dm = shapenet(root, cache, format="mesh")  # loads: the material file is never opened
+    assert np.isfinite(torch.stack(dm.clouds[0]).numpy()).all()
+
+
+@pytest.mark.parametrize("synset", ["../..", "..", "a/b"])
+def test_the_synset_cannot_leave_the_root(demo_data, tmp_path, synset):
+    root, cache = copy_demo(demo_data, "mesh", tmp_path), tmp_path / "cache"
+    make = lambda: shapenet(root, cache, format="mesh", synset=synset)  # noqa: E731
+    assert refuses(make, tmp_path, cache, ConfigValueError, "not a plain").key == "synset"
+
+
+def test_a_symlinked_model_outside_the_root_is_refused(demo_data, tmp_path):
+    root, cache = copy_demo(demo_data, "mesh", tmp_path), tmp_path / "cache"
+    model = sorted((root / "02691156").iterdir())[0]
+    outside = tmp_path / "elsewhere"
+    shutil.move(model, outside)
+    model.symlink_to(outside, target_is_directory=True)
+    pattern = r"data\.synset: .*model_normalized\.obj resolves to .*elsewhere.*outside"
+    refuses(lambda: shapenet(root, cache, format="mesh"), tmp_path, cache, ValueError, pattern)
+
+
+# ---- the shared helpers -------------------------------------------------------------------------
+
+
+def test_plain_name_and_resolve_inside(tmp_path):
+    assert plain_name("00", "f:1") == "00" and plain_name("a..b", "f:1") == "a..b"
+    for bad in ("", ".", "..", "../x", "x/..", "/etc", "a\\b", "x\0"):
+        with pytest.raises(ValueError, match=r"f:1: .* not a plain"):
+            plain_name(bad, "f:1")
+    with pytest.raises(ConfigValueError) as err:
+        plain_name("../x", key="train_sequences")
+    assert err.value.key == "train_sequences"
+    (tmp_path / "root").mkdir()
+    assert resolve_inside(tmp_path / "root", tmp_path / "root" / "new", "w").name == "new"
+    with pytest.raises(ValueError, match=r"^w: .* outside"):
+        resolve_inside(tmp_path / "root", tmp_path / "root" / ".." / "x", "w")
+
+
+def test_number_rows_name_the_first_non_finite_line(tmp_path):
+    path = tmp_path / "rows.txt"
+    path.write_text("# header\n1 2\n\n3 nan\n-inf 4\n")
+    with pytest.raises(ValueError, match=r"rows\.txt:4: not finite .*2 such row\(s\)"):
+        read_number_rows(path, 2, "a b")
+
+
+# ---- NonFiniteError tells the truth -------------------------------------------------------------
+
+
+def test_initialize_from_refuses_a_non_finite_batch_and_keeps_the_biases():
+    net = PointNet(out_dim=4, point_channels=(8, 16), head_channels=(8,))
+    before = [p.clone() for p in net.parameters()]
+    points = torch.randn(3, 10, 6)
+    points[1, 2, 0] = math.nan
+    with pytest.raises(NonFiniteError, match="input batch is itself non-finite"):
+        net.initialize_from(points)
+    assert all(torch.equal(a, b) for a, b in zip(before, net.parameters(), strict=True))
+    net.initialize_from(points.nan_to_num())  # a finite batch centres the biases
+    assert not all(torch.equal(a, b) for a, b in zip(before, net.parameters(), strict=True))
+    assert all(bool(p.isfinite().all()) for p in net.parameters())
+
+
+def test_initialize_from_undoes_an_overflow():
+    net = PointNet(out_dim=4, point_channels=(8, 16), head_channels=(8,))
+    before = [p.clone() for p in net.parameters()]
+    points = torch.full((3, 10, 6), 3e38) * torch.randn(3, 10, 1).sign()
+    with pytest.raises(NonFiniteError, match="overflow"):
+        net.initialize_from(points)
+    assert all(torch.equal(a, b) for a, b in zip(before, net.parameters(), strict=True))
+
+
+def test_a_non_finite_output_blames_the_weights_only_when_they_are_not_finite(make_cfg):
+    from rotlearn.cli.train import build
+
+    model = build(make_cfg(["data=tiny", "trainer=cpu", "logger=none"]))[0]
+    finite = {"input": torch.zeros(2, 5, 6)}
+    bad_output = torch.tensor([math.nan])
+    with pytest.raises(NonFiniteError, match=r"inputs and the weights are finite: .*overflowed"):
+        model._check_finite("loss", bad_output, finite, "train", 0)
+    with pytest.raises(NonFiniteError, match="input batch is itself non-finite"):
+        model._check_finite("loss", bad_output, {"input": torch.tensor([math.inf])}, "train", 0)
+    with torch.no_grad():
+        next(model.net.parameters())[0] = math.nan
+    with pytest.raises(NonFiniteError, match=r"weights are not \(first: net\."):
+        model._check_finite("loss", bad_output, finite, "train", 0)
+
+
+def test_a_shipped_cache_symlink_cannot_send_the_default_cache_out_of_the_root(demo_data, tmp_path):
+    root = copy_demo(demo_data, "kitti", tmp_path)
+    elsewhere = tmp_path / "home"
+    elsewhere.mkdir()
+    (root / ".rotlearn_cache").symlink_to(elsewhere, target_is_directory=True)
+    dm = KittiOdometryDataModule(str(root), train_sequences=["02"], test_sequences=["00"],
+                                 image_size=8, num_workers=0)  # fmt: skip
+    with pytest.raises(ValueError, match=r"data\.cache_dir \(sequence '02'\): .*outside"):
+        dm.setup()
+    assert list(elsewhere.iterdir()) == []
