@@ -112,17 +112,20 @@ def test_score_rejects_a_wrong_channel_count():
 @pytest.mark.parametrize("experiment", ["kitti_autoencoder", "mav_autoencoder"])
 def test_experiments_select_the_autoencoder(make_cfg, experiment):
     cfg = make_cfg([f"experiment={experiment}"])
-    assert cfg.task == "autoencoder" and cfg.net._target_ == "rotlearn.nets.ConvAutoEncoder"
+    assert cfg.model._target_ == "rotlearn.lit.AutoEncoderModule"
+    assert cfg.net._target_ == "rotlearn.nets.ConvAutoEncoder"
     assert cfg.net.pair_channels == cfg.data.pair_channels
     assert cfg.optim.lr == 5e-4 and cfg.data.batch_size == 32 and cfg.trainer.max_epochs == 20
     assert cfg.callbacks.checkpoint.monitor == "val/loss"
 
 
-def test_build_refuses_an_unknown_task_and_a_mismatched_net(make_cfg):
-    with pytest.raises(ConfigError, match="config key task: must be 'rotation' or 'autoencoder'"):
-        build(make_cfg(["task=segment"]))
-    with pytest.raises(ConfigError, match="config key task: task=autoencoder cannot train"):
-        build(make_cfg(["task=autoencoder"]))
+def test_build_refuses_a_model_with_a_mismatched_net(make_cfg):
+    with pytest.raises(ConfigError, match=r"config key .*net: model=autoencoder trains net=auto"):
+        build(make_cfg(["model=autoencoder"]))
+    with pytest.raises(
+        ConfigError, match=r"config key .*net: the auto-encoder .* model=autoencoder"
+    ):
+        build(make_cfg(["net=autoencoder", "data=kitti"]))
 
 
 def csv_column(run: Path, key: str) -> list[float]:
@@ -158,7 +161,7 @@ def test_train_score_and_load(make_cfg, tmp_path):
     assert len(csv_column(run, "val/loss")) == 3
 
     module = load_autoencoder(run / "checkpoints" / "last.ckpt")
-    assert not module.training and module.run_config["task"] == "autoencoder"
+    assert not module.training and module.task == "autoencoder"
     datamodule = instantiate(cfg.data)
     datamodule.setup()
     scores = torch.cat(

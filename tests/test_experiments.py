@@ -35,9 +35,10 @@ def test_every_experiment_composes_and_validates(make_cfg, experiment):
     if experiment.startswith("synthetic"):
         assert cfg.data.phi_max_deg == 180.0
     if "autoencoder" in experiment:
-        assert cfg.task == "autoencoder" and cfg.net._target_.endswith("ConvAutoEncoder")
+        assert cfg.model._target_ == "rotlearn.lit.AutoEncoderModule"
+        assert cfg.net._target_.endswith("ConvAutoEncoder")
     else:
-        assert cfg.task == "rotation"
+        assert cfg.model._target_ == "rotlearn.lit.RotationRegressor"
     if data in ("KittiOdometryDataModule", "MAVDataModule") and "autoencoder" not in experiment:
         assert cfg.net._target_.endswith("PairCNN") and "ood" in cfg.callbacks
 
@@ -136,7 +137,7 @@ def test_an_experiment_sweep_ends_with_its_report(tmp_path):
     assert result.returncode == 0, result.stderr[-3000:]
     assert len(list(sweep.glob("*/metrics.json"))) == 6
     report = (sweep / "report.md").read_text()
-    assert "6 completed, 0 failed" in report and (sweep / "phi_max_box.png").exists()
+    assert "6 jobs: 6 completed." in report and (sweep / "phi_max_box.png").exists()
 
 
 def test_joblib_launcher_runs_jobs_in_parallel_processes(tmp_path):

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from rotlearn.cli.train import keep_earlier_records, resume_arguments
+from rotlearn.cli.resume import keep_earlier_records, resume_arguments
 from tests.conftest import SMALL_NET
 
 ARGS = [

@@ -27,8 +27,8 @@ import rotlearn
 from rotlearn.checkpoint import UnsafeCheckpointError, load_checkpoint
 from rotlearn.cli.evaluate import evaluate
 from rotlearn.cli.predict import main as predict_main
+from rotlearn.cli.resume import resume_arguments
 from rotlearn.cli.schemas import ConfigError
-from rotlearn.cli.train import resume_arguments
 from rotlearn.lit.autoencoder import load_autoencoder
 from rotlearn.ood import OODEvaluation
 from rotlearn.paths import config_dir
@@ -234,7 +234,7 @@ LOADERS = [
 def test_every_loader_refuses_every_payload(world, genuine_config, capsys, loader, payload):
     config = _place(genuine_config, "net", PAYLOADS[payload](world))
     if loader in ("OOD auto-encoder", "load_autoencoder"):
-        config["task"] = "autoencoder"
+        config["model"]["_target_"] = "rotlearn.lit.AutoEncoderModule"
     ckpt = _checkpoint(world, config)
     before = world.snapshot()
     message = _loaders(world, ckpt, capsys)[loader]()
@@ -251,7 +251,7 @@ def test_nested_payloads_are_found_wherever_they_sit(
     payload = "builtins.open truncating a file"
     config = _place(genuine_config, placement, PAYLOADS[payload](world))
     if loader in ("OOD auto-encoder", "load_autoencoder"):
-        config["task"] = "autoencoder"
+        config["model"]["_target_"] = "rotlearn.lit.AutoEncoderModule"
     ckpt = _checkpoint(world, config)
     before = world.snapshot()
     message = _loaders(world, ckpt, capsys)[loader]()

@@ -16,7 +16,7 @@ from omegaconf import OmegaConf, open_dict
 
 from rotlearn.cli.callbacks import JobStatusCallback, summarise_jobs
 from rotlearn.cli.report import make_report
-from rotlearn.cli.train import divergence
+from rotlearn.lit import divergence
 from tests.conftest import CONFIG_DIR
 from tests.test_resume import ARGS, _checkpoint_epoch, _train
 

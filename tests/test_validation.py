@@ -49,7 +49,7 @@ BAD = [
     ("+bogus_top=1", r"config key bogus_top: unknown; allowed: callbacks, ckpt_path, data, "),
     ("+sed=1", r"config key sed: unknown \(did you mean seed\?\)"),
     ("test_ckpt=worst", r"config key test_ckpt: must be 'last' or 'best', got 'worst'"),
-    ("task=regression", r"config key task: must be 'rotation' or 'autoencoder', got 'regression'"),
+    ("+task=rotation", r"config key task: unknown"),  # model=regressor|autoencoder instead
     ("ckpt_path=5", r"config key ckpt_path: expected str or None, got 5"),
     ("+paths.log_dir=x", r"config key paths\.log_dir: unknown; allowed: output_dir"),
     (

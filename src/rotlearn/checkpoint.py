@@ -104,7 +104,15 @@ class SavedRun:
 
     @property
     def task(self) -> str:
-        return str(self.config.get("task", "rotation"))
+        """ "rotation" or "autoencoder": the `task` of the saved model's class (`model._target_`,
+        already on the allowlist), or the `task` key of configs saved before the model group."""
+        from hydra.utils import get_class
+        from omegaconf import OmegaConf
+
+        target = OmegaConf.select(self.config, "model._target_")
+        if target is None:
+            return str(self.config.get("task", "rotation"))
+        return str(getattr(get_class(target), "task", "unknown"))
 
     def build(self, key: str) -> Any:
         """Instantiate the config node `key` (e.g. "net", "rep")."""

@@ -17,7 +17,7 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from rotlearn.checkpoint import load_run
+from rotlearn.checkpoint import SavedRun, load_run
 from rotlearn.cli.schemas import ConfigError
 from rotlearn.io import write_json_atomic
 from rotlearn.paths import config_dir
@@ -38,13 +38,13 @@ def _set(node: DictConfig | None) -> dict[str, Any]:
     }
 
 
-def evaluation_config(cfg: DictConfig, saved: DictConfig) -> DictConfig:
+def evaluation_config(cfg: DictConfig, saved: SavedRun) -> DictConfig:
     """The saved run config (already checked: `rotlearn.checkpoint.load_run`) with the
     evaluation's overrides, OOD callback and output paths. Of the saved trainer config only the
     keys in `SAVED_TRAINER_KEYS` are kept; the rest comes from the evaluation's own command line."""
-    run = OmegaConf.create(OmegaConf.to_container(saved))
-    if run.get("task", "rotation") != "rotation":
-        raise ConfigError(f"ckpt={cfg.ckpt}: a {run.task} checkpoint, not a rotation model")
+    if saved.task != "rotation":
+        raise ConfigError(f"ckpt={cfg.ckpt}: a {saved.task} checkpoint, not a rotation model")
+    run = OmegaConf.create(OmegaConf.to_container(saved.config))
     if cfg.expect_rep is not None and cfg.expect_rep != run.rep.name:
         raise ConfigError(
             f"ckpt={cfg.ckpt} was trained with rep={run.rep.name}, not expect_rep={cfg.expect_rep}"
@@ -78,7 +78,7 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     except (FileNotFoundError, ValueError) as exc:  # unsafe file, untrusted config, other task
         raise ConfigError(f"ckpt={cfg.ckpt}: {exc}") from None
     ckpt = saved.path
-    run = evaluation_config(cfg, saved.config)
+    run = evaluation_config(cfg, saved)
     model, datamodule, trainer = build(run)
     model.load_state_dict(saved.state_dict)
     trainer.test(model, datamodule=datamodule, verbose=False)

@@ -168,11 +168,21 @@ SCHEMAS: dict[str, dict[str, type]] = {
     "callbacks.ood": {OODConfig._target_: OODConfig},
 }
 OPTIONAL = {"scheduler"}  # checked when present
-NODES = ("rep", "net", "data", "loss", "optim", "scheduler", "trainer", "logger", "callbacks")
+NODES = (
+    "model",
+    "rep",
+    "net",
+    "data",
+    "loss",
+    "optim",
+    "scheduler",
+    "trainer",
+    "logger",
+    "callbacks",
+)
 
 # Top-level keys (defaults in conf/train.yaml; trial, trials, sweep_seed, lr_range from sweep=lr).
 TOP_LEVEL: dict[str, Any] = {
-    "task": Literal["rotation", "autoencoder"],
     "ckpt_path": str | None,
     "seed": int,
     "test_ckpt": Literal["last", "best"],
@@ -293,7 +303,7 @@ def _check_top_level(cfg: DictConfig) -> None:
 
 
 def validate(cfg: DictConfig) -> None:
-    """Check every node of a composed train config: the top-level keys, then `rep`, `net`,
+    """Check every node of a composed train config: the top-level keys, then `model`, `rep`, `net`,
     `data`, `loss`, `optim`, `scheduler` (optional), `trainer`, each `logger.*` and each
     `callbacks.*`. Nothing is built but a (stateless) head.
 
@@ -301,8 +311,8 @@ def validate(cfg: DictConfig) -> None:
         ConfigError: naming the full key, and the allowed keys or what was expected.
     """
     _check_top_level(cfg)
-    for key in ("rep", "net", "data", "loss", "optim", "scheduler", "trainer"):
-        _check_node(cfg, key)
+    for key in ("rep", "net", "data", "loss", "optim", "scheduler", "trainer", "model"):
+        _check_node(cfg, key)  # the model last: it is built from the nodes before it
     for key in ("logger", "callbacks"):
         _check_collection(cfg, key)
     try:  # the registry knows the names and sizes; heads are stateless and cheap to make

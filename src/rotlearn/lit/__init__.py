@@ -2,6 +2,7 @@
 
 from rotlearn.lit.autoencoder import AutoEncoderModule, load_autoencoder
 from rotlearn.lit.callbacks import EpochLosses, EpochTimer, InterruptRecorder
+from rotlearn.lit.records import RunRecords, divergence
 from rotlearn.lit.regressor import RotationRegressor
 
 __all__ = [
@@ -10,5 +11,7 @@ __all__ = [
     "EpochTimer",
     "InterruptRecorder",
     "RotationRegressor",
+    "RunRecords",
+    "divergence",
     "load_autoencoder",
 ]

@@ -12,7 +12,7 @@ from torch import Tensor, nn
 from torchmetrics import MeanMetric
 
 from rotlearn.checkpoint import load_run
-from rotlearn.errors import NonFiniteError
+from rotlearn.errors import ConfigValueError, NonFiniteError
 from rotlearn.lit.state import RunStateHooks
 from rotlearn.nets.autoencoder import ConvAutoEncoder
 from rotlearn.trust import config_target
@@ -36,8 +36,14 @@ class AutoEncoderModule(RunStateHooks, pl.LightningModule):
         optimizer: partial optimizer taking the parameters (`optim=`); None for inference only.
     """
 
+    task = "autoencoder"
+
     def __init__(self, net: ConvAutoEncoder, optimizer: OptimizerFactory | None = None) -> None:
         super().__init__()
+        if not isinstance(net, ConvAutoEncoder):
+            raise ConfigValueError(
+                "net", f"model=autoencoder trains net=autoencoder, not {type(net).__name__}"
+            )
         self.net = net
         self.optimizer_factory = optimizer
         self.train_loss, self.val_loss, self.test_score = MeanMetric(), MeanMetric(), MeanMetric()

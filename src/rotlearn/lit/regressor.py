@@ -10,11 +10,12 @@ import torch
 from torch import Tensor, nn
 from torchmetrics import MeanMetric, SpearmanCorrCoef
 
-from rotlearn.errors import NonFiniteError
+from rotlearn.errors import ConfigValueError, NonFiniteError
 from rotlearn.geometry import angle_deg
 from rotlearn.heads import RotationHead, RotationPrediction
 from rotlearn.lit.state import RunStateHooks
 from rotlearn.metrics import AngularError
+from rotlearn.nets.autoencoder import ConvAutoEncoder
 from rotlearn.trust import config_target
 
 __all__ = ["RotationRegressor"]
@@ -40,6 +41,8 @@ class RotationRegressor(RunStateHooks, pl.LightningModule):
         scheduler: optional partial scheduler taking the optimizer (stepped once per epoch).
     """
 
+    task = "rotation"
+
     def __init__(
         self,
         net: nn.Module,
@@ -49,6 +52,10 @@ class RotationRegressor(RunStateHooks, pl.LightningModule):
         scheduler: SchedulerFactory | None = None,
     ) -> None:
         super().__init__()
+        if isinstance(net, ConvAutoEncoder):
+            raise ConfigValueError(
+                "net", "the auto-encoder reconstructs images; train it with model=autoencoder"
+            )
         self.net, self.head, self.loss = net, head, loss
         self.optimizer_factory, self.scheduler_factory = optimizer, scheduler
         self.train_loss = MeanMetric()
