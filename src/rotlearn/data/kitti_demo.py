@@ -8,10 +8,8 @@ tests). `write_kitti_demo(out)` writes `<out>/kitti/`:
                                           world (p_w = R p_c + t), the first one the identity
 Camera axes as in KITTI: x right, y down, z forward.
 
-Every image is a view of a procedural panorama at infinity under pure camera rotation
-(`rotlearn.data.synth.render`), so the written orientations are exactly the rotations between the
-images (up to the renderer's 1/32-pixel interpolation grid). The dataset is written in a hidden
-staging folder and renamed into place only when complete (`rotlearn.data.synth.staged`).
+The images are rendered and the folder written as `rotlearn.data.synth` says: the orientations
+are exactly the rotations between the images; the dataset appears only when complete.
 """
 
 from __future__ import annotations
