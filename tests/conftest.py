@@ -38,7 +38,9 @@ def make_cfg(tmp_path: Path) -> Callable[..., DictConfig]:
 def demo_data(tmp_path_factory) -> dict[str, Path]:
     """Small demo datasets in the real layouts, written once per test session: "pts" and "mesh"
     (ShapeNet), "kitti" (sequences 00 and 02) and "mav"."""
-    from rotlearn.data.demo import write_kitti_demo, write_mav_demo, write_shapenet_demo
+    from rotlearn.data.kitti_demo import write_kitti_demo
+    from rotlearn.data.mav_demo import write_mav_demo
+    from rotlearn.data.shapenet_demo import write_shapenet_demo
 
     out = tmp_path_factory.mktemp("demo")
     roots = write_shapenet_demo(out, num_train=6, num_test=3, points=96)

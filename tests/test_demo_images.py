@@ -1,4 +1,5 @@
-"""Demo KITTI odometry and MAV datasets: layouts, determinism, images that agree with the poses."""
+"""Demo KITTI odometry and MAV datasets: layouts, determinism, images that agree with the poses;
+rotlearn-make-demo-data."""
 
 from __future__ import annotations
 
@@ -8,8 +9,11 @@ import cv2
 import numpy as np
 import pytest
 
-from rotlearn.data import demo
-from rotlearn.data.demo import MAV_POSE_HEADER, main, write_kitti_demo, write_mav_demo
+from rotlearn.cli.make_demo_data import demo_writers, main
+from rotlearn.data import kitti_demo, mav_demo
+from rotlearn.data.kitti_demo import write_kitti_demo
+from rotlearn.data.mav_demo import MAV_POSE_HEADER, write_mav_demo
+from rotlearn.data.synth import camera_matrix
 
 KITTI = {"sequences": ("00", "01"), "frames": 6, "width": 248, "height": 76}  # 1 degree: 2.6 px
 MAV = {"frames": 40, "width": 64, "height": 52}
@@ -211,7 +215,7 @@ def test_mav_frames_differ_by_the_rotation_of_their_nearest_poses(mav):
     stamps = _frames_csv(mav)
     pose_times, rows = _poses_csv(mav)
     R = [_rotmat_wxyz(rows[np.abs(pose_times - t).argmin(), 3:]) for t in stamps]
-    K = demo.camera_matrix(MAV["width"], MAV["height"])
+    K = camera_matrix(MAV["width"], MAV["height"])
     folder = mav / "flea3" / "data"
     frames = [cv2.imread(str(folder / f"{t}.png"), cv2.IMREAD_GRAYSCALE) for t in stamps]
     checked = 0
@@ -271,10 +275,14 @@ def test_an_interrupted_rewrite_keeps_the_old_dataset_and_a_finished_one_replace
     assert [p.name for p in tmp_path.iterdir()] == ["kitti"]
 
 
+def test_every_dataset_with_a_demo_module_is_offered():
+    assert list(demo_writers()) == ["kitti", "mav", "shapenet"]
+
+
 def test_main_writes_the_chosen_datasets(tmp_path, monkeypatch, capsys):
     written = []
-    monkeypatch.setattr(demo, "write_kitti_demo", lambda out, seed: written.append(seed) or out)
-    monkeypatch.setattr(demo, "write_mav_demo", lambda out, seed: pytest.fail("not chosen"))
+    monkeypatch.setattr(kitti_demo, "write_demo", lambda out, seed: written.append(seed) or [out])
+    monkeypatch.setattr(mav_demo, "write_demo", lambda out, seed: pytest.fail("not chosen"))
     assert main(["--out", str(tmp_path), "--seed", "3", "--only", "kitti"]) == 0
     assert written == [3] and "kitti" in capsys.readouterr().out
     with pytest.raises(SystemExit):

@@ -85,7 +85,8 @@ def _fabricate_sweep(root: Path, make_cfg) -> None:
     jobs = [(rep, phi) for rep in ("quat", "a") for phi in (10.0, 180.0)] + [("sixd", 180.0)]
     for num, (rep, phi) in enumerate(jobs):
         run = root / str(num)
-        cfg = make_cfg([f"rep={rep}", f"data.phi_max_deg={phi}"], run_dir=run)
+        overrides = ["experiment=synthetic_phi_max", f"rep={rep}", f"data.phi_max_deg={phi}"]
+        cfg = make_cfg(overrides, run_dir=run)  # the experiment's report node: Fig. 4 box plots
         (run / ".hydra").mkdir(parents=True)
         OmegaConf.save(cfg, run / ".hydra" / "config.yaml")
         (run / ".hydra" / "overrides.yaml").write_text(f"- rep={rep}\n- data.phi_max_deg={phi}\n")
@@ -209,3 +210,48 @@ def test_optuna_search_minimises_the_validation_median(tmp_path):
     best = OmegaConf.load(sweep / "optimization_results.yaml")
     medians = [json.loads((sweep / str(i) / "metrics.json").read_text()) for i in (0, 1)]
     assert best.best_value == pytest.approx(min(m["val/err_median"] for m in medians))
+
+
+def _completed_run(run: Path, cfg_text: str, error: float, overrides: str = "") -> None:
+    (run / ".hydra").mkdir(parents=True)
+    (run / ".hydra" / "config.yaml").write_text(cfg_text)
+    (run / ".hydra" / "overrides.yaml").write_text(overrides)
+    metrics = {"test/err_mean": error, "test/err_median": error}
+    (run / "metrics.json").write_text(json.dumps(metrics))
+    (run / "status.json").write_text(json.dumps({"status": "COMPLETED"}))
+
+
+def test_report_reads_run_configs_as_plain_data_never_resolved(tmp_path, monkeypatch):
+    """A run directory is untrusted: an interpolation in its config stays text, so neither an
+    environment variable nor a resolver's output reaches the report."""
+    monkeypatch.setenv("ROTLEARN_TEST_SECRET", "hunter2")
+    sweep = tmp_path / "sweep"
+    for num, tag in enumerate(["${oc.env:ROTLEARN_TEST_SECRET}", "plain"]):
+        cfg = f"rep:\n  name: a\nseed: 0\nnote: '{tag}'\nextra: ${{oc.env:ROTLEARN_TEST_SECRET}}\n"
+        _completed_run(sweep / str(num), cfg, 1.0 + num)
+    files = make_report(sweep)
+    written = "".join(path.read_text() for path in files.values())
+    assert "hunter2" not in written and "${oc.env:ROTLEARN_TEST_SECRET}" in written
+    assert set(collect_runs(sweep)["setting"]) == {"a note=${oc.env:ROTLEARN_TEST_SECRET}",
+                                                   "a note=plain"}  # fmt: skip
+
+
+def test_report_layout_comes_from_the_report_node(tmp_path):
+    """Rows: the lead key's value and the other differing keys (pooled keys left out); a box plot
+    and its table for any swept key the report node names; damaged configs still listed."""
+    sweep = tmp_path / "sweep"
+    report = "report:\n  lead: net.kind\n  pooled: [seed]\n  plots: [{kind: box, x: data.noise}]\n"
+    jobs = [
+        (kind, noise, seed) for kind in ("cnn", "mlp") for noise in (0.1, 0.2) for seed in (1, 2)
+    ]
+    for num, (kind, noise, seed) in enumerate(jobs):
+        cfg = f"net:\n  kind: {kind}\ndata:\n  noise: {noise}\nseed: {seed}\n{report}"
+        _completed_run(sweep / str(num), cfg, 1.0 + seed + (kind == "mlp"))
+        (sweep / str(num) / "test_errors.json").write_text(json.dumps([1.0, 2.0, 3.0]))
+    _completed_run(sweep / "9", "[unclosed", 1.0)
+    files = make_report(sweep)
+    assert set(files) == {"summary", "report", "noise_box"}
+    text = files["report"].read_text()
+    assert "| cnn | 4 |" in text and "| mlp | 4 |" in text and "noise 0.1 | noise 0.2" in text
+    runs = collect_runs(sweep)
+    assert runs.loc[runs["job"] == "9", "setting"].item() == "all" and len(runs) == 9

@@ -367,7 +367,7 @@ def test_the_kitti_demo_carries_the_rotation_signal(tmp_path, make_cfg):
     """The pair CNN trained on the KITTI-format demo (experiment=kitti_ood_demo, A head) beats
     "predict identity" on the held-out sequence: the rendered frames carry the rotation."""
     from rotlearn.cli.train import train
-    from rotlearn.data.demo import write_kitti_demo
+    from rotlearn.data.kitti_demo import write_kitti_demo
 
     root = write_kitti_demo(tmp_path)
     overrides = [

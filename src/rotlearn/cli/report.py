@@ -1,11 +1,30 @@
 """`rotlearn-report <sweep dir>`: tables and plots of a sweep, made from its run directories alone.
 
+Each run's `.hydra/config.yaml` is read as plain YAML data: never resolved (a run directory is
+untrusted; an interpolation such as `${oc.env:...}` stays text). Runs are grouped into settings by
+the config keys whose values differ between them, leaving out the keys that vary between trials of
+one setting (`report.pooled`: seeds, trials, the lr of an lr sweep) and the x keys of box plots;
+a setting is labelled by `report.lead` (the head's name) and its other differing config groups as
+`group=choice` (the choice from `.hydra/hydra.yaml` or the overrides) or keys as `key=value`.
+
+The layout comes from the sweep's `report` config node (an experiment's, e.g.
+`conf/experiment/synthetic_phi_max.yaml`), over `DEFAULT_REPORT`:
+
+    report:
+      lead: rep.name                  # the key whose value starts each row label
+      pooled: [trial, seed, data.seed, optim.lr]
+      plots:                          # drawn when the sweep has what they need
+        - {kind: curves, metrics: [train/err_mean, val/err_mean]}   # paper Fig. 3
+        - {kind: box, x: data.phi_max_deg, label: phi_max}           # paper Fig. 4
+
 Writes into the sweep directory (or --out): `summary.csv` (one row per job, failed, interrupted and
-never-run ones too), `report.md` (per-representation percentiles of the final test error over
-trials, a table per phi_max when it was swept, the jobs that failed, were interrupted or never
-ran: those listed PENDING in the sweep's jobs.json), `curves.png` (paper Fig. 3: per-epoch median
-over trials with a 10-90 % band, train and validation) and `phi_max_box.png` (paper Fig. 4: box
-plots of log10 per-sample test error per phi_max) when the sweep has what they need.
+never-run ones too, with the differing and pooled config keys), `report.md` (per-setting
+percentiles of the final test error over trials; per box plot, the median test error per x value;
+OOD Table I rows of runs with an `ood.csv`; the jobs that failed, were interrupted or never ran:
+those listed PENDING in the sweep's jobs.json), a `curves` plot (`curves.png`: per-epoch median
+over trials with a 10-90 % band per setting, one panel per metric) and a `box` plot
+(`<label>_box.png`: box plots of log10 per-sample test error, `test_errors.json`, per x value and
+setting).
 """
 
 from __future__ import annotations
@@ -14,20 +33,28 @@ import argparse
 import json
 import logging
 import sys
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
-from omegaconf import OmegaConf
+import yaml
 
 from rotlearn.io import write_text_atomic
 from rotlearn.ood.report import TABLE_COLUMNS, markdown_table, table_rows
 
-__all__ = ["collect_runs", "main", "make_report"]
+__all__ = ["DEFAULT_REPORT", "collect_runs", "main", "make_report"]
 
 log = logging.getLogger("rotlearn")
-REPS = ["quat", "sixd", "a", "svd9d"]  # the order tables and plots use
+DEFAULT_REPORT: dict[str, Any] = {
+    "lead": "rep.name",
+    "pooled": ["trial", "seed", "data.seed", "optim.lr"],
+    "plots": [{"kind": "curves"}],
+}
+CURVE_METRICS = ["train/err_mean", "val/err_mean"]
+NOT_SETTINGS = ("hydra", "paths", "report")  # per-run paths, and the report layout itself
+_MISSING = "-"
 
 
 def _read_json(path: Path) -> Any:
@@ -35,6 +62,31 @@ def _read_json(path: Path) -> Any:
         return json.loads(path.read_text())
     except (OSError, json.JSONDecodeError):
         return None
+
+
+def _read_yaml(path: Path) -> Any:
+    """Plain data of a YAML file (never resolved, no tags); None if unreadable."""
+    try:
+        return yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError):
+        return None
+
+
+def _flatten(tree: Any, prefix: str = "") -> dict[str, Any]:
+    """{"a.b": leaf} of nested mappings; lists and other leaves are kept whole."""
+    if not isinstance(tree, Mapping):
+        return {prefix: tree} if prefix else {}
+    flat = {}
+    for key, value in tree.items():
+        flat.update(_flatten(value, f"{prefix}.{key}" if prefix else str(key)))
+    return flat
+
+
+def _cell(value: Any) -> Any:
+    """A config value as one summary/label cell: numbers and text as they are, others as YAML."""
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    return yaml.safe_dump(value, default_flow_style=True).strip()
 
 
 def _run_dirs(root: Path) -> list[Path]:
@@ -46,34 +98,94 @@ def _run_dirs(root: Path) -> list[Path]:
     )
 
 
+def _choices(run: Path, overrides: list[str]) -> dict[str, str]:
+    """{config group: chosen option} of a run: `.hydra/hydra.yaml`'s runtime choices, then the
+    group overrides (`loss=bingham`) of its command line."""
+    hydra = _read_yaml(run / ".hydra" / "hydra.yaml")
+    runtime = (hydra or {}).get("hydra", {}).get("runtime", {}) if isinstance(hydra, dict) else {}
+    choices = runtime.get("choices") if isinstance(runtime, dict) else None
+    choices = {str(k): str(v) for k, v in choices.items()} if isinstance(choices, dict) else {}
+    for text in overrides:
+        key, sep, value = text.lstrip("+~").partition("=")
+        if sep and "." not in key:
+            choices[key] = value
+    return choices
+
+
+def _layout(configs: list[dict[str, Any]]) -> dict[str, Any]:
+    """The sweep's report layout: the first run's `report` node over DEFAULT_REPORT."""
+    node = next((c["report"] for c in configs if isinstance(c.get("report"), dict)), {})
+    layout = {**DEFAULT_REPORT, **node}
+    layout["plots"] = [p for p in layout.get("plots") or [] if isinstance(p, dict)]
+    return layout
+
+
 def collect_runs(root: str | Path) -> pd.DataFrame:
-    """One row per run directory below `root`: its config values, status and final metrics."""
-    rows = []
+    """One row per run directory below `root` (and per job in `jobs.json` without one): job, dir,
+    status, error, overrides, `setting` (the row label), the lead, differing and pooled config
+    keys (dotted paths, values as written), then the run's numeric final metrics."""
+    rows, configs, flats, choices = [], [], [], []
     for run in _run_dirs(Path(root)):
-        cfg = OmegaConf.load(run / ".hydra" / "config.yaml")
+        cfg = _read_yaml(run / ".hydra" / "config.yaml")
+        cfg = cfg if isinstance(cfg, dict) else {}
+        overrides = _read_yaml(run / ".hydra" / "overrides.yaml")
+        overrides = [str(o) for o in overrides] if isinstance(overrides, list) else []
         metrics = _read_json(run / "metrics.json") or {}
         status = _read_json(run / "status.json") or {}
         state = status.get("status") or ("COMPLETED" if metrics else "INCOMPLETE")
-        row = {
-            "job": run.name,
-            "dir": str(run),
-            "status": state,
-            "error": status.get("error"),  # INTERRUPTED: the signal, the epoch, the resume command
-            "overrides": " ".join(OmegaConf.load(run / ".hydra" / "overrides.yaml"))
-            if (run / ".hydra" / "overrides.yaml").is_file()
-            else "",
-            "rep": OmegaConf.select(cfg, "rep.name"),
-            "phi_max_deg": OmegaConf.select(cfg, "data.phi_max_deg", default=None),
-            "trial": OmegaConf.select(cfg, "trial", default=None),
-            "seed": OmegaConf.select(cfg, "seed", default=None),
-        }
-        try:
-            row["lr"] = float(OmegaConf.select(cfg, "optim.lr"))
-        except Exception:  # an unresolvable interpolation in a damaged config
-            row["lr"] = np.nan
-        row.update({k: v for k, v in metrics.items() if isinstance(v, (int, float))})
-        rows.append(row)
-    return pd.DataFrame(rows + _unstarted_jobs(Path(root), {row["job"] for row in rows}))
+        rows.append(
+            {
+                "job": run.name,
+                "dir": str(run),
+                "status": state,
+                "error": status.get("error"),  # INTERRUPTED: the signal, epoch, resume command
+                "overrides": " ".join(overrides),
+                **{k: v for k, v in metrics.items() if isinstance(v, (int, float))},
+            }
+        )
+        configs.append(cfg)
+        flats.append(
+            {k: v for k, v in _flatten(cfg).items() if k.split(".")[0] not in NOT_SETTINGS}
+        )
+        choices.append(_choices(run, overrides))
+    layout = _layout(configs)
+    columns, labels = _settings(flats, choices, layout)
+    for row, values, label in zip(rows, columns, labels, strict=True):
+        row.update({k: v for k, v in values.items() if k not in row}, setting=label)
+    frame = pd.DataFrame(rows + _unstarted_jobs(Path(root), {row["job"] for row in rows}))
+    frame.attrs["layout"] = layout
+    return frame
+
+
+def _settings(
+    flats: list[dict[str, Any]], choices: list[dict[str, str]], layout: dict[str, Any]
+) -> tuple[list[dict[str, Any]], list[str]]:
+    """Per run: its config columns ({key: value} of the lead, differing and pooled keys) and its
+    setting label (the lead's value, then `group=choice` or `key=value` of each other differing
+    key that is neither pooled nor a box plot's x)."""
+    lead, pooled = str(layout.get("lead") or ""), set(layout.get("pooled") or [])
+    axes = {str(p["x"]) for p in layout["plots"] if p.get("kind") == "box" and p.get("x")}
+    keys = sorted({k for flat in flats for k in flat})
+    differ = [k for k in keys if len({repr(f.get(k, _MISSING)) for f in flats}) > 1]
+    shown = [k for k in keys if k == lead or k in pooled or k in differ]
+    lead_node = lead.split(".")[0]
+    columns, labels = [], []
+    for flat, chosen in zip(flats, choices, strict=True):
+        columns.append({k: _cell(flat.get(k)) for k in shown})
+        parts = [str(_cell(flat[lead]))] if lead in flat else []
+        for key in differ:
+            node = key.split(".")[0]
+            if key in pooled or key in axes or node == lead_node:
+                continue
+            part = (
+                f"{node}={chosen[node]}"
+                if node in chosen
+                else f"{key}={_cell(flat.get(key, _MISSING))}"
+            )
+            if part not in parts:
+                parts.append(part)
+        labels.append(" ".join(parts) or "all")
+    return columns, labels
 
 
 def _unstarted_jobs(root: Path, seen: set[str]) -> list[dict[str, Any]]:
@@ -115,31 +227,17 @@ def _curves(run: Path, tag: str) -> np.ndarray | None:
     return None
 
 
-def _ordered(reps) -> list[str]:
-    present = [r for r in REPS if r in set(reps)]
-    return present + sorted(set(reps) - set(present))
+def _order(done: pd.DataFrame, column: str = "setting") -> list[Any]:
+    """The distinct values of `column`, in the order of their first job (the sweep's order)."""
+    return list(dict.fromkeys(done[column].dropna()))
 
 
-# Swept keys that are trials of one setting (pooled in the tables), not settings of their own.
-TRIAL_KEYS = {"rep", "trial", "seed", "data.seed", "optim.lr", "data.phi_max_deg"}
-
-
-def _groups(runs: pd.DataFrame) -> pd.Series:
-    """Each run's setting: its rep plus every other swept key (e.g. `a loss=bingham`), so that a
-    sweep over a key besides rep, lr, trial and phi_max is never pooled in the tables."""
-    overrides = [
-        dict(o.lstrip("+~").split("=", 1) for o in str(text).split() if "=" in o)
-        for text in runs["overrides"]
-    ]
-    keys = sorted({k for o in overrides for k in o} - TRIAL_KEYS)
-    swept = [k for k in keys if len({o.get(k) for o in overrides}) > 1]
-    return pd.Series(
-        [
-            " ".join([str(rep), *(f"{k}={o.get(k, '-')}" for k in swept)])
-            for rep, o in zip(runs["rep"], overrides, strict=True)
-        ],
-        index=runs.index,
-    )
+def _sorted_values(values) -> list[Any]:
+    values = list(dict.fromkeys(values))
+    try:
+        return sorted(values)
+    except TypeError:
+        return sorted(values, key=str)
 
 
 def _percentile_table(done: pd.DataFrame) -> str:
@@ -147,93 +245,103 @@ def _percentile_table(done: pd.DataFrame) -> str:
         "| setting | trials | test err mean: p10 | median | p90 | median of per-run medians |",
         "|---|---|---|---|---|---|",
     ]
-    groups = _groups(done)
-    order = {rep: i for i, rep in enumerate(_ordered(done["rep"]))}
-    for group in sorted(groups.unique(), key=lambda g: (order.get(g.split()[0], 99), g)):
-        errs = done.loc[groups == group, "test/err_mean"].to_numpy(dtype=float)
-        meds = done.loc[groups == group, "test/err_median"].to_numpy(dtype=float)
+    for setting in _order(done):
+        errs = done.loc[done["setting"] == setting, "test/err_mean"].to_numpy(dtype=float)
+        meds = done.loc[done["setting"] == setting, "test/err_median"].to_numpy(dtype=float)
         p10, p50, p90 = np.percentile(errs, [10, 50, 90])
         lines.append(
-            f"| {group} | {len(errs)} | {p10:.3f} | {p50:.3f} | {p90:.3f} | {np.median(meds):.3f} |"
+            f"| {setting} | {len(errs)} | {p10:.3f} | {p50:.3f} | {p90:.3f} | "
+            f"{np.median(meds):.3f} |"
         )
     return "\n".join(lines)
 
 
-def _phi_max_table(done: pd.DataFrame) -> str:
-    angles = sorted(done["phi_max_deg"].dropna().unique())
-    head = "| rep | " + " | ".join(f"phi_max {a:g}" for a in angles) + " |"
-    lines = [head, "|---|" + "---|" * len(angles)]
-    for rep in _ordered(done["rep"]):
+def _label(plot: Mapping[str, Any]) -> str:
+    return str(plot.get("label") or str(plot["x"]).split(".")[-1])
+
+
+def _box_table(done: pd.DataFrame, plot: Mapping[str, Any]) -> str:
+    """Median test error per setting (rows) and value of the plot's x (columns)."""
+    x, label = str(plot["x"]), _label(plot)
+    values = _sorted_values(done[x].dropna())
+    head = "| setting | " + " | ".join(f"{label} {v:g}" if isinstance(v, (int, float))
+                                      else f"{label} {v}" for v in values) + " |"  # fmt: skip
+    lines = [head, "|---|" + "---|" * len(values)]
+    for setting in _order(done):
         cells = []
-        for a in angles:
-            sel = done[(done["rep"] == rep) & (done["phi_max_deg"] == a)]["test/err_median"]
+        for v in values:
+            sel = done[(done["setting"] == setting) & (done[x] == v)]["test/err_median"]
             cells.append(f"{sel.median():.3f}" if len(sel) else "-")
-        lines.append(f"| {rep} | " + " | ".join(cells) + " |")
+        lines.append(f"| {setting} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
-def _plot_curves(done: pd.DataFrame, path: Path) -> bool:
+def _pyplot():
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    panels = [("train/err_mean", "train"), ("val/err_mean", "validation")]
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
+    return plt
+
+
+def _plot_curves(done: pd.DataFrame, plot: Mapping[str, Any], path: Path) -> bool:
+    """Per-epoch median over each setting's runs, with a 10-90 % band, one panel per metric."""
+    plt = _pyplot()
+    tags = [str(t) for t in plot.get("metrics") or CURVE_METRICS]
+    fig, axes = plt.subplots(1, len(tags), figsize=(1 + 5 * len(tags), 4), sharey=True,
+                             squeeze=False)  # fmt: skip
     drew = False
-    for ax, (tag, title) in zip(axes, panels, strict=True):
-        for rep in _ordered(done["rep"]):
-            curves = [_curves(Path(d), tag) for d in done.loc[done["rep"] == rep, "dir"]]
-            curves = [c for c in curves if c is not None and len(c)]
+    for ax, tag in zip(axes[0], tags, strict=True):
+        for setting in _order(done):
+            dirs = done.loc[done["setting"] == setting, "dir"]
+            curves = [c for c in (_curves(Path(d), tag) for d in dirs) if c is not None and len(c)]
             if not curves:
                 continue
             n = min(len(c) for c in curves)
-            stack = np.stack([c[:n] for c in curves])
-            p10, p50, p90 = np.percentile(stack, [10, 50, 90], axis=0)
+            p10, p50, p90 = np.percentile(np.stack([c[:n] for c in curves]), [10, 50, 90], axis=0)
             epochs = np.arange(1, n + 1)
-            ax.plot(epochs, p50, label=f"{rep} (median of {len(curves)})")
+            ax.plot(epochs, p50, label=f"{setting} (median of {len(curves)})")
             ax.fill_between(epochs, p10, p90, alpha=0.25)
             drew = True
-        ax.set(title=f"{title} mean error", xlabel="epoch", yscale="log")
+        ax.set(title=tag, xlabel="epoch", yscale="log")
         ax.grid(True, which="both", alpha=0.3)
-    axes[0].set_ylabel("mean angular error (deg)")
-    axes[1].legend()
+    axes[0][0].set_ylabel("error (deg)")
     fig.tight_layout()
     if drew:
+        axes[0][-1].legend()
         fig.savefig(path, dpi=110)
     plt.close(fig)
     return drew
 
 
-def _plot_phi_max(done: pd.DataFrame, path: Path) -> bool:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    angles = sorted(done["phi_max_deg"].dropna().unique())
-    reps = _ordered(done["rep"])
-    fig, ax = plt.subplots(figsize=(3 + 2 * len(angles), 4))
-    width = 0.8 / max(len(reps), 1)
+def _plot_box(done: pd.DataFrame, plot: Mapping[str, Any], path: Path) -> bool:
+    """Box plots of log10 per-sample test error (`test_errors.json`) per x value and setting."""
+    plt = _pyplot()
+    x = str(plot["x"])
+    values, settings = _sorted_values(done[x].dropna()), _order(done)
+    fig, ax = plt.subplots(figsize=(3 + 2 * len(values), 4))
+    width = 0.8 / max(len(settings), 1)
     drew = False
-    for i, rep in enumerate(reps):
+    for i, setting in enumerate(settings):
         data, positions = [], []
-        for j, angle in enumerate(angles):
+        for j, value in enumerate(values):
             errors = []
-            for d in done[(done["rep"] == rep) & (done["phi_max_deg"] == angle)]["dir"]:
+            for d in done[(done["setting"] == setting) & (done[x] == value)]["dir"]:
                 errors.extend(_read_json(Path(d) / "test_errors.json") or [])
             if errors:
                 data.append(np.log10(np.maximum(errors, 1e-6)))
-                positions.append(j + (i - (len(reps) - 1) / 2) * width)
+                positions.append(j + (i - (len(settings) - 1) / 2) * width)
         if data:
             box = ax.boxplot(data, positions=positions, widths=width * 0.9, notch=True,
                              patch_artist=True, showfliers=False)  # fmt: skip
             for patch in box["boxes"]:
                 patch.set_facecolor(f"C{i}")
-            ax.plot([], [], color=f"C{i}", label=rep, linewidth=8)
+            ax.plot([], [], color=f"C{i}", label=setting, linewidth=8)
             drew = True
-    ax.set_xticks(range(len(angles)), [f"{a:g}" for a in angles])
-    ax.set(xlabel="phi_max (deg)", ylabel="log10 test error (deg)")
+    ax.set_xticks(range(len(values)), [f"{v:g}" if isinstance(v, (int, float)) else str(v)
+                                       for v in values])  # fmt: skip
+    ax.set(xlabel=_label(plot), ylabel="log10 test error (deg)")
     ax.legend()
     ax.grid(True, axis="y", alpha=0.3)
     fig.tight_layout()
@@ -243,14 +351,40 @@ def _plot_phi_max(done: pd.DataFrame, path: Path) -> bool:
     return drew
 
 
-def _ood_table(done: pd.DataFrame) -> pd.DataFrame | None:
-    """Table I rows of every completed run that has an `ood.csv` (OOD evaluation)."""
+def _plots(done: pd.DataFrame, layout: Mapping[str, Any], out: Path) -> tuple[dict, list[str]]:
+    """Draw the layout's plots that the sweep has data for: ({file key: path}, report.md lines).
+    A box plot needs its x key to take two or more values among the completed runs."""
+    files, md, curves = {}, [], []
+    for plot in layout["plots"]:
+        kind = plot.get("kind")
+        if kind == "box" and plot.get("x") in done and done[plot["x"]].nunique() > 1:
+            label = _label(plot)
+            name = str(plot.get("file") or f"{label}_box.png")
+            md += [f"## Median test error (degrees) per {label}", "", _box_table(done, plot), ""]
+            if _plot_box(done, plot, out / name):
+                files[Path(name).stem] = out / name
+                md += [f"![log10 test error per {label}]({name})", ""]
+        elif kind == "curves":
+            name = str(plot.get("file") or "curves.png")
+            if _plot_curves(done, plot, out / name):
+                files[Path(name).stem] = out / name
+                curves += [f"![per-epoch error]({name})", ""]
+        elif kind not in ("box", "curves"):
+            log.warning("report: unknown plot kind %r (expected curves or box); skipped", kind)
+    if curves:
+        md += ["## Error per epoch", "", *curves]
+    return files, md
+
+
+def _ood_table(done: pd.DataFrame, lead: str) -> pd.DataFrame | None:
+    """Table I rows of every completed run that has an `ood.csv` (OOD evaluation), each named by
+    its `lead` value (the head's name)."""
     rows = []
     for _, run in done.iterrows():
         path = Path(run["dir"]) / "ood.csv"
         if path.is_file():
             frame = pd.read_csv(path)
-            rows += [{"job": run["job"], **row} for row in table_rows(run["rep"], frame)]
+            rows += [{"job": run["job"], **row} for row in table_rows(run[lead], frame)]
     return pd.DataFrame(rows) if rows else None
 
 
@@ -287,17 +421,14 @@ def make_report(root: str | Path, out: str | Path | None = None) -> dict[str, Pa
         f"{len(runs)} jobs: {len(done)} completed" + (f", {others}" if others else "") + ".",
         "",
     ]
+    layout = runs.attrs["layout"]
     if not done.empty:
         md += ["## Final test error (degrees), over trials", "", _percentile_table(done), ""]
-        if done["phi_max_deg"].nunique() > 1:
-            md += ["## Median test error (degrees) per phi_max", "", _phi_max_table(done), ""]
-            if _plot_phi_max(done, out / "phi_max_box.png"):
-                files["phi_max_box"] = out / "phi_max_box.png"
-                md += ["![log10 test error per phi_max](phi_max_box.png)", ""]
-        if _plot_curves(done, out / "curves.png"):
-            files["curves"] = out / "curves.png"
-            md += ["## Error per epoch", "", "![per-epoch error](curves.png)", ""]
-    ood = _ood_table(done)
+        plot_files, plot_md = _plots(done, layout, out)
+        files.update(plot_files)
+        md += plot_md
+    lead = layout.get("lead")
+    ood = _ood_table(done, lead) if lead in done else None
     if ood is not None:
         files["ood_table"] = write_text_atomic(out / "ood_table.csv", ood.to_csv(index=False))
         md += ["## OOD rejection (paper Table I)", "", _ood_note(), "",

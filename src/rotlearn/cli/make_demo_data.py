@@ -1,0 +1,68 @@
+"""`rotlearn-make-demo-data`: small datasets in the real on-disk layouts, for tests and demos.
+
+Each dataset `<name>` with a module `rotlearn.data.<name>_demo` defining
+`write_demo(out, seed) -> list[Path]` is written under `<out>/<name>` in the layout its reader
+(`rotlearn.data.<name>`) expects; see that module for the layout. The same seed writes the same
+files. Each dataset appears under its final name only when complete.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import pkgutil
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import rotlearn.data
+
+__all__ = ["demo_writers", "main"]
+
+SUFFIX = "_demo"
+
+
+def demo_writers() -> dict[str, Callable[..., list[Path]]]:
+    """{dataset name: write_demo} of every `rotlearn.data.<name>_demo` module, sorted by name."""
+    writers = {}
+    for info in sorted(pkgutil.iter_modules(rotlearn.data.__path__), key=lambda m: m.name):
+        if info.name.endswith(SUFFIX):
+            module = importlib.import_module(f"rotlearn.data.{info.name}")
+            writers[info.name.removesuffix(SUFFIX)] = module.write_demo
+    return writers
+
+
+def main(argv: list[str] | None = None) -> int:
+    writers = demo_writers()
+
+    def dataset_list(text: str) -> list[str]:
+        names = [n.strip() for n in text.split(",") if n.strip()]
+        unknown = sorted(set(names) - set(writers))
+        if unknown or not names:
+            raise argparse.ArgumentTypeError(f"choose from {', '.join(writers)}; got {text!r}")
+        return names
+
+    parser = argparse.ArgumentParser(
+        prog="rotlearn-make-demo-data",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--out", default="data/demo", help="where to write (default data/demo)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--only",
+        type=dataset_list,
+        default=list(writers),
+        help=f"comma-separated subset of {','.join(writers)} (default: all)",
+    )
+    args = parser.parse_args(argv)
+    for name in (n for n in writers if n in args.only):
+        start = time.perf_counter()
+        roots = writers[name](args.out, seed=args.seed)
+        seconds = time.perf_counter() - start
+        print(f"{name}: {', '.join(map(str, roots))} ({seconds:.1f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

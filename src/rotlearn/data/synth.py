@@ -1,0 +1,273 @@
+"""Shared synthesis for the demo datasets (`rotlearn.data.<name>_demo`, `rotlearn-make-demo-data`).
+
+- staging: `staged` writes a dataset in a hidden folder beside its final one and renames it into
+  place only when complete, so an interrupted run never leaves a partial dataset under the final
+  name (an older copy stays until the new one is complete);
+- shapes: `airplane_mesh`, a random airplane with no rotational symmetry;
+- rotations: float64 numpy wrappers of `rotlearn.geometry` (quaternions x y z w);
+- panoramas at infinity (equirectangular textures) and `render`, the pinhole view of one under
+  pure camera rotation, so that the written orientations are exactly the rotations between the
+  images (up to the renderer's 1/32-pixel interpolation grid);
+- `smooth_series`, a smooth random process for trajectories.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from rotlearn.geometry import quat_multiply, quat_to_rotmat, so3_exp, so3_exp_quat
+
+__all__ = [
+    "HFOV_DEG",
+    "airplane_mesh",
+    "camera_matrix",
+    "euler_quat",
+    "exp_rotvec",
+    "indoor_panorama",
+    "outdoor_panorama",
+    "panorama_width",
+    "periodic_noise",
+    "pixel_rays",
+    "quat_rotmat",
+    "render",
+    "smooth_series",
+    "staged",
+    "write_png",
+]
+
+HFOV_DEG = 80.0  # horizontal field of view of every demo camera
+
+# ---- staging: a dataset appears under its final name only when complete -------------------------
+
+
+def _replace_dir(new: Path, final: Path) -> None:
+    """Rename `new` to `final`; an existing `final` is first renamed aside, then removed."""
+    if not final.exists():
+        os.replace(new, final)
+        return
+    old = final.with_name(f".{final.name}.old-{os.getpid()}")
+    shutil.rmtree(old, ignore_errors=True)
+    os.replace(final, old)
+    os.replace(new, final)
+    shutil.rmtree(old)
+
+
+@contextmanager
+def staged(out: Path, label: str, names: Sequence[str]) -> Iterator[Path]:
+    """Yield an empty staging folder `<out>/.<label>.tmp-<pid>`; on success move each
+    `<stage>/<name>` to `<out>/<name>`. The staging folder is removed in every case."""
+    stage = out / f".{label}.tmp-{os.getpid()}"
+    shutil.rmtree(stage, ignore_errors=True)
+    stage.mkdir(parents=True)
+    try:
+        yield stage
+        for name in names:
+            _replace_dir(stage / name, out / name)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+
+
+# ---- shapes --------------------------------------------------------------------------------------
+
+
+def airplane_mesh(rng: np.random.Generator):
+    """A random airplane (fuselage, wings, tail and fin of random sizes: no rotational symmetry)
+    as a trimesh.Trimesh, x along the fuselage, centred, bounding-box diagonal 1 (ShapeNet's
+    "normalized")."""
+    import trimesh
+
+    length, radius = rng.uniform(1.6, 2.2), rng.uniform(0.12, 0.2)
+    fuselage = trimesh.creation.cylinder(radius=radius, height=length, sections=24)
+    fuselage.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [0, 1, 0]))
+    span, chord = rng.uniform(1.4, 2.2), rng.uniform(0.25, 0.4)
+    wings = trimesh.creation.box(extents=[chord, span, 0.04])
+    wings.apply_translation([rng.uniform(-0.2, 0.3), 0.0, rng.uniform(-0.05, 0.05)])
+    fin = trimesh.creation.box(extents=[0.25, 0.04, rng.uniform(0.3, 0.5)])
+    fin.apply_translation([-length / 2 + 0.15, 0.0, radius + 0.15])
+    tail = trimesh.creation.box(extents=[0.18, rng.uniform(0.5, 0.8), 0.03])
+    tail.apply_translation([-length / 2 + 0.1, 0.0, 0.0])
+    mesh = trimesh.util.concatenate([fuselage, wings, fin, tail])
+    mesh.apply_translation(-mesh.bounding_box.centroid)
+    mesh.apply_scale(1.0 / np.linalg.norm(mesh.extents))  # ShapeNet "normalized": unit diagonal
+    return mesh
+
+
+# ---- rotations (float64 numpy in and out; rotlearn quaternions are x y z w) ----------------------
+
+
+def exp_rotvec(phi: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) of rotation vectors (..., 3), radians."""
+    return so3_exp(torch.from_numpy(phi)).numpy()
+
+
+def euler_quat(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarray:
+    """Quaternions (..., 4), x y z w, of R_y(yaw) R_x(pitch) R_z(roll) (camera axes: y down,
+    x right, z forward). Continuous in the angles: no sign flips along a smooth trajectory."""
+
+    def axis_quat(angle: np.ndarray, axis: int) -> torch.Tensor:
+        phi = np.zeros((*angle.shape, 3))
+        phi[..., axis] = angle
+        return so3_exp_quat(torch.from_numpy(phi))
+
+    q = quat_multiply(axis_quat(yaw, 1), quat_multiply(axis_quat(pitch, 0), axis_quat(roll, 2)))
+    return q.numpy()
+
+
+def quat_rotmat(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) of quaternions (..., 4), x y z w."""
+    return quat_to_rotmat(torch.from_numpy(q)).numpy()
+
+
+# ---- panoramas -----------------------------------------------------------------------------------
+
+
+def periodic_noise(rng: np.random.Generator, height: int, width: int, cells: int, channels: int):
+    """Smooth unit-variance noise (height, width, channels) float32, `cells` features around the
+    horizon, periodic in width (the panorama's longitude wraps without a seam)."""
+    cells = max(2, min(cells, width // 3))
+    grid = rng.standard_normal((max(2, cells // 2), cells, channels)).astype(np.float32)
+    tiled = cv2.resize(np.tile(grid, (1, 3, 1)), (3 * width, height), interpolation=cv2.INTER_CUBIC)
+    noise = tiled.reshape(height, 3 * width, channels)[:, width : 2 * width]
+    return noise / max(float(noise.std()), 1e-6)
+
+
+def _octaves(rng: np.random.Generator, shape: tuple[int, int, int], cells: Sequence[int]):
+    """Sum of `periodic_noise` of `shape` (H, W, C) at each feature count in `cells`, the
+    amplitude of each proportional to cells ** -0.25 (fine detail nearly as strong as coarse),
+    scaled to unit variance."""
+    total = np.zeros(shape, np.float32)
+    for c in cells:
+        total += c**-0.25 * periodic_noise(rng, shape[0], shape[1], c, shape[2])
+    return total / total.std()
+
+
+def _wrapped(x: int, width: int) -> tuple[int, int, int]:
+    """x and its copies one panorama width left and right: a shape drawn at all three shows on
+    both sides of the longitude seam."""
+    return (x - width, x, x + width)
+
+
+def _random_shapes(rng: np.random.Generator, canvas: np.ndarray, count: int, palette) -> None:
+    """Draw `count` anti-aliased filled circles, filled rectangles and lines, of colours from
+    palette(rng) -> BGR tuple, onto `canvas` (H, W, 3) uint8; sizes in degrees of longitude."""
+    height, width = canvas.shape[:2]
+    unit = width / 360.0  # pixels per degree
+    for _ in range(count):
+        kind, x, y = rng.integers(3), int(rng.integers(width)), int(rng.integers(height))
+        colour = palette(rng)
+        if kind == 0:
+            radius = max(1, int(unit * rng.uniform(0.5, 6.0)))
+            for u in _wrapped(x, width):
+                cv2.circle(canvas, (u, y), radius, colour, -1, cv2.LINE_AA)
+        elif kind == 1:
+            w, h = (max(1, int(unit * s)) for s in rng.uniform(0.5, 8.0, 2))
+            for u in _wrapped(x, width):
+                cv2.rectangle(canvas, (u, y), (u + w, y + h), colour, -1)
+        else:
+            dx, dy = (int(unit * s) for s in rng.uniform(-15.0, 15.0, 2))
+            thickness = int(rng.integers(1, 4))
+            for u in _wrapped(x, width):
+                cv2.line(canvas, (u, y), (u + dx, y + dy), colour, thickness, cv2.LINE_AA)
+
+
+def outdoor_panorama(rng: np.random.Generator, width: int) -> np.ndarray:
+    """Equirectangular BGR uint8 (width // 2, width): a bright sky over a darker green ground
+    (horizon at latitude 0), both shaded by multi-scale noise (features from 60 degrees down to
+    about 12 pixels) quantised into flat terraces (flat areas keep the PNGs small), under many
+    small shapes and lines of random colours."""
+    height = width // 2
+    shade = _octaves(rng, (height, width, 1), (6, 24, 96, width // 12))
+    ground = (np.arange(height) >= height // 2)[:, None, None]
+    base = np.where(ground, np.float32([70, 115, 95]), np.float32([210, 175, 140]))
+    image = np.clip(base + 15.0 * np.round(40.0 / 15.0 * shade), 0, 255).astype(np.uint8)
+    _random_shapes(rng, image, width // 3, lambda r: tuple(int(v) for v in r.integers(0, 256, 3)))
+    return image
+
+
+def indoor_panorama(rng: np.random.Generator, width: int) -> np.ndarray:
+    """Equirectangular BGR uint8 (width // 2, width), darker than outdoors: overlapping flat
+    grey-brown walls and panels with sharp edges, thin dark frames, and smooth faint shading."""
+    height = width // 2
+    unit = width / 360.0  # pixels per degree
+    image = np.full((height, width, 3), 35, np.uint8)
+    for _ in range(max(8, width // 8)):
+        x, y = int(rng.integers(width)), int(rng.integers(height))
+        w, h = (int(unit * s) for s in rng.uniform((2.0, 2.0), (25.0, 20.0)))
+        colour = tuple(int(v) for v in rng.integers(15, 110) + rng.integers(-10, 10, 3))
+        for u in _wrapped(x, width):
+            cv2.rectangle(image, (u, y), (u + w, y + h), colour, -1)
+    _random_shapes(rng, image, width // 20, lambda r: (int(r.integers(0, 50)),) * 3)
+    shading = 6.0 * periodic_noise(rng, height, width, width // 12, 1)
+    return np.clip(image + shading, 0, 255).astype(np.uint8)
+
+
+# ---- rendering -----------------------------------------------------------------------------------
+
+
+def camera_matrix(width: int, height: int, hfov_deg: float = HFOV_DEG) -> np.ndarray:
+    """Pinhole intrinsics K (3, 3) float64: fx = fy = (width / 2) / tan(hfov / 2), principal point
+    at the image centre ((width - 1) / 2, (height - 1) / 2) in pixel-centre coordinates."""
+    f = 0.5 * width / np.tan(np.radians(hfov_deg) / 2)
+    return np.array([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
+
+
+def panorama_width(K: np.ndarray) -> int:
+    """Panorama width matching the camera's resolution at the image centre (2 pi fx pixels),
+    rounded to a multiple of 8: no aliasing and no needless detail."""
+    return 8 * max(8, round(2 * np.pi * K[0, 0] / 8))
+
+
+def pixel_rays(K: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Camera rays K^-1 [u, v, 1] (height, width, 3) float64 of every pixel (u, v)."""
+    u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+    pixels = np.stack((u, v, np.ones_like(u)), axis=-1)
+    return pixels @ np.linalg.inv(K).T
+
+
+def render(panorama: np.ndarray, rays: np.ndarray, R_wc: np.ndarray) -> np.ndarray:
+    """View of an equirectangular panorama at infinity from a camera with orientation R_wc.
+
+    Args:
+        panorama: (Hp, 2 Hp) or (Hp, 2 Hp, C) uint8; column j is longitude 2 pi j / Wp about the
+            world y axis (0 along world z), row i is latitude pi ((i + 0.5) / Hp - 0.5) towards
+            world +y (down).
+        rays: (H, W, 3) camera rays of the pixels (`pixel_rays`).
+        R_wc: (3, 3) camera-to-world rotation.
+
+    Returns:
+        (H, W[, C]) uint8: bilinear look-up of each pixel's world ray R_wc K^-1 [u, v, 1]
+        (cv2.remap: positions quantised to 1/32 panorama pixel; longitude wraps).
+    """
+    height, width = panorama.shape[:2]
+    d = (rays @ R_wc.T).astype(np.float32)  # float32 trigonometry: ~1e-4 px, twice as fast
+    longitude = np.arctan2(d[..., 0], d[..., 2])
+    latitude = np.arctan2(d[..., 1], np.hypot(d[..., 0], d[..., 2]))
+    map_x = np.mod(longitude * np.float32(width / (2 * np.pi)), np.float32(width))
+    map_y = (latitude / np.float32(np.pi) + np.float32(0.5)) * np.float32(height) - np.float32(0.5)
+    return cv2.remap(panorama, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+
+
+def write_png(path: Path, image: np.ndarray) -> None:
+    """cv2.imwrite at zlib level 3 (a little smaller than OpenCV's default 1, still fast)."""
+    if not cv2.imwrite(str(path), image, [cv2.IMWRITE_PNG_COMPRESSION, 3]):
+        raise OSError(f"could not write {path}")
+
+
+# ---- trajectories --------------------------------------------------------------------------------
+
+
+def smooth_series(rng: np.random.Generator, n: int, sigma: float) -> np.ndarray:
+    """Stationary smooth Gaussian process (n,): white noise convolved with a Gaussian of `sigma`
+    samples, scaled to unit variance."""
+    half = int(4 * sigma) + 1
+    kernel = np.exp(-0.5 * (np.arange(-half, half + 1) / sigma) ** 2)
+    kernel /= np.sqrt((kernel**2).sum())
+    return np.convolve(rng.standard_normal(n + 2 * half), kernel, mode="valid")
