@@ -55,11 +55,22 @@ from torch.autograd.function import once_differentiable
 
 from rotlearn.errors import batch_index
 
-__all__ = ["DEFAULT_GAP_EPS", "DEFAULT_ROUNDS", "EIGH_BELOW", "sym4_eigh_min", "validate_sym4"]
+__all__ = [
+    "DEFAULT_GAP_EPS",
+    "DEFAULT_ROUNDS",
+    "EIGH_BELOW",
+    "METHODS",
+    "sym4_eigh_min",
+    "validate_sym4",
+]
 
 DEFAULT_GAP_EPS = 1e-6
 DEFAULT_ROUNDS = {torch.float32: 12, torch.float64: 14}
-EIGH_BELOW = 1024  # method="auto": torch.linalg.eigh forward below this many matrices
+METHODS = ("auto", "jacobi", "eigh")  # sym4_eigh_min's forward (also the A head's rep.solver)
+# method="auto": the torch.linalg.eigh forward below this many matrices, Jacobi from there on.
+# Measured by `bench/rep_layers.py --crossover` (the batch size from which Jacobi's forward +
+# backward is faster than eigh's; bench/results/solver_crossover.json).
+EIGH_BELOW = 1024
 # Matrices per pass on CPU, per thread: the working set (~2 MB per 16384 in float32) stays in
 # cache (measured: 16384 best with 1 thread, 32768 with 2). On CUDA the batch is not split.
 _CHUNK_PER_THREAD = 16384
@@ -372,7 +383,7 @@ def sym4_eigh_min(
     if rounds is not None and rounds < 1:
         raise ValueError(f"rounds must be >= 1, got {rounds}")
     batch = A.shape[:-2]
-    if method not in ("auto", "jacobi", "eigh"):
+    if method not in METHODS:
         raise ValueError(f"method must be 'auto', 'jacobi' or 'eigh', got {method!r}")
     A = A.reshape(-1, 4, 4)
     use_eigh = method == "eigh" or (method == "auto" and A.shape[0] < EIGH_BELOW)
