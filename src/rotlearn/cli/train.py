@@ -30,8 +30,8 @@ from omegaconf import DictConfig, OmegaConf
 from rotlearn.checkpoint import load_checkpoint, resolve_checkpoint
 from rotlearn.cli.callbacks import record_job
 from rotlearn.cli.replay import saved_overrides
-from rotlearn.cli.schemas import ConfigError, validate
-from rotlearn.errors import ConfigValueError
+from rotlearn.cli.schemas import validate
+from rotlearn.errors import ConfigError
 from rotlearn.io import write_json_atomic
 from rotlearn.lit import (
     AutoEncoderModule,
@@ -64,19 +64,17 @@ for _pattern in (".*does not have many workers.*", ".*smaller than the logging i
 
 
 def _instantiate(cfg: DictConfig, key: str, **kwargs: Any) -> Any:
-    """Instantiate the config node `key`, turning a component's complaint into a `ConfigError`."""
+    """Instantiate the config node `key`; a component's `ConfigError` (its key relative to the
+    node) is re-raised with the full key."""
     node = OmegaConf.select(cfg, key)
     if node is None:
-        raise ConfigError(f"config key {key} is missing")
+        raise ConfigError(key, "is missing")
     try:
         return hydra.utils.instantiate(node, **kwargs)
-    except InstantiationException as exc:
-        cause = exc.__cause__
-        while cause is not None and not isinstance(cause, ConfigValueError):
-            cause = cause.__cause__
-        if cause is None:
-            raise
-        raise ConfigError(f"config key {key}.{cause.key}: {cause.message}") from exc
+    except InstantiationException as exc:  # Hydra wraps what the constructor raised
+        if isinstance(exc.__cause__, ConfigError):
+            raise exc.__cause__.within(key) from None
+        raise
 
 
 def _instantiate_all(cfg: DictConfig, key: str) -> list[Any]:
@@ -90,19 +88,20 @@ def build(
     """Model, datamodule and trainer for a composed config (validated, seeds set first).
 
     `task=rotation` builds a `RotationRegressor`; `task=autoencoder` an `AutoEncoderModule`
-    (spec section 8: no head, no loss), whose net must be `net=autoencoder`."""
+    (paper section V-A: no head, no loss), whose net must be `net=autoencoder`."""
     validate(cfg)
     task = cfg.get("task", "rotation")
     if task not in ("rotation", "autoencoder"):
-        raise ConfigError(f"config key task: must be 'rotation' or 'autoencoder', got {task!r}")
+        raise ConfigError("task", f"must be 'rotation' or 'autoencoder', got {task!r}")
     pl.seed_everything(cfg.seed, workers=True, verbose=False)
     datamodule = _instantiate(cfg, "data")
     head = _instantiate(cfg, "rep") if task == "rotation" else None
     net = _instantiate(cfg, "net")
     if isinstance(net, ConvAutoEncoder) != (task == "autoencoder"):
         raise ConfigError(
-            f"config key task: task={task} cannot train net {cfg.net._target_} "
-            "(task=autoencoder goes with net=autoencoder, every other net with task=rotation)"
+            "task",
+            f"task={task} cannot train net {cfg.net._target_} "
+            "(task=autoencoder goes with net=autoencoder, every other net with task=rotation)",
         )
     if task == "autoencoder":
         model = AutoEncoderModule(net=net, optimizer=_instantiate(cfg, "optim"))
