@@ -88,7 +88,7 @@ def build(
     """Model, datamodule and trainer for a composed config (validated, seeds set first).
 
     `task=rotation` builds a `RotationRegressor`; `task=autoencoder` an `AutoEncoderModule`
-    (paper section V-A: no head, no loss), whose net must be `net=autoencoder`."""
+    (paper section VI-C.1: no head, no loss), whose net must be `net=autoencoder`."""
     validate(cfg)
     task = cfg.get("task", "rotation")
     if task not in ("rotation", "autoencoder"):
