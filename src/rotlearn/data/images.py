@@ -45,7 +45,7 @@ def read_image(path: Path, gray: bool = False) -> np.ndarray:
 
 
 def resize_square(image: np.ndarray, size: int) -> np.ndarray:
-    """KITTI (paper section VI-C): resize to size x size, ignoring the aspect ratio (area filter)."""
+    """KITTI (paper VI-C): resize to size x size, ignoring the aspect ratio (area filter)."""
     import cv2
 
     return cv2.resize(image, (size, size), interpolation=cv2.INTER_AREA)

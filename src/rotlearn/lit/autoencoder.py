@@ -1,4 +1,4 @@
-"""AutoEncoderModule: the auto-encoder OOD baseline (paper section VI-C.1), trained on first images."""
+"""AutoEncoderModule: the auto-encoder OOD baseline (paper VI-C.1), trained on first images."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The point-cloud network of the paper's synthetic and ShapeNet experiments (paper sections VI-A, VI-B)."""
+"""The point-cloud network of the paper's synthetic and ShapeNet experiments (paper VI-A, VI-B)."""
 
 from __future__ import annotations
 

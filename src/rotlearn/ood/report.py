@@ -93,8 +93,8 @@ def ood_markdown(rep: str, frame: pd.DataFrame) -> str:
     return "\n\n".join([
         f"# OOD evaluation ({rep} head)",
         f"Test set: {n} pairs; the corrupted set erases the last {n_corrupted} of them "
-        "(paper section VI-C). Errors are mean angles in degrees over the kept pairs; precision and "
-        "recall are of keeping clean pairs (paper section V-A). Thresholds: quantile q of the "
+        "(paper section VI-C). Errors are mean angles in degrees over the kept pairs; precision "
+        "and recall are of keeping clean pairs (paper section V-A). Thresholds: quantile q of the "
         "training scores.",
         "## Table I",
         markdown_table(table_rows(rep, frame), TABLE_COLUMNS),
