@@ -255,6 +255,19 @@ def _print_table(rows: list[dict], ratios: list[dict]) -> None:
         )
 
 
+def _machine(device: torch.device, load_before, load_after) -> dict:
+    return {
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "threads": torch.get_num_threads(),
+        "cpu": platform.processor() or platform.machine(),
+        "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
+        "device": str(device),
+        "load_average_before": load_before,
+        "load_average_after": load_after,
+    }
+
+
 CROSSOVER_BATCHES = "1,8,32,100,256,512,1024,2048,4096,8192,16384,65536"
 
 
@@ -312,18 +325,8 @@ def main_crossover(args: argparse.Namespace, device: torch.device) -> None:
     from rotlearn.geometry.eigen4 import EIGH_BELOW
 
     name = device.type.replace(":", "_")
-    gpu = torch.cuda.get_device_name(device) if device.type == "cuda" else None
     result = {
-        "machine": {
-            "python": platform.python_version(),
-            "torch": torch.__version__,
-            "threads": torch.get_num_threads(),
-            "cpu": platform.processor() or platform.machine(),
-            "gpu": gpu,
-            "device": str(device),
-            "load_average_before": load_before,
-            "load_average_after": os.getloadavg(),
-        },
+        "machine": _machine(device, load_before, os.getloadavg()),
         "dtype": str(dtype).removeprefix("torch."),
         "rows": rows,
         "crossover_batch": crossover,
@@ -382,15 +385,7 @@ def main(argv: list[str] | None = None) -> None:
         f" {load_after[0]:.2f}; {elapsed:.0f} s"
     )
     result = {
-        "machine": {
-            "python": platform.python_version(),
-            "torch": torch.__version__,
-            "threads": torch.get_num_threads(),
-            "cpu": platform.processor() or platform.machine(),
-            "device": str(device),
-            "load_average_before": load_before,
-            "load_average_after": load_after,
-        },
+        "machine": _machine(device, load_before, load_after),
         "layers": rows,
         "ratios": ratios,
         "training_step": training,
