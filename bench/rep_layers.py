@@ -19,6 +19,13 @@ another process may share the machine. Ratios are computed within the run.
     .venv/bin/python bench/rep_layers.py                 # CPU, about 3 minutes
     .venv/bin/python bench/rep_layers.py --device cuda
     .venv/bin/python bench/rep_layers.py --batches 16384 --dtypes float32 --threads 1
+    .venv/bin/python bench/rep_layers.py --crossover     # jacobi vs eigh: where `auto` switches
+
+`--crossover` times `sym4_eigh_min(method="jacobi")` against `method="eigh"` (forward and
+forward+backward, float32, batch sizes 1 ... 65536) and reports the smallest batch from which
+jacobi's forward+backward is faster at that and every larger size measured: the value for
+`rotlearn.geometry.eigen4.EIGH_BELOW` on this machine. Written to
+bench/results/solver_crossover[_<device>].json.
 """
 
 from __future__ import annotations
@@ -248,13 +255,98 @@ def _print_table(rows: list[dict], ratios: list[dict]) -> None:
         )
 
 
+def _machine(device: torch.device, load_before, load_after) -> dict:
+    return {
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "threads": torch.get_num_threads(),
+        "cpu": platform.processor() or platform.machine(),
+        "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
+        "device": str(device),
+        "load_average_before": load_before,
+        "load_average_after": load_after,
+    }
+
+
+CROSSOVER_BATCHES = "1,8,32,100,256,512,1024,2048,4096,8192,16384,65536"
+
+
+def bench_crossover(batches: list[int], dtype: torch.dtype, device: torch.device, budget_s: float):
+    """jacobi vs eigh forward of `sym4_eigh_min` (same backward) per batch size; the crossover."""
+    rows = []
+    for batch in batches:
+        A = _inputs("eigen4", batch, dtype, device)
+        leaf = A.clone().requires_grad_(True)
+        row: dict = {"batch": batch}
+        for method in ("jacobi", "eigh"):
+            with torch.no_grad():
+                weights = [torch.randn_like(o) for o in sym4_eigh_min(A, check=False)]
+
+            def forward(method=method, A=A):
+                with torch.no_grad():
+                    return sym4_eigh_min(A, check=False, method=method)
+
+            def forward_backward(method=method, weights=weights, leaf=leaf):
+                outs = sym4_eigh_min(leaf, check=False, method=method)
+                loss = sum((o * w).sum() for o, w in zip(outs, weights, strict=True))
+                return torch.autograd.grad(loss, leaf)
+
+            row[f"{method}_forward_ms"] = 1e3 * _timeit(forward, device, budget_s)["median_s"]
+            row[f"{method}_forward_backward_ms"] = (
+                1e3 * _timeit(forward_backward, device, budget_s)["median_s"]
+            )
+        row["jacobi_faster"] = row["jacobi_forward_backward_ms"] < row["eigh_forward_backward_ms"]
+        rows.append(row)
+        print(
+            f"  B={batch:<6d} fwd+bwd ms: jacobi {row['jacobi_forward_backward_ms']:9.3f}"
+            f"  eigh {row['eigh_forward_backward_ms']:9.3f}   fwd ms: jacobi"
+            f" {row['jacobi_forward_ms']:9.3f}  eigh {row['eigh_forward_ms']:9.3f}",
+            flush=True,
+        )
+    crossover = None  # smallest measured batch from which jacobi wins at every larger one
+    for row in reversed(rows):
+        if not row["jacobi_faster"]:
+            break
+        crossover = row["batch"]
+    return rows, crossover
+
+
+def main_crossover(args: argparse.Namespace, device: torch.device) -> None:
+    batches = [int(b) for b in (args.batches or CROSSOVER_BATCHES).split(",")]
+    dtype = DTYPES[args.dtypes.split(",")[0]]
+    load_before = os.getloadavg()
+    print(f"device {device}, threads {torch.get_num_threads()}, load average {load_before}")
+    rows, crossover = bench_crossover(batches, dtype, device, args.budget)
+    print(
+        f"\ncrossover: jacobi's forward+backward is faster from B = {crossover} on"
+        if crossover is not None
+        else "\ncrossover: eigh is faster (or level) at every batch size measured"
+    )
+    from rotlearn.geometry.eigen4 import EIGH_BELOW
+
+    name = device.type.replace(":", "_")
+    result = {
+        "machine": _machine(device, load_before, os.getloadavg()),
+        "dtype": str(dtype).removeprefix("torch."),
+        "rows": rows,
+        "crossover_batch": crossover,
+        "EIGH_BELOW": EIGH_BELOW,
+    }
+    out = args.out if args.out != RESULTS / "rep_layers.json" else None
+    path = write_json_atomic(out or RESULTS / f"solver_crossover_{name}.json", result)
+    print(f"-> {path}")
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--device", default="cpu", help="cpu or cuda")
     parser.add_argument("--dtypes", default="float32,float64")
-    parser.add_argument("--batches", default="1,64,1024,16384,131072")
+    parser.add_argument("--batches", default=None, help="default 1,64,1024,16384,131072")
+    parser.add_argument(
+        "--crossover", action="store_true", help="jacobi vs eigh per batch size (EIGH_BELOW)"
+    )
     parser.add_argument("--threads", type=int, default=None, help="torch.set_num_threads")
     parser.add_argument(
         "--budget", type=float, default=0.6, help="seconds of timing per measurement (approx.)"
@@ -265,7 +357,10 @@ def main(argv: list[str] | None = None) -> None:
     device = torch.device(args.device)
     if args.threads is not None:
         torch.set_num_threads(args.threads)
-    batches = [int(b) for b in args.batches.split(",")]
+    if args.crossover:
+        main_crossover(args, device)
+        return
+    batches = [int(b) for b in (args.batches or "1,64,1024,16384,131072").split(",")]
     dtypes = args.dtypes.split(",")
     load_before = os.getloadavg()
     started = time.perf_counter()
@@ -290,15 +385,7 @@ def main(argv: list[str] | None = None) -> None:
         f" {load_after[0]:.2f}; {elapsed:.0f} s"
     )
     result = {
-        "machine": {
-            "python": platform.python_version(),
-            "torch": torch.__version__,
-            "threads": torch.get_num_threads(),
-            "cpu": platform.processor() or platform.machine(),
-            "device": str(device),
-            "load_average_before": load_before,
-            "load_average_after": load_after,
-        },
+        "machine": _machine(device, load_before, load_after),
         "layers": rows,
         "ratios": ratios,
         "training_step": training,

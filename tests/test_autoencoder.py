@@ -1,4 +1,4 @@
-"""The auto-encoder OOD baseline (spec section 8): shapes, first-image loss, training, loading."""
+"""The auto-encoder OOD baseline (paper VI-C.1): shapes, first-image loss, training, loading."""
 
 from __future__ import annotations
 

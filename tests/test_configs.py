@@ -181,25 +181,70 @@ def test_test_ckpt_must_be_last_or_best(make_cfg):
         train(cfg)
 
 
-def test_the_a_head_uses_the_fast_solver_and_eigh_stays_selectable(make_cfg):
-    fast, eigh = instantiate(make_cfg([]).rep), instantiate(make_cfg(["rep.solver=eigh"]).rep)
-    assert (fast.solver, eigh.solver) == ("fast", "eigh")
+def test_the_a_head_uses_the_auto_solver_and_jacobi_and_eigh_stay_selectable(make_cfg):
+    heads = {
+        solver: instantiate(make_cfg([] if solver == "auto" else [f"rep.solver={solver}"]).rep)
+        for solver in ("auto", "jacobi", "eigh")
+    }
+    assert {name: head.solver for name, head in heads.items()} == {
+        "auto": "auto",
+        "jacobi": "jacobi",
+        "eigh": "eigh",
+    }
     raw = torch.randn(64, 10, dtype=torch.float64)
-    assert torch.allclose(fast(raw).R, eigh(raw).R, atol=1e-9)
+    for head in heads.values():
+        assert torch.allclose(head(raw).R, heads["eigh"](raw).R, atol=1e-9)
     raw = torch.zeros(
         3, 10, dtype=torch.float64, requires_grad=True
     )  # A = 0: all eigenvalues equal
-    fast(raw).R.sum().backward()
-    assert torch.isfinite(raw.grad).all()
+    for head in heads.values():
+        head(raw).R.sum().backward()
+        assert torch.isfinite(raw.grad).all()
+
+
+def test_a_checkpoints_solver_fast_loads_as_auto_with_a_warning(make_cfg):
+    with pytest.warns(DeprecationWarning, match="rep.solver=fast is deprecated.*rep.solver=auto"):
+        head = instantiate(make_cfg(["rep.solver=fast"]).rep)
+    assert head.solver == "auto"
 
 
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [
-        (["rep.solver=qr"], r"rep\.solver: must be one of fast, eigh, got 'qr'"),
-        (["rep=quat", "+rep.solver=fast"], r"rep\.solver: only the 'a' head has a solver"),
+        (["rep.solver=qr"], r"rep\.solver: must be one of auto, jacobi, eigh, got 'qr'"),
+        (["rep=quat", "rep.solver=jacobi"], r"rep\.solver: only the 'a' head has a solver"),
     ],
 )
 def test_bad_solver_choices_name_the_key(make_cfg, overrides, message):
     with pytest.raises(ConfigError, match=message):
         build(make_cfg(overrides))
+
+
+def test_configs_hold_only_what_differs_from_the_constructors_defaults():
+    """A component's YAML starts from its schema (<option>_schema in its defaults list, derived
+    from the constructor) and repeats no default of it; the store knows every schema."""
+    from hydra.core.config_store import ConfigStore
+
+    from rotlearn.cli.schemas import ALL_SCHEMAS, COMPONENTS, defaults
+    from tests.conftest import CONFIG_DIR
+
+    store = ConfigStore.instance()
+    for group, options in COMPONENTS.items():
+        if "." in group:
+            continue  # callbacks.ood lives inside conf/callbacks/ood.yaml
+        for option, target in options.items():
+            assert store.load(f"{group}/{option}_schema.yaml") is not None
+            schema_defaults = defaults(ALL_SCHEMAS[group][target])
+            for path in (CONFIG_DIR / group).glob("*.yaml"):
+                node = OmegaConf.load(path)
+                node = node.get(group, node) if path.read_text().startswith("# @package") else node
+                if node.get("_target_") != target:
+                    continue
+                listed = [str(d).split("@")[0] for d in OmegaConf.load(path).get("defaults", [])]
+                assert any(d.endswith("_schema") for d in listed), path
+                for key, raw in OmegaConf.to_container(node).items():
+                    if key in ("_target_", "defaults") or key not in schema_defaults:
+                        continue
+                    assert (isinstance(raw, str) and "${" in raw) or raw != schema_defaults[key], (
+                        f"{path.name}: {key}={raw!r} repeats the constructor's default"
+                    )

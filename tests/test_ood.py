@@ -189,7 +189,7 @@ def test_rotlearn_eval_refuses_bad_input(trained_run, tmp_path):
     from rotlearn.cli.evaluate import evaluate
 
     run_dir, _ = trained_run
-    with pytest.raises(ConfigError, match=r"ckpt=.*nowhere.*no checkpoint"):
+    with pytest.raises(ConfigError, match=r"config key ckpt: .*nowhere.*no checkpoint"):
         evaluate(_eval_cfg([f"ckpt={tmp_path / 'nowhere'}"], tmp_path / "e1"))
     with pytest.raises(ConfigError, match="trained with rep=a, not expect_rep=sixd"):
         evaluate(_eval_cfg([f"ckpt={run_dir}", "expect_rep=sixd"], tmp_path / "e2"))

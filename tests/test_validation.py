@@ -58,8 +58,8 @@ BAD = [
     ),
     ("+logger.tensorboard.flush_secs=fast", r"logger\.tensorboard\.flush_secs"),  # SummaryWriter's
     ("logger.tensorboard.default_hp_metric=2", r"logger\.tensorboard\.default_hp_metric: expected"),
-    ("callbacks.checkpoint.mode=maximum", r"callbacks\.checkpoint\.mode: must be one of min, max"),
-    ("callbacks.checkpoint.save_top_k=-2", r"callbacks\.checkpoint\.save_top_k: must be an integ"),
+    ("+callbacks.checkpoint.mode=maximum", r"callbacks\.checkpoint\.mode: must be one of min, max"),
+    ("+callbacks.checkpoint.save_top_k=-2", r"callbacks\.checkpoint\.save_top_k: must be an integ"),
     ("+callbacks.checkpoint.monitr=x", r"callbacks\.checkpoint\.monitr: unknown \(did you mean "),
     ("callbacks.checkpoint=null", r"callbacks\.checkpoint: must be a mapping .*~callbacks\.check"),
     ("+callbacks.epoch_timer.every=2", r"callbacks\.epoch_timer\.every: unknown; allowed: $"),

@@ -2,16 +2,41 @@
 
 from __future__ import annotations
 
-__all__ = ["ConfigValueError", "NonFiniteError", "batch_index", "require_positive_ints"]
+__all__ = [
+    "ConfigError",
+    "ConfigValueError",
+    "NonFiniteError",
+    "batch_index",
+    "require_positive_ints",
+]
 
 
-class ConfigValueError(ValueError):
-    """A config value is out of range. `key` is relative to the component's config node."""
+class ConfigError(ValueError):
+    """A config value that cannot be used, naming its key.
+
+    A component raises it with `key` relative to its own config node (its argument's name,
+    e.g. `"phi_max_deg"`); whoever built the component from the node `data` re-raises
+    `error.within("data")`, so the message names the full key: `config key data.phi_max_deg: ...`.
+
+    Args:
+        key: the config key at fault, dotted.
+        message: what is wrong, with the value and what is allowed.
+    """
 
     def __init__(self, key: str, message: str) -> None:
-        super().__init__(f"{key}: {message}")
+        super().__init__(f"config key {key}: {message}")
         self.key = key
         self.message = message
+
+    def within(self, node: str) -> ConfigError:
+        """The same error with `key` under the config node `node` (`""`: unchanged)."""
+        return ConfigError(f"{node}.{self.key}" if node else self.key, self.message)
+
+    def __reduce__(self):  # picklable (DDP workers, multiprocessing)
+        return type(self), (self.key, self.message)
+
+
+ConfigValueError = ConfigError  # the former name of a component's complaint; the same class
 
 
 class NonFiniteError(FloatingPointError):
@@ -19,10 +44,10 @@ class NonFiniteError(FloatingPointError):
 
 
 def require_positive_ints(**values: float) -> None:
-    """Raise `ConfigValueError` naming the first key whose value is not a positive integer."""
+    """Raise `ConfigError` naming the first key whose value is not a positive integer."""
     for key, value in values.items():
         if isinstance(value, bool) or int(value) != value or value < 1:
-            raise ConfigValueError(key, f"must be a positive integer, got {value}")
+            raise ConfigError(key, f"must be a positive integer, got {value}")
 
 
 def batch_index(flat: int, shape: tuple[int, ...]) -> tuple[int, ...]:

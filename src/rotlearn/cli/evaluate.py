@@ -18,7 +18,7 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from rotlearn.checkpoint import SavedRun, load_run
-from rotlearn.cli.schemas import ConfigError
+from rotlearn.errors import ConfigError
 from rotlearn.io import write_json_atomic
 from rotlearn.paths import config_dir
 
@@ -43,11 +43,12 @@ def evaluation_config(cfg: DictConfig, saved: SavedRun) -> DictConfig:
     evaluation's overrides, OOD callback and output paths. Of the saved trainer config only the
     keys in `SAVED_TRAINER_KEYS` are kept; the rest comes from the evaluation's own command line."""
     if saved.task != "rotation":
-        raise ConfigError(f"ckpt={cfg.ckpt}: a {saved.task} checkpoint, not a rotation model")
+        raise ConfigError("ckpt", f"{cfg.ckpt}: a {saved.task} checkpoint, not a rotation model")
     run = OmegaConf.create(OmegaConf.to_container(saved.config))
     if cfg.expect_rep is not None and cfg.expect_rep != run.rep.name:
         raise ConfigError(
-            f"ckpt={cfg.ckpt} was trained with rep={run.rep.name}, not expect_rep={cfg.expect_rep}"
+            "ckpt",
+            f"{cfg.ckpt} was trained with rep={run.rep.name}, not expect_rep={cfg.expect_rep}",
         )
     out = cfg.paths.output_dir
     ood = OmegaConf.select(run, "callbacks.ood")
@@ -76,7 +77,7 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     try:
         saved = load_run(cfg.ckpt)
     except (FileNotFoundError, ValueError) as exc:  # unsafe file, untrusted config, other task
-        raise ConfigError(f"ckpt={cfg.ckpt}: {exc}") from None
+        raise ConfigError("ckpt", f"{cfg.ckpt}: {exc}") from None
     ckpt = saved.path
     run = evaluation_config(cfg, saved)
     model, datamodule, trainer = build(run)

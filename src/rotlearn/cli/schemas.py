@@ -1,172 +1,132 @@
 """Config validation: every node of a composed config is checked before anything is built.
 
-rotlearn's own components (`rep`, `data`, `loss`, `callbacks.ood`) have dataclass schemas here
-(a test holds their fields and defaults to their constructors' signatures); the library classes
-(`optim`, `scheduler`, `trainer`, `logger.*`, `callbacks.*`) and the nets are read from their
-signatures (`rotlearn.cli.signatures`); the top-level keys are in `TOP_LEVEL`. `validate(cfg)`
-stops a misspelt key or a bad value at once with the full key, what was expected and the
-allowed keys. A node whose `_target_` is not known here (a user's own class) is left to its
-constructor.
+rotlearn's own components (`rep`, `data`, `net`, `loss`, `callbacks.ood`) have dataclass schemas
+DERIVED here from their constructors' signatures (`COMPONENTS`; fields, annotations and defaults
+via `rotlearn.cli.signatures.constructor_parameters`, following `**kwargs` to base classes), so a
+schema cannot disagree with the code. Each schema's defaults are registered with Hydra's
+ConfigStore as `<group>/<option>_schema` (e.g. `data/kitti_schema`); a YAML under conf/ starts
+from it in its defaults list and holds only what differs. The library classes (`optim`,
+`scheduler`, `trainer`, `logger.*`, `callbacks.*`) and the nets are checked from their signatures
+(`rotlearn.cli.signatures.targets`); the top-level keys are in `TOP_LEVEL`. `validate(cfg)` stops
+a misspelt key or a bad value at once with the full key, what was expected and the allowed keys.
+A node whose `_target_` is not known here (a user's own class) is left to its constructor.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+import dataclasses
+import inspect
+from functools import partial
 from typing import Any, Literal, get_args, get_origin
 
+from hydra.core.config_store import ConfigStore
+from hydra.utils import get_object
 from omegaconf import DictConfig, ListConfig, OmegaConf
-from omegaconf.errors import OmegaConfBaseException, ValidationError
+from omegaconf.errors import OmegaConfBaseException
 
 from rotlearn.cli.signatures import (
     HYDRA_KEYS,
+    MISSING,
     ConfigError,
+    Spec,
     accepts,
     check_keys,
     check_values,
+    constructor_parameters,
     describe,
     targets,
 )
-from rotlearn.errors import ConfigValueError
 from rotlearn.heads import make_head
 
-__all__ = ["SCHEMAS", "TOP_LEVEL", "ConfigError", "validate"]
+__all__ = ["COMPONENTS", "SCHEMAS", "TOP_LEVEL", "ConfigError", "register_schemas", "validate"]
 
-
-@dataclass
-class RepConfig:
-    """`rep=`: a representation head from the registry (`rotlearn.heads.HEADS`)."""
-
-    _target_: str = "rotlearn.heads.make_head"
-    name: str = "a"
-    out_dim: int = 10
-    solver: str | None = None  # the A head's eigensolver: fast or eigh
-
-
-@dataclass
-class SyntheticWahbaConfig:
-    """`data=synthetic` / `data=tiny`: `rotlearn.data.SyntheticWahbaDataModule`."""
-
-    _target_: str = "rotlearn.data.SyntheticWahbaDataModule"
-    phi_max_deg: float = 180.0
-    sigma: float = 0.01
-    num_matches: int = 100
-    batch_size: int = 100
-    batches_per_epoch: int = 5
-    num_val: int = 100
-    num_test: int = 500
-    eval_batch_size: int = 100
-    redraw_test: bool = False
-    seed: int = 0
-
-
-@dataclass
-class ShapeNetConfig:
-    """`data=shapenet`: `rotlearn.data.ShapeNetDataModule`."""
-
-    _target_: str = "rotlearn.data.ShapeNetDataModule"
-    root: str = "data/shapenet"
-    format: str = "pts"
-    synset: str = "02691156"
-    num_train: int = 2290
-    num_test: int = 400
-    point_fraction: float = 0.5
-    num_points: int = 1024
-    rotations_per_cloud: int = 10
-    iterations_per_epoch: int = 200
-    test_rotations: int = 100
-    num_val: int = 20
-    seed: int = 0
-    cache_dir: str | None = None
-
-
-@dataclass
-class ImagePairConfig:
-    """Keys shared by the image-pair datamodules (`rotlearn.data.ImagePairDataModule`)."""
-
-    batch_size: int = 32
-    eval_batch_size: int = 64
-    num_workers: int = 2
-    corrupt_fraction: float = 0.0
-    num_val: int = 64
-    mean: float = 0.0
-    std: float = 1.0
-    seed: int = 0
-    cache_dir: str | None = None
-
-
-@dataclass
-class KittiConfig(ImagePairConfig):
-    """`data=kitti`: `rotlearn.data.KittiOdometryDataModule`."""
-
-    _target_: str = "rotlearn.data.KittiOdometryDataModule"
-    root: str = "data/kitti"
-    train_sequences: list[str] = field(
-        default_factory=lambda: ["00", "02", "05", "06", "07", "08", "09", "10"]
-    )
-    test_sequences: list[str] = field(default_factory=lambda: ["00"])
-    camera: str = "image_2"
-    delta: int = 1
-    image_size: int = 224
-    pair_channels: int = 6
-
-
-@dataclass
-class MAVConfig(ImagePairConfig):
-    """`data=mav`: `rotlearn.data.MAVDataModule`."""
-
-    _target_: str = "rotlearn.data.MAVDataModule"
-    root: str = "data/mav"
-    train_scenes: list[str] = field(default_factory=lambda: ["outdoor"])
-    test_scenes: list[str] = field(default_factory=lambda: ["outdoor"])
-    test_fraction: float = 0.1
-    pose_tolerance_ms: float = 30.0
-    resize: int = 256
-    image_size: int = 224
-    pair_channels: int = 2
-    mean: float = 0.45
-    std: float = 0.25
-
-
-@dataclass
-class ChordalLossConfig:
-    _target_: str = "rotlearn.losses.ChordalLoss"
-
-
-@dataclass
-class AngularLossConfig:
-    _target_: str = "rotlearn.losses.AngularLoss"
-
-
-@dataclass
-class BinghamLossConfig:
-    """`loss=bingham`: `rotlearn.losses.BinghamNLLLoss`; `rep` is interpolated from `rep.name`."""
-
-    _target_: str = "rotlearn.losses.BinghamNLLLoss"
-    rep: str | None = None
-
-
-@dataclass
-class OODConfig:
-    """`callbacks=ood`: `rotlearn.ood.OODEvaluation` (conf/callbacks/ood.yaml)."""
-
-    _target_: str = "rotlearn.ood.OODEvaluation"
-    quantiles: list[float] = field(default_factory=lambda: [0.25, 0.5, 0.75, 1.0])
-    scores: list[str] = field(default_factory=lambda: ["dt", "eigengap", "raw_norm", "autoencoder"])
-    autoencoder_ckpt: str | None = None
-    autoencoder_train: dict[str, Any] | None = None
-    corrupt_fraction: float = 0.5
-    table: dict[str, float] | None = None
-    noise_pairs: int = 64
-    unseen_scenes_ood: bool = False
-    max_train_pairs: int | None = None
-
-
-SCHEMAS: dict[str, dict[str, type]] = {
-    "rep": {RepConfig._target_: RepConfig},
-    "data": {c._target_: c for c in (SyntheticWahbaConfig, ShapeNetConfig, KittiConfig, MAVConfig)},
-    "loss": {c._target_: c for c in (ChordalLossConfig, AngularLossConfig, BinghamLossConfig)},
-    "callbacks.ood": {OODConfig._target_: OODConfig},
+# Group -> option -> `_target_`: rotlearn's components with a derived schema. Each is registered
+# in Hydra's ConfigStore as <group>/<option>_schema (the YAML's starting point).
+COMPONENTS: dict[str, dict[str, str]] = {
+    "rep": {"head": "rotlearn.heads.make_head"},
+    "data": {
+        "synthetic": "rotlearn.data.SyntheticWahbaDataModule",
+        "shapenet": "rotlearn.data.ShapeNetDataModule",
+        "kitti": "rotlearn.data.KittiOdometryDataModule",
+        "mav": "rotlearn.data.MAVDataModule",
+    },
+    "net": {
+        "pointnet": "rotlearn.nets.PointNet",
+        "pair_cnn": "rotlearn.nets.PairCNN",
+        "autoencoder": "rotlearn.nets.ConvAutoEncoder",
+    },
+    "loss": {
+        "chordal": "rotlearn.losses.ChordalLoss",
+        "angular": "rotlearn.losses.AngularLoss",
+        "bingham": "rotlearn.losses.BinghamNLLLoss",
+    },
+    "callbacks.ood": {"ood": "rotlearn.ood.OODEvaluation"},
 }
+VALIDATED_BY_SIGNATURE = ("net",)  # checked with the library classes (`targets()["net"]`)
+
+
+def _default(value: Any) -> Any:
+    """A constructor default as a config value: a tuple becomes a list, none becomes `???`."""
+    if value is inspect.Parameter.empty:
+        return MISSING
+    return list(value) if isinstance(value, tuple) else value
+
+
+def schema(target: str) -> type:
+    """The dataclass schema of the constructor (or function) named `target`: `_target_`, then one
+    field per argument (base classes' arguments passed on with `**kwargs` included), typed by its
+    annotation, with its default (a tuple as a list; a required argument: `???`)."""
+    params = constructor_parameters(get_object(target))
+    fields: list[tuple[str, Any, Any]] = [("_target_", str, dataclasses.field(default=target))]
+    for name, (annotation, default) in params.items():
+        value = _default(default)
+        if isinstance(value, list | dict):
+            field = dataclasses.field(default_factory=partial(type(value), value))
+        else:
+            field = dataclasses.field(default=value)
+        fields.append((name, annotation, field))
+    cls = dataclasses.make_dataclass(f"{target.rsplit('.', 1)[-1]}Schema", fields)
+    cls.__doc__ = f"Config node of `{target}`, derived from its signature."
+    return cls
+
+
+def defaults(cls: type) -> dict[str, Any]:
+    """A schema's fields and defaults as a plain mapping (types are checked by `validate`)."""
+    return {
+        f.name: f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+        for f in dataclasses.fields(cls)
+    }
+
+
+def _schemas() -> dict[str, dict[str, type]]:
+    made: dict[str, dict[str, type]] = {}
+    for group, options in COMPONENTS.items():
+        for target in dict.fromkeys(options.values()):
+            made.setdefault(group, {})[target] = schema(target)
+    return made
+
+
+ALL_SCHEMAS = _schemas()
+# Checked here (the rest by `targets()`): `_target_` -> schema, per group.
+SCHEMAS: dict[str, dict[str, type]] = {
+    group: found for group, found in ALL_SCHEMAS.items() if group not in VALIDATED_BY_SIGNATURE
+}
+
+
+def register_schemas() -> None:
+    """Store each schema's defaults in Hydra's ConfigStore as `<group>/<option>_schema`, the
+    first entry of that option's YAML defaults list. The node is untyped: `validate` checks
+    the types, so that a wrong value is reported with its full key and what was expected."""
+    store = ConfigStore.instance()
+    for group, options in COMPONENTS.items():
+        for option, target in options.items():
+            node = OmegaConf.create(defaults(ALL_SCHEMAS[group][target]))
+            store.store(group=group.replace(".", "/"), name=f"{option}_schema", node=node)
+
+
+register_schemas()
+
+
 OPTIONAL = {"scheduler"}  # checked when present
 NODES = (
     "model",
@@ -191,6 +151,7 @@ TOP_LEVEL: dict[str, Any] = {
     "trials": int,
     "sweep_seed": int,
     "lr_range": tuple[float, float],
+    "report": dict | None,  # rotlearn-report's layout (an experiment's report node)
 }
 REQUIRED = ("seed", "paths")
 BOUNDS = {"seed": (0, 2**32 - 1), "trial": (0, 2**31), "trials": (1, 2**31)}  # seed: numpy's
@@ -205,7 +166,7 @@ def _resolved(cfg: DictConfig, key: str) -> Any:
             value = OmegaConf.to_container(value, resolve=True)
     except OmegaConfBaseException as exc:
         reason = str(exc).splitlines()[0]
-        raise ConfigError(f"config key {key}: cannot be resolved: {reason}") from None
+        raise ConfigError(key, f"cannot be resolved: {reason}") from None
     return value
 
 
@@ -215,25 +176,26 @@ def _mapping(cfg: DictConfig, key: str) -> dict[str, Any] | None:
     if node is None and key in OPTIONAL:
         return None
     if node is None:
-        raise ConfigError(f"config key {key} is missing")
+        raise ConfigError(key, "is missing")
     if not isinstance(node, DictConfig) or "_target_" not in node:
-        raise ConfigError(f"config key {key} must be a mapping with a _target_, got {node!r}")
+        raise ConfigError(key, f"must be a mapping with a _target_, got {node!r}")
     for name in node:
         _resolved(cfg, f"{key}.{name}")  # names the key whose interpolation fails
     return OmegaConf.to_container(node, resolve=True)
 
 
-def _check_dataclass(cfg: DictConfig, key: str, schema: type) -> None:
-    node = OmegaConf.select(cfg, key)
-    check_keys(key, node, [f.name for f in fields(schema)])
-    try:
-        OmegaConf.merge(OmegaConf.structured(schema), node)
-    except ValidationError as exc:
-        field_ = next(f for f in fields(schema) if f.name == exc.key)
-        value = OmegaConf.to_container(node, resolve=True)[exc.key]
-        raise ConfigError(
-            f"config key {key}.{exc.key}: expected {field_.type}, got {value!r}"
-        ) from None
+def _check_schema(key: str, values: dict[str, Any], schema: type) -> None:
+    """Check a resolved node against a derived schema: its keys (`_target_` and the fields),
+    required values, then each value against the field's annotation."""
+    fields = dataclasses.fields(schema)
+    check_keys(key, values, [f.name for f in fields])
+    params = {f.name: (f.type, inspect.Parameter.empty if _required(f) else None) for f in fields}
+    spec = Spec(get_object(values["_target_"]), params)
+    check_values(key, {k: v for k, v in values.items() if k not in HYDRA_KEYS}, spec)
+
+
+def _required(field: dataclasses.Field) -> bool:
+    return field.default == MISSING
 
 
 def _check_node(cfg: DictConfig, key: str, group: str | None = None) -> None:
@@ -249,9 +211,9 @@ def _check_node(cfg: DictConfig, key: str, group: str | None = None) -> None:
             if (name == group or name.startswith(f"{group}.")) and values["_target_"] in schemas
         ),
         None,
-    )  # callbacks.<any name> with OODEvaluation's _target_ is checked by OODConfig
+    )  # callbacks.<any name> with OODEvaluation's _target_ is checked by its schema
     if schema is not None:
-        _check_dataclass(cfg, key, schema)
+        _check_schema(key, values, schema)
         return
     spec = targets().get(group, {}).get(values["_target_"])
     if spec is not None:
@@ -264,12 +226,12 @@ def _check_collection(cfg: DictConfig, key: str) -> None:
     if node is None:
         return
     if not isinstance(node, DictConfig):
-        raise ConfigError(f"config key {key} must be a mapping of names to nodes, got {node!r}")
+        raise ConfigError(key, f"must be a mapping of names to nodes, got {node!r}")
     for name in node:
         if OmegaConf.select(node, str(name)) is None:
             raise ConfigError(
-                f"config key {key}.{name}: must be a mapping with a _target_, got None "
-                f"(to drop it: ~{key}.{name})"
+                f"{key}.{name}",
+                f"must be a mapping with a _target_, got None (to drop it: ~{key}.{name})",
             )
         _check_node(cfg, f"{key}.{name}", group=key)
 
@@ -278,7 +240,7 @@ def _check_top_level(cfg: DictConfig) -> None:
     check_keys("", [k for k in cfg if k != "hydra"], sorted([*TOP_LEVEL, *NODES, "paths"]))
     for name in REQUIRED:
         if name not in cfg:
-            raise ConfigError(f"config key {name} is missing")
+            raise ConfigError(name, "is missing")
     for name, annotation in TOP_LEVEL.items():
         if name in cfg and not accepts(value := _resolved(cfg, name), annotation):
             if get_origin(annotation) is Literal:
@@ -286,19 +248,18 @@ def _check_top_level(cfg: DictConfig) -> None:
                 expected = f"must be {', '.join(first)} or {last}"
             else:
                 expected = f"expected {describe(annotation)}"
-            raise ConfigError(f"config key {name}: {expected}, got {value!r}")
+            raise ConfigError(name, f"{expected}, got {value!r}")
     for name, (low, high) in BOUNDS.items():
         if name in cfg and not low <= (value := _resolved(cfg, name)) <= high:
-            raise ConfigError(f"config key {name}: must lie in [{low}, {high}], got {value!r}")
+            raise ConfigError(name, f"must lie in [{low}, {high}], got {value!r}")
     paths = _resolved(cfg, "paths")
     if not isinstance(paths, dict):
-        raise ConfigError(f"config key paths: must be a mapping with output_dir, got {paths!r}")
+        raise ConfigError("paths", f"must be a mapping with output_dir, got {paths!r}")
     check_keys("paths", paths, list(PATHS))
     for name, annotation in PATHS.items():
         if not accepts(value := paths.get(name), annotation) or not value:
             raise ConfigError(
-                f"config key paths.{name}: expected a non-empty {describe(annotation)}, "
-                f"got {value!r}"
+                f"paths.{name}", f"expected a non-empty {describe(annotation)}, got {value!r}"
             )
 
 
@@ -317,5 +278,5 @@ def validate(cfg: DictConfig) -> None:
         _check_collection(cfg, key)
     try:  # the registry knows the names and sizes; heads are stateless and cheap to make
         make_head(cfg.rep.name, cfg.rep.out_dim, cfg.rep.get("solver"))
-    except ConfigValueError as exc:
-        raise ConfigError(f"config key rep.{exc.key}: {exc.message}") from None
+    except ConfigError as exc:
+        raise exc.within("rep") from None

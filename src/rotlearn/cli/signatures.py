@@ -22,13 +22,21 @@ from dataclasses import dataclass, field
 from functools import cache
 from typing import Any, Literal, Union
 
-__all__ = ["ConfigError", "Spec", "accepts", "check_keys", "check_values", "describe", "targets"]
+from rotlearn.errors import ConfigError
+
+__all__ = [
+    "ConfigError",
+    "Spec",
+    "accepts",
+    "check_keys",
+    "check_values",
+    "constructor_parameters",
+    "describe",
+    "targets",
+]
 
 HYDRA_KEYS = ("_target_", "_partial_", "_recursive_", "_convert_", "_args_")
-
-
-class ConfigError(ValueError):
-    """A config value that cannot be used; the message names its full key."""
+MISSING = "???"  # OmegaConf's mark of a value the config must still set
 
 
 def check_keys(key: str, names: Iterable[str], allowed: list[str]) -> None:
@@ -38,7 +46,7 @@ def check_keys(key: str, names: Iterable[str], allowed: list[str]) -> None:
             close = difflib.get_close_matches(str(name), allowed, n=1)
             hint = f" (did you mean {key + '.' if key else ''}{close[0]}?)" if close else ""
             full = f"{key}.{name}" if key else name
-            raise ConfigError(f"config key {full}: unknown{hint}; allowed: {', '.join(allowed)}")
+            raise ConfigError(full, f"unknown{hint}; allowed: {', '.join(allowed)}")
 
 
 # --- annotations -------------------------------------------------------------------------------
@@ -154,6 +162,23 @@ def parameters(target: Callable[..., Any]) -> dict[str, tuple[Any, Any]]:
     }
 
 
+def constructor_parameters(target: Callable[..., Any]) -> dict[str, tuple[Any, Any]]:
+    """`parameters(target)`, following `**kwargs` to the base classes: a class whose `__init__`
+    passes `**kwargs` on (`super().__init__(**kwargs)`) also takes its bases' arguments (the
+    first definition of a name wins). Stops at the first `__init__` without `**kwargs`."""
+    if not inspect.isclass(target):
+        return parameters(target)
+    found: dict[str, tuple[Any, Any]] = {}
+    for cls in target.__mro__:
+        if "__init__" not in vars(cls):
+            continue
+        for name, value in parameters(cls).items():
+            found.setdefault(name, value)
+        if not takes_kwargs(cls):
+            break
+    return found
+
+
 def _from_default(p: inspect.Parameter) -> Any:
     """An unannotated argument's type, read from its default (bool, a number or str)."""
     if p.annotation is not p.empty:
@@ -174,16 +199,15 @@ def check_values(key: str, values: dict[str, Any], spec: Spec) -> None:
     if not spec.open:
         check_keys(key, values, spec.allowed)
     for name in spec.allowed:
-        if name not in values and spec.params[name][1] is inspect.Parameter.empty:
-            raise ConfigError(f"config key {key}.{name}: missing (the constructor needs it)")
+        required = spec.params[name][1] is inspect.Parameter.empty
+        if required and (name not in values or values[name] == MISSING):
+            raise ConfigError(f"{key}.{name}", "missing (the constructor needs it)")
     for name, value in values.items():
         if name in spec.ranges and (message := spec.ranges[name](value)):
-            raise ConfigError(f"config key {key}.{name}: {message}, got {value!r}")
+            raise ConfigError(f"{key}.{name}", f"{message}, got {value!r}")
         annotation = spec.params.get(name, (Any,))[0]
         if not accepts(value, annotation):
-            raise ConfigError(
-                f"config key {key}.{name}: expected {describe(annotation)}, got {value!r}"
-            )
+            raise ConfigError(f"{key}.{name}", f"expected {describe(annotation)}, got {value!r}")
 
 
 # --- rotlearn's ranges -------------------------------------------------------------------------

@@ -26,8 +26,8 @@ from omegaconf import DictConfig, OmegaConf
 from rotlearn.checkpoint import load_checkpoint
 from rotlearn.cli.callbacks import record_job
 from rotlearn.cli.resume import checkpoint_to_resume, keep_earlier_records, resume_arguments
-from rotlearn.cli.schemas import ConfigError, validate
-from rotlearn.errors import ConfigValueError
+from rotlearn.cli.schemas import validate
+from rotlearn.errors import ConfigError
 from rotlearn.lit import EpochLosses, InterruptRecorder, RunRecords
 from rotlearn.paths import config_dir
 
@@ -42,21 +42,17 @@ for _pattern in (".*does not have many workers.*", ".*smaller than the logging i
 
 
 def _instantiate(cfg: DictConfig, key: str, **kwargs: Any) -> Any:
-    """Instantiate the config node `key`, turning a component's complaint into a `ConfigError`."""
+    """Instantiate the config node `key`; a component's `ConfigError` (its key relative to the
+    node) is re-raised with the full key."""
     node = OmegaConf.select(cfg, key)
     if node is None:
-        raise ConfigError(f"config key {key} is missing")
+        raise ConfigError(key, "is missing")
     try:
         return hydra.utils.instantiate(node, **kwargs)
-    except InstantiationException as exc:
-        cause = exc.__cause__
-        while cause is not None and not isinstance(cause, ConfigValueError):
-            cause = cause.__cause__
-        if cause is None:
-            raise
-        raise ConfigError(
-            f"config key {_component_key(cfg, key, exc)}.{cause.key}: {cause.message}"
-        ) from exc
+    except InstantiationException as exc:  # Hydra wraps what the constructor raised
+        if isinstance(exc.__cause__, ConfigError):
+            raise exc.__cause__.within(_component_key(cfg, key, exc)) from None
+        raise
 
 
 def _component_key(cfg: DictConfig, key: str, exc: InstantiationException) -> str:

@@ -1,4 +1,4 @@
-"""Random erasing of image pairs (spec section 7): the corrupted test inputs of the OOD tests.
+"""Random erasing of image pairs (paper section VI-C): the corrupted test inputs of the OOD tests.
 
 Each image of a pair gets one axis-aligned box of fill 0 (black, in pixel values, before any
 normalisation), with an area fraction in [0.25, 0.5] and an aspect ratio h/w in [0.33, 3], as
@@ -36,8 +36,8 @@ def draw_erasing_boxes(
         count: number of boxes.
         height, width: image size in pixels.
         generator: a seeded CPU generator; the boxes are a function of its state only.
-        area: range of the erased area fraction (spec: 0.25 to 0.5).
-        aspect: range of the box's height / width (spec: 0.33 to 3).
+        area: range of the erased area fraction (default 0.25 to 0.5, as in the authors' code).
+        aspect: range of the box's height / width (default 0.33 to 3, as in the authors' code).
 
     Returns:
         (count, 4) int64 boxes (top, left, box height, box width).

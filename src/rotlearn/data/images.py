@@ -45,14 +45,14 @@ def read_image(path: Path, gray: bool = False) -> np.ndarray:
 
 
 def resize_square(image: np.ndarray, size: int) -> np.ndarray:
-    """KITTI (spec section 5): resize to size x size, ignoring the aspect ratio (area filter)."""
+    """KITTI (paper VI-C): resize to size x size, ignoring the aspect ratio (area filter)."""
     import cv2
 
     return cv2.resize(image, (size, size), interpolation=cv2.INTER_AREA)
 
 
 def resize_center_crop(image: np.ndarray, resize: int, crop: int) -> np.ndarray:
-    """MAV (spec section 9): the shorter side to `resize` (aspect kept), then the central
+    """MAV (paper section VI-D): the shorter side to `resize` (aspect kept), then the central
     crop x crop window, as torchvision's Resize(resize) -> CenterCrop(crop)."""
     import cv2
 

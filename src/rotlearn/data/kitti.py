@@ -1,4 +1,4 @@
-"""KITTI odometry relative rotations (paper Fig. 6-7 and Table I; spec section 5).
+"""KITTI odometry relative rotations (paper Fig. 6-7 and Table I; section VI-C).
 
 Layout: `<root>/sequences/<XX>/image_2/<frame>.png` (left colour camera; `image_0` is the left gray
 one, read as three equal channels) and `<root>/poses/<XX>.txt`, one line per frame holding the

@@ -1,4 +1,4 @@
-"""MAV indoor/outdoor relative rotations (paper Fig. 8; spec section 9).
+"""MAV indoor/outdoor relative rotations (paper Fig. 8; section VI-D).
 
 Layout (EuRoC-like):
 - `<root>/flea3/data.csv`: `#timestamp [ns],filename` header, then one `t_ns,filename` row per

@@ -75,7 +75,7 @@ class ImagePairs(Dataset):
     Args:
         index: the pairs.
         corrupt_fraction: the last fraction of the pairs is marked `corrupted` and carries
-            erasing boxes (one per image, spec section 7), drawn from `seed`.
+            erasing boxes (one per image, paper section VI-C), drawn from `seed`.
         seed: seed of the erasing boxes.
     """
 
@@ -144,7 +144,7 @@ class ImagePairDataModule(pl.LightningDataModule):
         eval_batch_size: validation and test batch (paper: 64).
         num_workers: loader processes gathering cached frames (0: in the main process).
         corrupt_fraction: fraction of the test set, at its end, that is randomly erased
-            (spec section 7; the paper corrupts the second half: 0.5). Flagged `corrupted`.
+            (paper section VI-C; the paper corrupts the second half: 0.5). Flagged `corrupted`.
         num_val: test pairs, evenly spaced and never corrupted, also scored every epoch
             (monitoring only; they are never trained on).
         mean, std: input normalisation after scaling pixels to [0, 1].

@@ -1,4 +1,4 @@
-"""ShapeNet airplanes (paper Fig. 5, spec section 4): point clouds under random rotations.
+"""ShapeNet airplanes (paper Fig. 5, section VI-B): point clouds under random rotations.
 
 Reads either the 6D paper's prepared clouds, `<root>/train/*.pts` and `<root>/test/*.pts` (or
 `.xyz`: one "x y z" point per line), or ShapeNetCore v2 meshes,
@@ -148,7 +148,7 @@ def sample_meshes(paths: list[Path], num_points: int, cache: Path, seed: int = 0
 
 @config_target
 class ShapeNetDataModule(DrawDataModule):
-    """ShapeNet clouds under random rotations (spec section 4).
+    """ShapeNet clouds under random rotations (paper section VI-B).
 
     Args:
         root: dataset root (layout in the module docstring and data/README.md).

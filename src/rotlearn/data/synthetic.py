@@ -53,7 +53,7 @@ def wahba_batch(
 
 @config_target
 class SyntheticWahbaDataModule(DrawDataModule):
-    """Synthetic Wahba data (spec section 3), drawn batch by batch on the model's device.
+    """Synthetic Wahba data (paper section VI-A), drawn batch by batch on the model's device.
 
     Training batches are redrawn every epoch (an epoch is `batches_per_epoch` batches). The
     validation and test sets are fixed by `seed` (drawn on the CPU, so identical on every device)

@@ -22,8 +22,9 @@ tests/test_eigen4.py): float32 needs 12 rounds (11 leave residuals |A q - l1 q| 
 4e-6 ||A||, 4x eigh's), float64 14 (13 leave 5e-14 ||A||).
 
 Below EIGH_BELOW matrices (`method="auto"`) the forward is torch.linalg.eigh instead: the Jacobi
-loop costs ~450 elementwise kernels per call (about 3 ms on the 2-core CPU this was tuned on),
-which only pays off from ~1000 matrices on. The backward is the same either way.
+loop launches ~450 elementwise kernels per call whatever the batch size, a fixed cost that only
+pays off for large batches (the crossover is measured by `bench/rep_layers.py --crossover`).
+The backward is the same either way.
 
 Measured accuracy (max over 20000 matrices per case: Gaussian, I - q q^T with and without 1e-3
 noise, Wahba data matrices (paper eq. 5), clustered -sum q_k q_k^T, Gaussian scaled by 1e-6 and
@@ -36,13 +37,9 @@ l2 - l1 >= 0.01 (l4 - l1)):
 With l2 - l1 = 1e-6 (l4 - l1) the residual bound still holds; q itself is then determined only
 up to ~eps / 1e-6 (float32: 10 deg for this solver, 27 deg for eigh).
 
-Speed (bench/rep_layers.py; 2-core AMD EPYC VM, torch 2.13 CPU, 2 threads; range over 4 runs):
-float32, B = 16384: forward 0.53-0.56 us per matrix, forward+backward 0.70-0.77 us, against
-3.4 / 3.9-4.0 us for torch.linalg.eigh (5.1-5.6x) and 0.07 / 0.29-0.31 us for 6D Gram-Schmidt
-(2.4-2.6x its cost); float64: 1.1-1.2 / 1.4-1.5 us (eigh: 3.7-3.9 / 4.6-4.7 us, 3x). The cost is
-~24 elementwise kernels per round on (2..8, B) rows, bound by memory traffic and per-kernel
-overhead. torch.compile of the loop was tried (inductor, CPU): 33 s to compile and 2x slower than
-eager, so it is not used.
+Speed: see `make bench` (bench/rep_layers.py; results in bench/results). The cost is ~24
+elementwise kernels per round on (2..8, B) rows, bound by memory traffic and per-kernel overhead;
+torch.compile of the loop (inductor, CPU) was slower than eager, so it is not used.
 """
 
 from __future__ import annotations
@@ -55,11 +52,22 @@ from torch.autograd.function import once_differentiable
 
 from rotlearn.errors import batch_index
 
-__all__ = ["DEFAULT_GAP_EPS", "DEFAULT_ROUNDS", "EIGH_BELOW", "sym4_eigh_min", "validate_sym4"]
+__all__ = [
+    "DEFAULT_GAP_EPS",
+    "DEFAULT_ROUNDS",
+    "EIGH_BELOW",
+    "METHODS",
+    "sym4_eigh_min",
+    "validate_sym4",
+]
 
 DEFAULT_GAP_EPS = 1e-6
 DEFAULT_ROUNDS = {torch.float32: 12, torch.float64: 14}
-EIGH_BELOW = 1024  # method="auto": torch.linalg.eigh forward below this many matrices
+METHODS = ("auto", "jacobi", "eigh")  # sym4_eigh_min's forward (also the A head's rep.solver)
+# method="auto": the torch.linalg.eigh forward below this many matrices, Jacobi from there on.
+# Measured by `bench/rep_layers.py --crossover` (the batch size from which Jacobi's forward +
+# backward is faster than eigh's; bench/results/solver_crossover.json).
+EIGH_BELOW = 1024
 # Matrices per pass on CPU, per thread: the working set (~2 MB per 16384 in float32) stays in
 # cache (measured: 16384 best with 1 thread, 32768 with 2). On CUDA the batch is not split.
 _CHUNK_PER_THREAD = 16384
@@ -372,7 +380,7 @@ def sym4_eigh_min(
     if rounds is not None and rounds < 1:
         raise ValueError(f"rounds must be >= 1, got {rounds}")
     batch = A.shape[:-2]
-    if method not in ("auto", "jacobi", "eigh"):
+    if method not in METHODS:
         raise ValueError(f"method must be 'auto', 'jacobi' or 'eigh', got {method!r}")
     A = A.reshape(-1, 4, 4)
     use_eigh = method == "eigh" or (method == "auto" and A.shape[0] < EIGH_BELOW)

@@ -114,7 +114,7 @@ def so3_log(R: Tensor) -> Tensor:
 
 
 def relative_rotation(R_w1: Tensor, R_w2: Tensor) -> Tensor:
-    """The rotation C_21 = R_w2^T R_w1 from frame 1 to frame 2 (spec section 5).
+    """The rotation C_21 = R_w2^T R_w1 from frame 1 to frame 2 (paper section VI-C).
 
     With camera-to-world orientations R_wi (p_w = R_wi p_i + t_wi, as in KITTI's poses files),
     C_21 is the rotation part of T_21 = T_w2^-1 T_w1: it maps a direction in camera-1

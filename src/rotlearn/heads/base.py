@@ -9,7 +9,7 @@ from rotlearn.bingham.descriptors import (
     dt_from_eigenvalues,
     eigengap_from_eigenvalues,
 )
-from rotlearn.errors import ConfigValueError
+from rotlearn.errors import ConfigError
 from rotlearn.geometry import rotmat_to_quat
 from rotlearn.trust import config_target
 
@@ -109,19 +109,18 @@ def make_head(name: str, out_dim: int | None = None, solver: str | None = None) 
     Args:
         name: one of `HEADS`.
         out_dim: if given (the config's `rep.out_dim`), it must equal the head's output size.
-        solver: the eigensolver of the A head (`rep.solver`: fast or eigh); other heads have none.
+        solver: the eigensolver of the A head (`rep.solver`: auto, jacobi or eigh; None: the
+            head's default); other heads have none.
 
     Raises:
-        ConfigValueError: unknown `name` (the message lists the allowed ones), or an `out_dim`
+        ConfigError: unknown `name` (the message lists the allowed ones), or an `out_dim`
             that disagrees with the head.
     """
     if name not in HEADS:
-        raise ConfigValueError("name", f"unknown rep {name!r}; allowed: {', '.join(sorted(HEADS))}")
+        raise ConfigError("name", f"unknown rep {name!r}; allowed: {', '.join(sorted(HEADS))}")
     if solver is not None and name != "a":
-        raise ConfigValueError("solver", f"only the 'a' head has a solver; rep={name} has none")
+        raise ConfigError("solver", f"only the 'a' head has a solver; rep={name} has none")
     head = HEADS[name]() if solver is None else HEADS[name](solver=solver)
     if out_dim is not None and out_dim != head.out_dim:
-        raise ConfigValueError(
-            "out_dim", f"is {out_dim} but the {name!r} head outputs {head.out_dim}"
-        )
+        raise ConfigError("out_dim", f"is {out_dim} but the {name!r} head outputs {head.out_dim}")
     return head

@@ -7,16 +7,20 @@ unit quaternion minimising q^T A q (eq. 6), i.e. the eigenvector of A's smallest
 
 from __future__ import annotations
 
+import warnings
+
 import torch
 from torch import Tensor
 
-from rotlearn.errors import ConfigValueError
-from rotlearn.geometry import quat_canonical, quat_to_rotmat, sym4_eigh_min
+from rotlearn.errors import ConfigError
+from rotlearn.geometry import quat_to_rotmat, sym4_eigh_min
+from rotlearn.geometry.eigen4 import METHODS
 from rotlearn.heads.base import RotationHead, RotationPrediction, register_head
 
 __all__ = ["SOLVERS", "AHead", "a_from_quat", "a_from_vec", "a_min_eigvec", "vec_from_a"]
 
-SOLVERS = ("fast", "eigh")  # rep.solver: rotlearn.geometry.sym4_eigh_min, or torch.linalg.eigh
+SOLVERS = METHODS  # rep.solver: the `method` of rotlearn.geometry.sym4_eigh_min
+DEPRECATED_SOLVERS = {"fast": "auto"}  # names that configs saved by earlier versions hold
 
 # Row-major upper triangle of a 4x4 matrix: a00 a01 a02 a03 a11 a12 a13 a22 a23 a33 (eq. 8).
 _TRIU_ROWS, _TRIU_COLS = torch.triu_indices(4, 4)
@@ -56,25 +60,22 @@ def a_from_quat(q: Tensor) -> Tensor:
     return eye - q.unsqueeze(-1) * q.unsqueeze(-2)
 
 
-def a_min_eigvec(A: Tensor, solver: str = "fast") -> tuple[Tensor, Tensor]:
+def a_min_eigvec(A: Tensor, solver: str = "auto") -> tuple[Tensor, Tensor]:
     """Eigenvalues and the minimum eigenvector of symmetric 4x4 matrices (paper eqs. 9, 11).
 
     Args:
-        A: (..., 4, 4) symmetric matrices.
-        solver: "fast" (`rotlearn.geometry.sym4_eigh_min`: batched Jacobi with the analytic
-            gradient of eq. 9, finite where eigenvalues coincide) or "eigh" (`torch.linalg.eigh`,
-            whose backward is NaN where eigenvalues coincide, e.g. A = cI).
+        A: (..., 4, 4) symmetric matrices, float32 or float64.
+        solver: the forward of `rotlearn.geometry.sym4_eigh_min` (its `method`): "jacobi" (the
+            batched Jacobi solver), "eigh" (torch.linalg.eigh) or "auto" (eigh below
+            `rotlearn.geometry.eigen4.EIGH_BELOW` matrices, jacobi from there on). The backward
+            is the same for all three: the analytic gradient of eq. 9, finite where eigenvalues
+            coincide (torch.linalg.eigh's own backward is NaN there, e.g. for A = cI).
 
     Returns:
         eigenvalues (..., 4) in ascending order, and q (..., 4), the unit eigenvector of the
         smallest one as a quaternion (x, y, z, w) with canonical sign (w >= 0).
     """
-    if solver == "fast":
-        return sym4_eigh_min(A, check=False)
-    if solver == "eigh":
-        eigenvalues, eigenvectors = torch.linalg.eigh(A)
-        return eigenvalues, quat_canonical(eigenvectors[..., 0])
-    raise ValueError(f"solver must be one of {SOLVERS}, got {solver!r}")
+    return sym4_eigh_min(A, check=False, method=solver)
 
 
 @register_head
@@ -85,10 +86,23 @@ class AHead(RotationHead):
     out_dim = 10
     defines_belief = True
 
-    def __init__(self, solver: str = "fast") -> None:
+    def __init__(self, solver: str = "auto") -> None:
+        """Args:
+        solver: `rep.solver`, one of `SOLVERS` (see `a_min_eigvec`). "fast", the name earlier
+            versions saved, is read as "auto" (the same computation) with a DeprecationWarning.
+        """
         super().__init__()
+        if solver in DEPRECATED_SOLVERS:
+            new = DEPRECATED_SOLVERS[solver]
+            warnings.warn(
+                f"rep.solver={solver} is deprecated: it is read as rep.solver={new} (the same "
+                f"solver); write {new}",
+                DeprecationWarning,
+                stacklevel=2,
+            )
+            solver = new
         if solver not in SOLVERS:
-            raise ConfigValueError("solver", f"must be one of {', '.join(SOLVERS)}, got {solver!r}")
+            raise ConfigError("solver", f"must be one of {', '.join(SOLVERS)}, got {solver!r}")
         self.solver = solver
 
     def extra_repr(self) -> str:

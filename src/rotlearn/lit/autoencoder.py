@@ -1,4 +1,4 @@
-"""AutoEncoderModule: the auto-encoder OOD baseline of spec section 8, trained on first images."""
+"""AutoEncoderModule: the auto-encoder OOD baseline (paper VI-C.1), trained on first images."""
 
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ OptimizerFactory = Callable[[Iterable[nn.Parameter]], torch.optim.Optimizer]
 class AutoEncoderModule(RunStateHooks, pl.LightningModule):
     """Reconstruct the FIRST image of each stacked pair; its mean L1 error is the OOD score.
 
-    Spec section 8: trained with the mean L1 pixel loss (paper: Adam, lr 5e-4, batch 32,
+    Paper section VI-C.1: trained with the mean L1 pixel loss (paper: Adam, lr 5e-4, batch 32,
     20 epochs); a pair is kept when its score lies below a quantile of the training scores.
     Logs, once per epoch: train/loss, val/loss (mean L1 over the epoch's pixels) and, at test,
     test/recon_mean (the mean score of the test pairs).

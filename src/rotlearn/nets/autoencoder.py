@@ -1,4 +1,4 @@
-"""The convolutional auto-encoder of the OOD baseline (spec section 8)."""
+"""The convolutional auto-encoder of the OOD baseline (paper section VI-C.1)."""
 
 from __future__ import annotations
 
@@ -45,9 +45,9 @@ def conv_decoder(channels: Sequence[int], sizes: Sequence[int]) -> nn.Sequential
 
 @config_target
 class ConvAutoEncoder(nn.Module):
-    """Auto-encoder of ONE image of a pair, whose reconstruction error is an OOD score (spec 8).
+    """Auto-encoder of ONE image of a pair, its reconstruction error an OOD score (paper VI-C.1).
 
-    Encoder: the pair CNN's convolutions (`conv_encoder`, spec section 5) on C = pair_channels / 2
+    Encoder: the pair CNN's convolutions (`conv_encoder`, paper VI-C) on C = pair_channels / 2
     channels -> flatten (paper: 1024 x 2 x 2 = 4096) -> Linear hidden -> PReLU -> Linear latent.
     Decoder: Linear latent -> hidden -> PReLU -> Linear flat -> unflatten -> the transposed
     convolutions of `conv_decoder` back to (C, S, S), without an output activation.

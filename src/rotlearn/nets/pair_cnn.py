@@ -1,4 +1,4 @@
-"""The image-pair CNN of the paper's KITTI and MAV experiments (spec section 5)."""
+"""The image-pair CNN of the paper's KITTI and MAV experiments (paper section VI-C)."""
 
 from __future__ import annotations
 
@@ -35,7 +35,7 @@ def encoded_size(image_size: int, layers: int) -> int:
 
 @config_target
 class PairCNN(nn.Module):
-    """Stacked image pair -> `out_dim` numbers (spec section 5).
+    """Stacked image pair -> `out_dim` numbers (paper section VI-C).
 
     Paper: 7 convolutions 6 -> 64 -> 128 -> 256 -> 512 -> 1024 -> 1024 -> 1024 (224 -> 2 pixels),
     flatten (4096) -> Linear 512 -> PReLU -> Linear out_dim.

@@ -1,4 +1,4 @@
-"""The point-cloud network of the paper's synthetic and ShapeNet experiments (spec section 3)."""
+"""The point-cloud network of the paper's synthetic and ShapeNet experiments (paper VI-A, VI-B)."""
 
 from __future__ import annotations
 

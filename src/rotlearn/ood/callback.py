@@ -38,7 +38,7 @@ log = logging.getLogger("rotlearn")
 
 
 def pr_quantiles(start: float = 0.05, stop: float = 0.97, step: float = 0.02) -> list[float]:
-    """The quantiles of the precision-recall curve (spec section 6: 0.05 to 0.97 by 0.02)."""
+    """The quantiles of the precision-recall curve: 0.05 to 0.97 by 0.02."""
     return [round(q, 6) for q in np.arange(start, stop + step / 2, step)]
 
 
@@ -132,7 +132,7 @@ class OODEvaluation(pl.Callback):
         optimizer = torch.optim.Adam(module.parameters(), lr=lr)
         log.info("OOD evaluation: training an auto-encoder for %d epochs", epochs)
         module.train()
-        for _ in range(epochs):  # the paper's loop (spec 8): Adam on the mean L1 error
+        for _ in range(epochs):  # the paper's loop (section VI-C.1): Adam on the mean L1 error
             for batch in dm.train_dataloader():
                 batch = dm.on_after_batch_transfer({k: v.to(device) for k, v in batch.items()}, 0)
                 loss = module.errors(batch["input"]).mean()

@@ -1,4 +1,4 @@
-"""Rejection statistics for one score on one test set (spec section 6, without its off-by-one).
+"""Rejection statistics for one score on one test set (paper section V-A, Table I).
 
 Given per-sample errors, scores, corrupted flags and a threshold: kept %, the error of the kept
 and of all samples, precision = |kept and clean| / |kept|, recall = |kept and clean| / |clean|,

@@ -93,8 +93,8 @@ def ood_markdown(rep: str, frame: pd.DataFrame) -> str:
     return "\n\n".join([
         f"# OOD evaluation ({rep} head)",
         f"Test set: {n} pairs; the corrupted set erases the last {n_corrupted} of them "
-        "(spec section 7). Errors are mean angles in degrees over the kept pairs; precision and "
-        "recall are of keeping clean pairs (spec section 6). Thresholds: quantile q of the "
+        "(paper section VI-C). Errors are mean angles in degrees over the kept pairs; precision "
+        "and recall are of keeping clean pairs (paper section V-A). Thresholds: quantile q of the "
         "training scores.",
         "## Table I",
         markdown_table(table_rows(rep, frame), TABLE_COLUMNS),
@@ -113,7 +113,7 @@ def _figure():
 
 
 def pr_figure(score: Score, curve: list[dict]):
-    """Precision vs recall of keeping clean pairs, q from 0.05 to 0.97 (spec section 6)."""
+    """Precision vs recall of keeping clean pairs, q from 0.05 to 0.97 (paper section V-A)."""
     fig, ax = _figure()
     ax.plot([r["recall"] for r in curve], [r["precision"] for r in curve], marker=".")
     ax.set(xlabel="recall %", ylabel="precision %", title=f"{score.name}: corrupted test set")
