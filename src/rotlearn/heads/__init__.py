@@ -1,4 +1,11 @@
-"""Floor 1: representation heads, stateless maps from a network output to a rotation (`rep=`)."""
+"""Floor 1: representation heads, stateless maps from a network output to a rotation (`rep=`).
+
+Every module of this package is imported here, so a new head is one module (a `RotationHead`
+subclass decorated with `@register_head`) and one `conf/rep/<name>.yaml`; nothing else changes.
+"""
+
+import importlib
+import pkgutil
 
 from rotlearn.heads.base import (
     HEADS,
@@ -29,3 +36,6 @@ __all__ = [
     "special_orthogonalize",
     "vec_from_a",
 ]
+
+for _module in pkgutil.iter_modules(__path__):  # registers every head defined in this package
+    importlib.import_module(f"{__name__}.{_module.name}")
