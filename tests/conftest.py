@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import pytest
+import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
@@ -15,6 +19,50 @@ CONFIG_DIR = config_dir()
 
 # A network small enough that a test epoch takes milliseconds.
 SMALL_NET = ["net.point_channels=[16,32,64]", "net.head_channels=[32,16]"]
+# A tiny synthetic run on the CPU, no progress bar.
+FAST = ["data=tiny", "trainer=cpu", "trainer.enable_progress_bar=false", *SMALL_NET]
+# A run long enough to be interrupted between checkpoints (resume and signal tests).
+RESUMABLE = [
+    "data=tiny",
+    "data.batches_per_epoch=25",
+    "trainer.max_epochs=6",
+    "trainer.enable_progress_bar=false",
+    "logger=csv",
+    *SMALL_NET,
+]
+_CLI_ENV = {"HYDRA_FULL_ERROR": "0", "PYTHONWARNINGS": "ignore"}
+
+
+def start_cli(args: list[str], cwd: Path) -> subprocess.Popen:
+    """`rotlearn-train <args>` in a subprocess in `cwd` (stdout dropped, stderr piped)."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "rotlearn.train", *args],
+        cwd=cwd,
+        env={**os.environ, **_CLI_ENV},
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def run_cli(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
+    """`rotlearn-train <args>` run to its end in `cwd`, output captured."""
+    command = [sys.executable, "-m", "rotlearn.train", *args]
+    env = {**os.environ, **_CLI_ENV}
+    return subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True, timeout=600)
+
+
+def checkpoint_epoch(path: Path) -> int:
+    """The epoch stored in a checkpoint file, or -1 while it is not (fully) there."""
+    try:
+        return int(torch.load(path, weights_only=True)["epoch"])
+    except (OSError, RuntimeError, EOFError, KeyError):
+        return -1
+
+
+def gen(seed: int) -> torch.Generator:
+    """A CPU random generator seeded with `seed` (each test draws from its own stream)."""
+    return torch.Generator().manual_seed(seed)
 
 
 def config_options(group: str) -> list[str]:

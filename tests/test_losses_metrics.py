@@ -13,12 +13,9 @@ from rotlearn.geometry import quat_chordal_distance, rotmat_to_quat
 from rotlearn.heads import HEADS, make_head
 from rotlearn.losses import AngularLoss, ChordalLoss
 from rotlearn.metrics import AngularError
+from tests.conftest import gen
 
 F64 = torch.float64
-
-
-def gen(seed: int) -> torch.Generator:
-    return torch.Generator().manual_seed(seed)
 
 
 def scipy_rotmats(seed: int, shape: tuple[int, ...]) -> torch.Tensor:

@@ -22,12 +22,9 @@ from rotlearn.errors import ConfigValueError
 from rotlearn.geometry import quat_to_rotmat
 from rotlearn.heads import a_from_quat, a_min_eigvec, make_head
 from rotlearn.losses import BinghamNLLLoss
+from tests.conftest import gen
 
 F32, F64 = torch.float32, torch.float64
-
-
-def gen(seed: int) -> torch.Generator:
-    return torch.Generator().manual_seed(seed)
 
 
 # ------------------------------------------------------------------------------ the reference

@@ -35,15 +35,12 @@ from rotlearn.geometry.eigen4 import (
     validate_sym4,
 )
 from rotlearn.heads import a_from_quat, a_from_vec
+from tests.conftest import gen
 
 F32, F64 = torch.float32, torch.float64
 DTYPES = [F32, F64]
 EPS = {F32: torch.finfo(F32).eps, F64: torch.finfo(F64).eps}
 N = 20000  # matrices per accuracy case
-
-
-def gen(seed: int) -> torch.Generator:
-    return torch.Generator().manual_seed(seed)
 
 
 def sym_randn(n: int, seed: int) -> torch.Tensor:

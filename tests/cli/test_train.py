@@ -4,9 +4,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pandas as pd
@@ -16,9 +13,7 @@ from omegaconf import OmegaConf
 
 from rotlearn.cli.train import ConfigError, build, train
 from rotlearn.errors import NonFiniteError
-from tests.conftest import SMALL_NET, config_options
-
-FAST = ["data=tiny", "trainer=cpu", "trainer.enable_progress_bar=false", *SMALL_NET]
+from tests.conftest import FAST, config_options, run_cli
 
 
 @pytest.mark.parametrize("rep", config_options("rep"))
@@ -160,14 +155,8 @@ def test_non_finite_input_is_reported_as_such(make_cfg):
         trainer.fit(model, datamodule=datamodule)
 
 
-def _cli(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
-    env = {**os.environ, "HYDRA_FULL_ERROR": "0", "PYTHONWARNINGS": "ignore"}
-    command = [sys.executable, "-m", "rotlearn.train", *args]
-    return subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True, timeout=600)
-
-
 def test_cli_refuses_unknown_rep_listing_options(tmp_path):
-    result = _cli(["rep=quaternion"], tmp_path)
+    result = run_cli(["rep=quaternion"], tmp_path)
     assert result.returncode != 0
     assert "Could not find 'rep/quaternion'" in result.stderr
     for name in ("quat", "sixd", "a", "svd9d"):
@@ -175,7 +164,7 @@ def test_cli_refuses_unknown_rep_listing_options(tmp_path):
 
 
 def test_cli_refuses_phi_max_out_of_range_naming_the_key(tmp_path):
-    result = _cli(["data.phi_max_deg=270"], tmp_path)
+    result = run_cli(["data.phi_max_deg=270"], tmp_path)
     assert result.returncode != 0
     assert "config key data.phi_max_deg: must lie in (0, 180]" in result.stderr
 
@@ -183,7 +172,7 @@ def test_cli_refuses_phi_max_out_of_range_naming_the_key(tmp_path):
 def test_multirun_gives_each_job_its_own_directory_and_metrics(tmp_path):
     sweep = tmp_path / "sweep"
     args = ["-m", "rep=quat,sixd,a,svd9d", "optim.lr=1e-4,1e-3", "trainer.max_epochs=1"]
-    result = _cli([*args, *FAST, f"hydra.sweep.dir={sweep}"], tmp_path)
+    result = run_cli([*args, *FAST, f"hydra.sweep.dir={sweep}"], tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     jobs = sorted(p for p in sweep.iterdir() if p.is_dir())
     assert len(jobs) == 8
@@ -200,7 +189,7 @@ def test_multirun_gives_each_job_its_own_directory_and_metrics(tmp_path):
 def test_a_failing_job_keeps_the_others_and_is_listed(tmp_path):
     sweep = tmp_path / "sweep"
     args = ["-m", "data.phi_max_deg=90,270,45", "trainer.max_epochs=1", f"hydra.sweep.dir={sweep}"]
-    result = _cli([*args, *FAST], tmp_path)
+    result = run_cli([*args, *FAST], tmp_path)
     assert result.returncode != 0  # the sweep reports the failure...
     summary = json.loads((sweep / "jobs.json").read_text())
     assert (summary["completed"], summary["failed"]) == (2, 1)

@@ -25,15 +25,12 @@ from rotlearn.heads import (
     special_orthogonalize,
     vec_from_a,
 )
+from tests.conftest import gen
 
 DTYPES = [torch.float32, torch.float64]
 ATOL = {torch.float32: 1e-5, torch.float64: 1e-12}
 F64 = torch.float64
 HEAD_NAMES = sorted(HEADS)
-
-
-def gen(seed: int) -> torch.Generator:
-    return torch.Generator().manual_seed(seed)
 
 
 def randn(seed: int, shape: tuple[int, ...], dtype: torch.dtype = F64) -> torch.Tensor:

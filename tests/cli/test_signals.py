@@ -17,8 +17,7 @@ from omegaconf import OmegaConf, open_dict
 from rotlearn.cli.callbacks import JobStatusCallback, summarise_jobs
 from rotlearn.cli.report import make_report
 from rotlearn.lit import divergence
-from tests.conftest import CONFIG_DIR
-from tests.test_resume import ARGS, _checkpoint_epoch, _train
+from tests.conftest import CONFIG_DIR, RESUMABLE, checkpoint_epoch, start_cli
 
 # --- signals -----------------------------------------------------------------------------------
 
@@ -27,10 +26,10 @@ from tests.test_resume import ARGS, _checkpoint_epoch, _train
 @pytest.mark.parametrize(("sig", "code"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
 def test_a_signal_leaves_an_interrupted_status_and_a_resume_command_that_works(tmp_path, sig, code):
     run = tmp_path / "run"
-    job = _train([*ARGS, "trainer.max_epochs=3", f"hydra.run.dir={run}"], tmp_path)
+    job = start_cli([*RESUMABLE, "trainer.max_epochs=3", f"hydra.run.dir={run}"], tmp_path)
     last = run / "checkpoints" / "last.ckpt"
     deadline = time.monotonic() + 300
-    while _checkpoint_epoch(last) < 0:  # the first checkpoint (end of epoch 0)
+    while checkpoint_epoch(last) < 0:  # the first checkpoint (end of epoch 0)
         assert job.poll() is None, f"training ended before the signal: {job.stderr.read()}"
         assert time.monotonic() < deadline
         time.sleep(0.02)
@@ -39,13 +38,13 @@ def test_a_signal_leaves_an_interrupted_status_and_a_resume_command_that_works(t
 
     status = json.loads((run / "status.json").read_text())
     assert status["status"] == "INTERRUPTED" and status["signal"] == sig.name
-    assert status["last_finished_epoch"] == _checkpoint_epoch(last) < 2
+    assert status["last_finished_epoch"] == checkpoint_epoch(last) < 2
     assert status["resume_command"] == f"rotlearn-train ckpt_path={run.resolve()}"
     assert not (run / "metrics.json").exists()
 
     command = status["resume_command"].split()
     assert command[0] == "rotlearn-train"
-    resumed = _train(command[1:], tmp_path)  # the same arguments, through python -m
+    resumed = start_cli(command[1:], tmp_path)  # the same arguments, through python -m
     assert resumed.wait(timeout=300) == 0, resumed.stderr.read()
     assert json.loads((run / "status.json").read_text())["status"] == "COMPLETED"
     assert json.loads((run / "metrics.json").read_text())["epochs"] == 3

@@ -4,65 +4,33 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
-import torch
 
 from rotlearn.cli.resume import keep_earlier_records, resume_arguments
-from tests.conftest import SMALL_NET
-
-ARGS = [
-    "data=tiny",
-    "data.batches_per_epoch=25",
-    "trainer.max_epochs=6",
-    "trainer.enable_progress_bar=false",
-    "logger=csv",
-    *SMALL_NET,
-]
-
-
-def _train(args: list[str], cwd: Path) -> subprocess.Popen:
-    env = {**os.environ, "PYTHONWARNINGS": "ignore"}
-    return subprocess.Popen(
-        [sys.executable, "-m", "rotlearn.train", *args],
-        cwd=cwd,
-        env=env,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-
-
-def _checkpoint_epoch(path: Path) -> int:
-    try:
-        return int(torch.load(path, weights_only=True)["epoch"])
-    except (OSError, RuntimeError, EOFError, KeyError):
-        return -1  # not there yet
+from tests.conftest import RESUMABLE, SMALL_NET, checkpoint_epoch, start_cli
 
 
 def test_sigkill_then_resume_matches_an_uninterrupted_run(tmp_path):
     run = tmp_path / "run"
-    job = _train([*ARGS, f"hydra.run.dir={run}"], tmp_path)
+    job = start_cli([*RESUMABLE, f"hydra.run.dir={run}"], tmp_path)
     last = run / "checkpoints" / "last.ckpt"
     deadline = time.monotonic() + 300
-    while _checkpoint_epoch(last) < 1:  # killed after its 2nd checkpoint (epoch index 1)
+    while checkpoint_epoch(last) < 1:  # killed after its 2nd checkpoint (epoch index 1)
         assert job.poll() is None, f"training ended before it could be killed: {job.stderr.read()}"
         assert time.monotonic() < deadline
         time.sleep(0.02)
     job.send_signal(signal.SIGKILL)
     job.wait()
-    killed_at = _checkpoint_epoch(last)
+    killed_at = checkpoint_epoch(last)
     assert not (run / "metrics.json").exists() and killed_at < 5, "the run finished before the kill"
 
-    resumed = _train([f"ckpt_path={run}"], tmp_path)
+    resumed = start_cli([f"ckpt_path={run}"], tmp_path)
     assert resumed.wait(timeout=300) == 0, resumed.stderr.read()
-    reference = _train([*ARGS, f"hydra.run.dir={tmp_path / 'reference'}"], tmp_path)
+    reference = start_cli([*RESUMABLE, f"hydra.run.dir={tmp_path / 'reference'}"], tmp_path)
     assert reference.wait(timeout=300) == 0, reference.stderr.read()
 
     metrics = json.loads((run / "metrics.json").read_text())
@@ -140,7 +108,7 @@ def _hashes(run: Path) -> dict[str, str]:
 def _completed_run(cwd: Path, name: str) -> Path:
     """A finished one-epoch run, made by the CLI in `<cwd>/outputs/runs/<name>`."""
     run = cwd / "outputs" / "runs" / name
-    job = _train([*ONE_EPOCH, f"hydra.run.dir={run}"], cwd)
+    job = start_cli([*ONE_EPOCH, f"hydra.run.dir={run}"], cwd)
     assert job.wait(timeout=300) == 0, job.stderr.read()
     assert json.loads((run / "status.json").read_text())["status"] == "COMPLETED"
     return run
@@ -156,7 +124,7 @@ def completed(tmp_path_factory) -> Path:
 def test_a_refused_resume_from_the_command_line_leaves_the_run_byte_identical(completed):
     run = completed / "outputs" / "runs" / "2026-01-02_00-00-00-000000"
     before = _hashes(run)
-    job = _train([f"ckpt_path={run}", "optim.lr=0.5", "seed=99"], completed)
+    job = start_cli([f"ckpt_path={run}", "optim.lr=0.5", "seed=99"], completed)
     assert job.wait(timeout=300) != 0
     message = job.stderr.read()
     assert f"refusing to resume {run}" in message and "COMPLETED" in message
@@ -203,7 +171,7 @@ def test_a_completed_run_trains_longer_and_keeps_its_earlier_records(tmp_path):
     records = ["metrics.json", "status.json", "timing.json", "test_errors.json",
                ".hydra/config.yaml", ".hydra/overrides.yaml", ".hydra/hydra.yaml"]  # fmt: skip
     before = {name: (run / name).read_bytes() for name in records}
-    job = _train([f"ckpt_path={run}", "trainer.max_epochs=2"], tmp_path)
+    job = start_cli([f"ckpt_path={run}", "trainer.max_epochs=2"], tmp_path)
     assert job.wait(timeout=300) == 0, job.stderr.read()
     for name, content in before.items():  # the first attempt's records, unchanged
         assert (run / "history" / "1" / name).read_bytes() == content, name

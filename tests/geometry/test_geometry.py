@@ -41,6 +41,7 @@ from rotlearn.geometry import (
     so3_log_quat,
     vee,
 )
+from tests.conftest import gen
 
 DTYPES = [torch.float32, torch.float64]
 ATOL = {torch.float32: 1e-5, torch.float64: 1e-12}
@@ -53,10 +54,6 @@ shapes = st.sampled_from([(), (3,), (2, 3)])
 # ---------------------------------------------------------------------------------------------
 # helpers (independent of the code under test where it matters)
 # ---------------------------------------------------------------------------------------------
-
-
-def gen(seed: int) -> torch.Generator:
-    return torch.Generator().manual_seed(seed)
 
 
 def randn(seed: int, shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:

@@ -16,8 +16,7 @@ from rotlearn.cli.report import main as report_main
 from rotlearn.cli.resolvers import loguniform_trial
 from rotlearn.cli.schemas import validate
 from rotlearn.paths import config_dir
-from tests.conftest import config_options
-from tests.test_train import FAST, _cli
+from tests.conftest import FAST, config_options, run_cli
 
 
 @pytest.mark.parametrize("experiment", config_options("experiment"))
@@ -134,7 +133,7 @@ def test_an_experiment_sweep_ends_with_its_report(tmp_path):
     sweep = tmp_path / "sweep"
     args = ["-m", "experiment=synthetic_phi_max_cpu", "hydra.sweeper.params.rep='a,quat'",
             "trainer.max_epochs=1", f"hydra.sweep.dir={sweep}", *FAST]  # fmt: skip
-    result = _cli(args, tmp_path)
+    result = run_cli(args, tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     assert len(list(sweep.glob("*/metrics.json"))) == 6
     report = (sweep / "report.md").read_text()
@@ -145,7 +144,7 @@ def test_joblib_launcher_runs_jobs_in_parallel_processes(tmp_path):
     sweep = tmp_path / "sweep"
     args = ["-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", "rep=a,sixd",
             "trainer.max_epochs=1", f"hydra.sweep.dir={sweep}", *FAST]  # fmt: skip
-    result = _cli(args, tmp_path)
+    result = run_cli(args, tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     summary = json.loads((sweep / "jobs.json").read_text())
     assert summary["completed"] == 2 and (sweep / "report.md").exists()
@@ -165,7 +164,7 @@ def test_submitit_local_runs_a_two_job_sweep(tmp_path):
     sweep = tmp_path / "sweep"
     args = ["-m", "hydra/launcher=submitit_local", "hydra.launcher.timeout_min=10", "rep=a,quat",
             "trainer.max_epochs=1", f"hydra.sweep.dir={sweep}", *FAST]  # fmt: skip
-    result = _cli(args, tmp_path)
+    result = run_cli(args, tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     assert len(list(sweep.glob("*/metrics.json"))) == 2
 
@@ -174,7 +173,7 @@ def test_submitit_local_runs_a_two_job_sweep(tmp_path):
 def test_ddp_cpu_trains_in_two_processes(tmp_path):
     run = tmp_path / "run"
     args = ["trainer=ddp_cpu", "trainer.max_epochs=2", f"hydra.run.dir={run}", *FAST]
-    result = _cli(args, tmp_path)
+    result = run_cli(args, tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["epochs"] == 2 and 0.0 <= metrics["test/err_mean"] <= 180.0
@@ -205,7 +204,7 @@ def test_optuna_search_minimises_the_validation_median(tmp_path):
     pytest.importorskip("hydra_plugins.hydra_optuna_sweeper")
     sweep = tmp_path / "optuna"
     args = ["-m", "sweep=optuna", "hydra.sweeper.n_trials=2", *FAST, "trainer.max_epochs=1"]
-    result = _cli([*args, f"hydra.sweep.dir={sweep}"], tmp_path)
+    result = run_cli([*args, f"hydra.sweep.dir={sweep}"], tmp_path)
     assert result.returncode == 0, result.stderr[-2000:]
     best = OmegaConf.load(sweep / "optimization_results.yaml")
     medians = [json.loads((sweep / str(i) / "metrics.json").read_text()) for i in (0, 1)]

@@ -7,15 +7,12 @@ import torch
 from torch import nn
 
 from rotlearn.nets import LinearMaxPool, PointNet
+from tests.conftest import gen
 
 DTYPES = [torch.float32, torch.float64]
 # values: a dot product of C_IN = 12 terms of size O(1); the two paths sum in different orders
 ATOL = {torch.float32: 1e-5, torch.float64: 1e-12}
 C_IN, C_OUT = 12, 16
-
-
-def gen(seed: int) -> torch.Generator:
-    return torch.Generator().manual_seed(seed)
 
 
 def make_pool(dtype: torch.dtype, chunk_points: int, seed: int = 0) -> LinearMaxPool:
