@@ -2,7 +2,7 @@
 
 A score maps a prediction to (B,) numbers. `keep_below` says which side is confident: DT's
 tr(Lambda) and the auto-encoder's reconstruction error keep LOW scores; the eigen-gap and the
-norm of the raw output keep HIGH scores (spec section 6).
+norm of the raw output keep HIGH scores (paper section V-A).
 
 Thresholds: for a quantile q, the threshold is set so that a fraction q of the TRAINING scores
 falls on the kept side: the q-quantile of the training scores for keep-below scores (the paper's
