@@ -105,6 +105,10 @@ def test_batches_stack_the_two_frames_as_channels(tmp_path):
     assert np.array_equal(batch["input"][0, 3:].numpy(), frames[3])
     floats = dm.on_after_batch_transfer(batch, 0)["input"]
     assert floats.dtype == torch.float32 and float(floats.max()) <= 1.0
+    # the one finishing step, with the device and dtype given by the caller
+    double = dm.finish_batch(batch, "cpu", torch.float64)
+    assert double["input"].dtype == double["R"].dtype == torch.float64
+    torch.testing.assert_close(double["input"].float(), floats)
 
 
 # -- frame cache -------------------------------------------------------------------------------
