@@ -132,7 +132,7 @@ class SyntheticWahbaDataModule(DrawDataModule):
         device: torch.device | str = "cpu",
         dtype: torch.dtype = torch.float32,
     ) -> dict[str, Tensor]:
-        """The batch a request names, on the model's device, in the model's dtype."""
+        """The batch a request names, made on `device` in `dtype`."""
         generator = self.generator(split, index, device)
         batch = wahba_batch(
             size,
