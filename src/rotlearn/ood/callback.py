@@ -101,8 +101,9 @@ class OODEvaluation(pl.Callback):
         self.noise_pairs, self.max_train_pairs = int(noise_pairs), max_train_pairs
         self.unseen_scenes_ood = bool(unseen_scenes_ood)
 
-    def _autoencoder(self, trainer: pl.Trainer, source: OODDataSource, device: torch.device):
-        """The auto-encoder of the `autoencoder` score: loaded, trained here, or None."""
+    def _autoencoder(self, trainer: pl.Trainer, device: torch.device):
+        """The auto-encoder of the `autoencoder` score: loaded, trained here on the datamodule's
+        training pairs, or None."""
         from rotlearn.lit.autoencoder import fit_autoencoder, load_autoencoder, save_autoencoder
 
         if "autoencoder" not in self.score_names:
@@ -111,6 +112,7 @@ class OODEvaluation(pl.Callback):
             return load_autoencoder(self.autoencoder_ckpt, device=device)
         if not self.autoencoder_train:
             return None
+        source: OODDataSource = trainer.datamodule
         spec = dict(self.autoencoder_train)
         epochs, lr = int(spec.pop("epochs", 20)), float(spec.pop("lr", 5e-4))
         channels, size = source.pair_shape()[0], source.pair_shape()[-1]
@@ -152,7 +154,7 @@ class OODEvaluation(pl.Callback):
             )
         if not trainer.is_global_zero:
             return
-        autoencoder = self._autoencoder(trainer, source, pl_module.device)
+        autoencoder = self._autoencoder(trainer, pl_module.device)
         scores = available_scores(
             self.score_names, pl_module.head.defines_belief, autoencoder is not None
         )
