@@ -151,9 +151,10 @@ class DataDependentInit(pl.Callback):
         if stage != "fit" or datamodule is None or not hasattr(net, "initialize_from"):
             return
         batch = next(iter(datamodule.train_dataloader()))
-        finish = getattr(datamodule, "finish_batch", None)
-        if finish is not None:
-            batch = finish(batch, pl_module.device, pl_module.dtype)
+        if hasattr(datamodule, "finish_batch"):
+            batch = datamodule.finish_batch(batch, pl_module.device, pl_module.dtype)
+        else:  # a datamodule of another kind: its Lightning hook
+            batch = datamodule.on_after_batch_transfer(batch, 0)
         parameter = next(net.parameters(), None)
         points = batch["input"]
         if parameter is not None:
