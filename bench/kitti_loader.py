@@ -1,6 +1,6 @@
 """KITTI loader throughput (issue 5): first-time preprocessing rate, then cached pairs per second
 served to a training loop by 2 loader workers (batch 32, 224 x 224 frames): as the loader yields
-them (uint8), and with the conversion to floats that the datamodule does after the transfer.
+them (uint8), and finished as the model sees them (`finish_batch`: erasing, floats, normalisation).
 
 Uses the KITTI-format demo data (written to a temporary directory). `make bench ARGS=kitti_loader`.
 """
@@ -48,7 +48,7 @@ def measure(root: Path, workers: int, epochs: int, batch_size: int) -> dict:
         served, start = 0, time.perf_counter()
         for epoch in range(epochs):
             for batch in iterator if epoch == 0 else iter(loader):
-                x = dm.on_after_batch_transfer(batch, 0)["input"] if convert else batch["input"]
+                x = dm.finish_batch(batch)["input"] if convert else batch["input"]
                 served += x.shape[0]
         rates[name] = served / (time.perf_counter() - start)
     return {

@@ -165,10 +165,7 @@ def test_train_score_and_load(make_cfg, tmp_path):
     datamodule = instantiate(cfg.data)
     datamodule.setup()
     scores = torch.cat(
-        [
-            module.score(datamodule.on_after_batch_transfer(b, 0)["input"])
-            for b in datamodule.test_dataloader()
-        ]
+        [module.score(datamodule.finish_batch(b)["input"]) for b in datamodule.test_dataloader()]
     )
     assert scores.shape == (8,) and bool((scores >= 0).all())
     assert float(scores.mean()) == pytest.approx(metrics["test/recon_mean"], rel=1e-5)

@@ -105,6 +105,10 @@ def test_batches_stack_the_two_frames_as_channels(tmp_path):
     assert np.array_equal(batch["input"][0, 3:].numpy(), frames[3])
     floats = dm.on_after_batch_transfer(batch, 0)["input"]
     assert floats.dtype == torch.float32 and float(floats.max()) <= 1.0
+    # the one finishing step, with the device and dtype given by the caller
+    double = dm.finish_batch(batch, "cpu", torch.float64)
+    assert double["input"].dtype == double["R"].dtype == torch.float64
+    torch.testing.assert_close(double["input"].float(), floats)
 
 
 # -- frame cache -------------------------------------------------------------------------------
@@ -264,7 +268,7 @@ def test_mav_targets_follow_the_matched_poses(tmp_path):
     assert ((angles > 0.75) & (angles < 1.3)).all()
     batch = test.__getitems__(list(range(len(test))))
     assert batch["input"].shape[1:] == (2, 8, 8)
-    x = dm.on_after_batch_transfer(batch, 0)["input"]
+    x = dm.finish_batch(batch)["input"]
     torch.testing.assert_close(x, (batch["input"].float() / 255 - 0.45) / 0.25)
 
 
@@ -353,8 +357,8 @@ def test_corrupted_test_batches_are_erased_and_flagged(tmp_path):
     test = dm.sets["test"]
     batch = test.__getitems__(list(range(len(test))))
     assert batch["corrupted"].tolist() == [False] * 4 + [True] * 4
-    clean = dm.on_after_batch_transfer({**batch, "corrupted": torch.zeros(8, dtype=bool)}, 0)
-    erased = dm.on_after_batch_transfer(batch, 0)
+    clean = dm.finish_batch({**batch, "corrupted": torch.zeros(8, dtype=bool)})
+    erased = dm.finish_batch(batch)
     changed = (clean["input"] != erased["input"]).flatten(1).any(1)
     assert changed.tolist() == batch["corrupted"].tolist()
     zero = (erased["input"][4:] == 0).float().mean(dim=(-1, -2))  # per image and channel
@@ -379,3 +383,25 @@ def test_the_kitti_demo_carries_the_rotation_signal(tmp_path, make_cfg):
     ]
     metrics = train(make_cfg(overrides))
     assert metrics["test/err_mean"] < 0.85 * metrics["test/identity_err_mean"]
+
+
+def test_the_ood_source_protocol_serves_chosen_pairs_flags_and_noise(tmp_path):
+    from rotlearn.ood import OODDataSource
+
+    root = write_kitti(tmp_path, {"00": yaw_sequence(9, 1.0), "01": yaw_sequence(4, 1.0)})
+    dm = kitti_module(root, eval_batch_size=3)
+    dm.setup()
+    assert isinstance(dm, OODDataSource)
+    assert dm.pair_count("test") == 8 and dm.pair_shape() == (6, 8, 8)
+    batches = list(dm.eval_loader("test", indices=[7, 0, 3, 5]))
+    assert [b["index"].tolist() for b in batches] == [[7, 0, 3], [5]]
+    erase = torch.zeros(8, dtype=torch.bool)
+    erase[3] = True
+    flagged = [b["corrupted"].tolist() for b in dm.eval_loader("test", indices=[7, 3], erase=erase)]
+    assert flagged == [[False, True]]
+    assert dm.unseen_pairs("test").all()  # sequence 00 is never trained on
+    noise = dm.noise_batch(2)
+    assert noise["input"].shape == (2, 6, 8, 8) and noise["input"].dtype == torch.uint8
+    torch.testing.assert_close(noise["input"], dm.noise_batch(2)["input"])  # seeded
+    finished = dm.finish_batch(noise, "cpu", torch.float64)
+    assert finished["input"].dtype == torch.float64 and not finished["corrupted"].any()

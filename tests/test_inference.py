@@ -199,3 +199,37 @@ def test_large_batches_run_in_chunks_of_bounded_size(trained_runs):
     assert estimate.R.shape == (50, 3, 3)
     with pytest.raises(ValueError, match="chunk_elements"):
         rotlearn.load(trained_runs["a"], chunk_elements=0)
+
+
+def test_thresholds_beside_the_checkpoint_give_keep_flags(trained_runs, tmp_path):
+    import shutil
+
+    from rotlearn.checkpoint import THRESHOLDS_FILE
+    from rotlearn.ood.report import write_thresholds
+
+    run = tmp_path / "run"
+    shutil.copytree(trained_runs["a"], run)
+    ckpt = run / "checkpoints" / "last.ckpt"
+    before = ckpt.read_bytes()
+    write_thresholds(run / "checkpoints", {"score": "dt", "threshold": -5.0, "q": 0.75})
+    assert ckpt.read_bytes() == before  # the checkpoint itself is never rewritten
+    predictor = rotlearn.load(run)
+    assert predictor.ood == {"score": "dt", "threshold": -5.0, "q": 0.75}
+    estimate = predictor(_points())
+    assert torch.equal(estimate.keep, estimate.dt < -5.0)
+
+    path = run / "checkpoints" / THRESHOLDS_FILE
+    for text, reason in [
+        ("not json", "not a JSON OOD threshold file"),
+        ('{"score": "dt", "threshold": NaN, "q": 0.5}', "NaN is not a number"),
+        ('{"score": "dt", "threshold": "1", "q": 0.5}', "threshold must be a finite number"),
+        ('{"score": "dt", "threshold": true, "q": 0.5}', "threshold must be a finite number"),
+        ('{"score": "dt", "threshold": 1.0, "q": 2}', r"q must lie in \[0, 1\]"),
+        ('{"score": "dt", "threshold": 1.0}', r"must be \{score: str, threshold: number"),
+        ('{"score": "dt", "threshold": 1.0, "q": 0.5, "x": 1}', r"got \['q', 'score'"),
+        ('["dt", 1.0, 0.5]', "got list"),
+    ]:
+        path.write_text(text)
+        with pytest.raises(ValueError, match=reason) as info:
+            rotlearn.load(run)
+        assert str(path) in str(info.value)

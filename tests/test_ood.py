@@ -112,6 +112,39 @@ def test_scores_follow_the_head():
     torch.testing.assert_close(SCORES["raw_norm"].fn(prediction), raw.norm(dim=-1))
 
 
+def test_evaluate_is_a_pure_function_of_predictions_and_flags():
+    """No Lightning, no files: a fixed 'network' whose raw output norm is the sample's index."""
+    from rotlearn.heads import RotationPrediction
+    from rotlearn.ood import evaluate, pr_quantiles, score_sets
+
+    def predict(x):
+        raw = torch.zeros(len(x), 4, dtype=torch.float64)
+        raw[:, 0] = x[:, 0]
+        R = torch.eye(3, dtype=torch.float64).expand(len(x), 3, 3)
+        return RotationPrediction(R=R, raw=raw)
+
+    def batches(values, size=3):
+        x = torch.tensor(values, dtype=torch.float64)[:, None]
+        eye = torch.eye(3, dtype=torch.float64)
+        return [{"input": x[i : i + size], "R": eye.expand(len(x[i : i + size]), 3, 3)}
+                for i in range(0, len(x), size)]  # fmt: skip
+
+    loaders = {"train": batches([1.0, 2.0, 3.0, 4.0]), "corrupted": batches([0.5, 2.5, 3.5, 5.0])}
+    flags = {"corrupted": torch.tensor([True, False, False, False])}
+    scores = [SCORES["raw_norm"]]  # kept above its threshold
+    frame = evaluate(predict, loaders, flags, scores, [0.75], {"raw_norm": 0.75})
+    assert list(frame["set"]) == ["corrupted"] and frame["in_table"].all()
+    row = frame.iloc[0]
+    assert row["threshold"] == pytest.approx(1.75) and row["kept_pct"] == pytest.approx(75.0)
+    assert row["precision"] == pytest.approx(100.0) and row["auroc"] == pytest.approx(1.0)
+    sets = score_sets(predict, loaders, flags, scores)
+    assert sets["corrupted"]["corrupted"].tolist() == [True, False, False, False]
+    assert "corrupted" not in sets["train"] and (sets["train"]["error"] == 0).all()
+    with pytest.raises(ValueError, match=r"flags\['corrupted'\] has shape \(2,\)"):
+        score_sets(predict, loaders, {"corrupted": torch.zeros(2, dtype=torch.bool)}, scores)
+    assert pr_quantiles()[:2] == [0.05, 0.07] and pr_quantiles()[-1] == 0.97
+
+
 # -- the callback and rotlearn-eval ------------------------------------------------------------
 
 TINY_PAIRS = [
@@ -291,6 +324,7 @@ def test_calibrated_threshold_gives_keep_flags_for_image_pairs(trained_run, tiny
     run_dir, _ = trained_run
     frame = pd.read_csv(run_dir / "ood.csv")
     row = frame[(frame["score"] == "dt") & frame["in_table"] & (frame["set"] == "clean")]
+    assert (run_dir / "checkpoints" / "ood_thresholds.json").is_file()
     predictor = load(run_dir)
     assert predictor.ood["q"] == 0.75
     assert predictor.ood["threshold"] == pytest.approx(float(row["threshold"].iloc[0]))

@@ -4,10 +4,16 @@ A checkpoint is read with `torch.load(weights_only=True)` (tensors and plain dat
 code), and the run config it carries is checked against rotlearn's allowlist of buildable
 components (`rotlearn.trust`) before anything is built from it. `rotlearn.load`, `rotlearn-predict`,
 `rotlearn-eval` and the OOD evaluation's auto-encoder all load through `load_run`.
+
+The OOD evaluation's calibrated threshold lives beside the checkpoints, in
+`<run>/checkpoints/ood_thresholds.json` ({"score": str, "threshold": number, "q": number});
+`load_run` reads it (strictly: it is data from a run directory, not trusted) when present.
 """
 
 from __future__ import annotations
 
+import json
+import math
 import os
 import pickle
 from dataclasses import dataclass, field
@@ -20,13 +26,17 @@ from torch import Tensor
 from rotlearn.trust import UntrustedConfigError, trusted_config
 
 __all__ = [
+    "THRESHOLDS_FILE",
     "SavedRun",
     "UnsafeCheckpointError",
     "UntrustedConfigError",
     "load_checkpoint",
     "load_run",
+    "read_thresholds",
     "resolve_checkpoint",
 ]
+
+THRESHOLDS_FILE = "ood_thresholds.json"  # beside the checkpoints it calibrates
 
 
 class UnsafeCheckpointError(pickle.UnpicklingError, ValueError):
@@ -93,8 +103,8 @@ class SavedRun:
         config: the run's resolved config (a `DictConfig`): no interpolations, and every
             `_target_` on rotlearn's allowlist.
         state_dict: the LightningModule's weights, name -> tensor.
-        ood: the calibrated OOD threshold stored by the OOD evaluation, {"score": str,
-            "threshold": float, "q": float}, or None.
+        ood: the calibrated OOD threshold written by the OOD evaluation beside the checkpoint
+            (`THRESHOLDS_FILE`), {"score": str, "threshold": float, "q": float}, or None.
     """
 
     path: Path
@@ -130,20 +140,47 @@ class SavedRun:
         return {k[len(start) :]: v for k, v in self.state_dict.items() if k.startswith(start)}
 
 
-def _check_ood(ood: Any, path: Path) -> dict[str, Any] | None:
-    if ood is None:
+def _number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _check_ood(ood: Any, path: Path, what: str) -> dict[str, Any]:
+    """`ood` if it is exactly {score: str, threshold: finite number, q: number in [0, 1]}."""
+    expected = "{score: str, threshold: number, q: number in [0, 1]}"
+    if not isinstance(ood, dict) or set(ood) != {"score", "threshold", "q"}:
+        keys = sorted(map(str, ood)) if isinstance(ood, dict) else type(ood).__name__
+        raise ValueError(f"{path}: {what} must be {expected}, got {keys}")
+    if not isinstance(ood["score"], str) or not ood["score"]:
+        raise ValueError(f"{path}: {what}'s score must be a name, got {ood['score']!r}")
+    for key in ("threshold", "q"):
+        if not _number(ood[key]):
+            raise ValueError(f"{path}: {what}'s {key} must be a finite number, got {ood[key]!r}")
+    if not 0.0 <= ood["q"] <= 1.0:
+        raise ValueError(f"{path}: {what}'s q must lie in [0, 1], got {ood['q']!r}")
+    return {"score": ood["score"], "threshold": float(ood["threshold"]), "q": float(ood["q"])}
+
+
+def read_thresholds(path: str | os.PathLike) -> dict[str, Any] | None:
+    """The calibrated OOD threshold in `path` (a `THRESHOLDS_FILE`), or None if there is none.
+
+    Raises:
+        ValueError: the file is not JSON of exactly {score: str, threshold: number, q: number in
+            [0, 1]} (the message names the file).
+    """
+    path = Path(path)
+    if not path.is_file():
         return None
-    numbers = (int, float)
-    if (
-        not isinstance(ood, dict)
-        or not isinstance(ood.get("score"), str)
-        or not isinstance(ood.get("threshold"), numbers)
-        or isinstance(ood.get("threshold"), bool)
-    ):
-        raise ValueError(
-            f"{path}: rotlearn_ood must be {{score: str, threshold: number}}, got {ood!r}"
-        )
-    return dict(ood)
+    if path.stat().st_size > 4096:
+        raise ValueError(f"{path}: too large for an OOD threshold file (at most 4096 bytes)")
+
+    def refuse(constant: str) -> None:
+        raise ValueError(f"{constant} is not a number")
+
+    try:
+        ood = json.loads(path.read_text(encoding="utf-8"), parse_constant=refuse)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: not a JSON OOD threshold file ({exc})") from None
+    return _check_ood(ood, path, "the OOD threshold")
 
 
 def load_run(path: str | os.PathLike, task: str | None = None) -> SavedRun:
@@ -171,7 +208,10 @@ def load_run(path: str | os.PathLike, task: str | None = None) -> SavedRun:
         isinstance(k, str) and isinstance(v, Tensor) for k, v in state_dict.items()
     ):
         raise ValueError(f"{ckpt}: state_dict must map names to tensors")
-    run = SavedRun(ckpt, config, state_dict, _check_ood(checkpoint.get("rotlearn_ood"), ckpt))
+    ood = read_thresholds(ckpt.parent / THRESHOLDS_FILE)
+    if ood is None and checkpoint.get("rotlearn_ood") is not None:  # runs calibrated in place
+        ood = _check_ood(checkpoint["rotlearn_ood"], ckpt, "rotlearn_ood")
+    run = SavedRun(ckpt, config, state_dict, ood)
     if task is not None and run.task != task:
         raise ValueError(f"{ckpt} is a task={run.task!r} checkpoint, not task={task!r}")
     return run

@@ -4,11 +4,14 @@ A batch is {"input": (B, 2C, S, S) in the model's dtype, "R": (B, 3, 3), "q": (B
 "corrupted": (B,) bool, "source": (B,) int64 (sequence / scene index), "index": (B,) int64}.
 Loader workers gather whole batches of uint8 frames from memory-mapped caches (`__getitems__`);
 the conversion to floats, the normalisation and the erasing of corrupted test pairs happen after
-the transfer, on the model's device.
+the transfer, on the model's device, in ONE step: `ImagePairDataModule.finish_batch`, which
+Lightning's `on_after_batch_transfer` and every other caller (the OOD evaluation, the
+data-dependent initialisation, benchmarks) use.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,7 +23,7 @@ from torch import Tensor
 from torch.utils.data import DataLoader, Dataset, get_worker_info
 
 from rotlearn.data.corruption import corrupted_flags, draw_erasing_boxes, erase_boxes
-from rotlearn.data.draws import SPLITS, draw_seed, model_device_dtype
+from rotlearn.data.draws import SPLITS, draw_seed
 from rotlearn.errors import ConfigValueError, require_positive_ints
 from rotlearn.geometry import rotmat_to_quat
 
@@ -75,7 +78,8 @@ class ImagePairs(Dataset):
     Args:
         index: the pairs.
         corrupt_fraction: the last fraction of the pairs is marked `corrupted` and carries
-            erasing boxes (one per image, paper section VI-C), drawn from `seed`.
+            erasing boxes (one per image: random erasing, the corrupted inputs of the paper's
+            OOD experiment, Table I), drawn from `seed`.
         seed: seed of the erasing boxes.
     """
 
@@ -136,6 +140,22 @@ def _whole_batch(batch: dict[str, Tensor]) -> dict[str, Tensor]:
     return batch
 
 
+class _Reflagged(Dataset):
+    """`pairs` with their `corrupted` flags replaced by `erase` (P,) bool (which to erase)."""
+
+    def __init__(self, pairs: ImagePairs, erase: Tensor) -> None:
+        if erase.shape != (len(pairs),):
+            raise ValueError(f"erase must have shape ({len(pairs)},), got {tuple(erase.shape)}")
+        self.pairs, self.erase = pairs, erase.bool()
+
+    def __len__(self) -> int:
+        return len(self.pairs)
+
+    def __getitems__(self, indices: list[int]) -> dict[str, Tensor]:
+        batch = self.pairs.__getitems__(indices)
+        return {**batch, "corrupted": self.erase[batch["index"]]}
+
+
 class ImagePairDataModule(pl.LightningDataModule):
     """Base of the image-pair datamodules: subclasses implement `load(split)` -> `PairIndex`.
 
@@ -144,7 +164,7 @@ class ImagePairDataModule(pl.LightningDataModule):
         eval_batch_size: validation and test batch (paper: 64).
         num_workers: loader processes gathering cached frames (0: in the main process).
         corrupt_fraction: fraction of the test set, at its end, that is randomly erased
-            (paper section VI-C; the paper corrupts the second half: 0.5). Flagged `corrupted`.
+            (the paper corrupts the second half: 0.5, Table I). Flagged `corrupted`.
         num_val: test pairs, evenly spaced and never corrupted, also scored every epoch
             (monitoring only; they are never trained on).
         mean, std: input normalisation after scaling pixels to [0, 1].
@@ -194,26 +214,77 @@ class ImagePairDataModule(pl.LightningDataModule):
             "test": ImagePairs(test, self.corrupt_fraction, self.seed),
         }
 
-    def _loader(self, split: str, batch_size: int, shuffle: bool = False) -> DataLoader:
+    def _loader(
+        self, split: str, batch_size: int, shuffle: bool = False, **kwargs: Any
+    ) -> DataLoader:
         generator = torch.Generator().manual_seed(draw_seed(self.seed, SPLITS[split]))
+        if "batch_sampler" not in kwargs:
+            kwargs.update(batch_size=batch_size, shuffle=shuffle)
+            kwargs.update(generator=generator if shuffle else None)
         return DataLoader(
-            self.sets[split],
-            batch_size=batch_size,
-            shuffle=shuffle,
-            generator=generator if shuffle else None,
+            kwargs.pop("dataset", self.sets[split]),
             collate_fn=_whole_batch,
             num_workers=self.num_workers,
             persistent_workers=self.num_workers > 0,
             pin_memory=torch.cuda.is_available(),
+            **kwargs,
         )
 
     def train_dataloader(self) -> DataLoader:
         return self._loader("train", self.batch_size, shuffle=True)
 
-    def eval_loader(self, split: str) -> DataLoader:
-        """The pairs of `split` in their fixed order, unshuffled, in evaluation batches (the
-        OOD evaluation scores the training set with it)."""
-        return self._loader(split, self.eval_batch_size)
+    # -- what the OOD evaluation reads (`rotlearn.ood.source.OODDataSource`) -------------------
+
+    def pair_count(self, split: str) -> int:
+        """How many pairs "train", "val" or "test" holds."""
+        return len(self.sets[split])
+
+    def pair_shape(self) -> tuple[int, int, int]:
+        """(2C, S, S): the shape of one stacked pair."""
+        return tuple(self.sets["test"].__getitems__([0])["input"].shape[1:])
+
+    def eval_loader(
+        self, split: str, indices: Sequence[int] | None = None, erase: Tensor | None = None
+    ) -> DataLoader:
+        """Unshuffled evaluation batches of `split`'s pairs, as the loader yields them (uint8;
+        `finish_batch` makes them what the model sees).
+
+        Args:
+            split: "train", "val" or "test".
+            indices: which pairs, in this order (None: all, in their fixed order); batches of
+                `eval_batch_size` consecutive entries.
+            erase: (P,) bool over the split's P pairs: which ones are erased and flagged
+                `corrupted` (None: the split's own flags).
+        """
+        pairs = self.sets[split]
+        dataset = pairs if erase is None else _Reflagged(pairs, erase)
+        if indices is None:
+            return self._loader(split, self.eval_batch_size, dataset=dataset)
+        order, size = [int(i) for i in indices], self.eval_batch_size
+        batches = [order[i : i + size] for i in range(0, len(order), size)]
+        return self._loader(split, size, dataset=dataset, batch_sampler=batches)
+
+    def unseen_pairs(self, split: str) -> Tensor:
+        """(P,) bool: which pairs of `split` come from a sequence / scene that no training pair
+        comes from (MAV: the indoor and transition scenes)."""
+        index = self.sets[split].index
+        trained = set(self.sets["train"].index.names)
+        unseen = torch.tensor([name not in trained for name in index.names] or [False])
+        return unseen[torch.from_numpy(index.source)]
+
+    def noise_batch(self, n: int) -> dict[str, Tensor]:
+        """A loader-style batch of `n` pure-noise uint8 pairs (uniform pixels, seeded by the data
+        seed), never erased; R is the identity."""
+        generator = torch.Generator().manual_seed(self.seed + 99)
+        noise = torch.randint(0, 256, (n, *self.pair_shape()), generator=generator,
+                              dtype=torch.uint8)  # fmt: skip
+        return {
+            "input": noise,
+            "R": torch.eye(3).expand(n, 3, 3),
+            "q": torch.tensor([0.0, 0.0, 0.0, 1.0]).expand(n, 4),
+            "corrupted": torch.zeros(n, dtype=torch.bool),
+            "boxes": torch.zeros(n, 2, 4, dtype=torch.long),
+        }
 
     def val_dataloader(self) -> DataLoader | list:
         return self._loader("val", self.eval_batch_size) if len(self.sets["val"]) else []
@@ -224,18 +295,37 @@ class ImagePairDataModule(pl.LightningDataModule):
     def predict_dataloader(self) -> DataLoader:
         return self.test_dataloader()
 
-    def on_after_batch_transfer(self, batch: Any, dataloader_idx: int) -> Any:
-        """uint8 pairs -> erased where corrupted -> floats (x / 255 - mean) / std, on the device."""
-        if not (
-            isinstance(batch, dict) and batch.get("input", torch.empty(0)).dtype == torch.uint8
-        ):
+    def finish_batch(
+        self,
+        batch: Any,
+        device: torch.device | str | None = None,
+        dtype: torch.dtype | None = None,
+    ) -> Any:
+        """A loader batch as the model sees it: on `device`, uint8 pairs erased where
+        `corrupted`, then floats (x / 255 - mean) / std in `dtype`; R and q in `dtype` too.
+
+        Args:
+            batch: a batch of `ImagePairs` (a batch whose input is not uint8 is only moved).
+            device: where to put it; None: where it is.
+            dtype: the float dtype; None: that of batch["R"] (float32 from the loader; in a
+                Trainer, Lightning's precision plugin has cast it to the model's input dtype).
+        """
+        if not isinstance(batch, dict):
             return batch
-        images = batch["input"]
+        if device is not None:
+            batch = {k: v.to(device, non_blocking=True) for k, v in batch.items()}
+        images = batch.get("input")
+        if images is None or images.dtype != torch.uint8:
+            return batch
+        dtype = dtype if dtype is not None else batch["R"].dtype
         if bool(batch["corrupted"].any()):
             images = erase_boxes(images, batch["boxes"], batch["corrupted"])
-        dtype = model_device_dtype(self)[1]
         x = self.normalize(images, dtype)
         return {**batch, "input": x, "R": batch["R"].to(dtype), "q": batch["q"].to(dtype)}
+
+    def on_after_batch_transfer(self, batch: Any, dataloader_idx: int) -> Any:
+        """`finish_batch` where the transfer put the batch, in its R's dtype."""
+        return self.finish_batch(batch)
 
     def normalize(self, images: Tensor, dtype: torch.dtype = torch.float32) -> Tensor:
         """uint8 pixels -> (x / 255 - mean) / std in `dtype`, any shape (one new tensor, scaled

@@ -263,9 +263,16 @@ class ShapeNetDataModule(DrawDataModule):
     def test_dataloader(self) -> DataLoader:
         return self.requests("test", [self.test_rotations] * len(self.clouds[SPLITS["test"]]))
 
-    def draw(self, split: int, index: int, size: int) -> dict[str, Tensor]:
+    def draw(
+        self,
+        split: int,
+        index: int,
+        size: int,
+        device: torch.device | str = "cpu",
+        dtype: torch.dtype = torch.float32,
+    ) -> dict[str, Tensor]:
         """One cloud under `size` rotations: {"input": (size, N, 6), "R", "q"}."""
-        generator, device, dtype = self.generator(split, index)
+        generator = self.generator(split, index, device)
         clouds = self.clouds[split]
         if split == SPLITS["train"]:  # which cloud, from the same seeded stream
             pick = torch.randint(len(clouds), (), generator=generator, device=generator.device)

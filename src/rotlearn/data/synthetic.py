@@ -124,9 +124,16 @@ class SyntheticWahbaDataModule(DrawDataModule):
     def test_dataloader(self) -> DataLoader:
         return self.requests("test", self._sizes(self.num_test, self.eval_batch_size))
 
-    def draw(self, split: int, index: int, size: int) -> dict[str, Tensor]:
-        """The batch a request names, on the model's device, in the model's dtype."""
-        generator, device, dtype = self.generator(split, index)
+    def draw(
+        self,
+        split: int,
+        index: int,
+        size: int,
+        device: torch.device | str = "cpu",
+        dtype: torch.dtype = torch.float32,
+    ) -> dict[str, Tensor]:
+        """The batch a request names, made on `device` in `dtype`."""
+        generator = self.generator(split, index, device)
         batch = wahba_batch(
             size,
             self.num_matches,

@@ -1,4 +1,5 @@
-"""Small training callbacks: epoch timing, per-epoch training loss, and the record of a signal."""
+"""Small training callbacks: epoch timing, per-epoch training loss, the record of a signal, and the
+data-dependent initialisation of a net."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from rotlearn.trust import config_target
 
-__all__ = ["EpochLosses", "EpochTimer", "InterruptRecorder"]
+__all__ = ["DataDependentInit", "EpochLosses", "EpochTimer", "InterruptRecorder"]
 
 
 @config_target
@@ -126,3 +127,36 @@ class InterruptRecorder(pl.Callback):
             self.signal_name = "SIGINT"
         elif isinstance(exception, SIGTERMException) and self.signal_name is None:
             self.signal_name = "SIGTERM"
+
+
+@config_target
+class DataDependentInit(pl.Callback):
+    """Before fitting, give a net with a data-dependent initialisation (`net.initialize_from`,
+    e.g. `PointNet`) the first training batch, as the training step will see it.
+
+    `RotationRegressor.configure_callbacks` adds it for such nets. It runs in `setup("fit")`:
+    Lightning calls the callbacks' `setup` after the datamodule's and before the module's, all
+    before it restores a resumed run's checkpoint (`_restore_modules_and_callbacks`) and before
+    the strategy wraps the model (DDP broadcasts rank 0's weights then). So a resumed run keeps its
+    saved weights, and every DDP rank draws the same, seeded first batch.
+
+    The batch is made with the datamodule's `finish_batch` on the module's device and in its
+    dtype (the data of the first training step), and moved to where the net's parameters are
+    (the strategy moves the model to its device only after `setup`).
+    """
+
+    def setup(self, trainer: pl.Trainer, pl_module: pl.LightningModule, stage: str) -> None:
+        net = getattr(pl_module, "net", None)
+        datamodule = trainer.datamodule
+        if stage != "fit" or datamodule is None or not hasattr(net, "initialize_from"):
+            return
+        batch = next(iter(datamodule.train_dataloader()))
+        if hasattr(datamodule, "finish_batch"):
+            batch = datamodule.finish_batch(batch, pl_module.device, pl_module.dtype)
+        else:  # a datamodule of another kind: its Lightning hook
+            batch = datamodule.on_after_batch_transfer(batch, 0)
+        parameter = next(net.parameters(), None)
+        points = batch["input"]
+        if parameter is not None:
+            points = points.to(parameter.device)
+        net.initialize_from(points)

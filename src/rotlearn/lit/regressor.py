@@ -13,6 +13,7 @@ from torchmetrics import MeanMetric, SpearmanCorrCoef
 from rotlearn.errors import ConfigValueError, NonFiniteError
 from rotlearn.geometry import angle_deg
 from rotlearn.heads import RotationHead, RotationPrediction
+from rotlearn.lit.callbacks import DataDependentInit
 from rotlearn.lit.state import RunStateHooks
 from rotlearn.metrics import AngularError
 from rotlearn.nets.autoencoder import ConvAutoEncoder
@@ -70,15 +71,10 @@ class RotationRegressor(RunStateHooks, pl.LightningModule):
     def forward(self, inputs: Tensor) -> RotationPrediction:
         return self.head(self.net(inputs))
 
-    def setup(self, stage: str) -> None:
-        """Before fitting, give a net with a data-dependent initialisation (`initialize_from`,
-        e.g. `PointNet`) the first training batch. Lightning restores a resumed run's checkpoint
-        after this hook, so a resumed run keeps its weights."""
-        datamodule = self.trainer.datamodule
-        if stage != "fit" or datamodule is None or not hasattr(self.net, "initialize_from"):
-            return
-        batch = next(iter(datamodule.train_dataloader()))
-        self.net.initialize_from(datamodule.on_after_batch_transfer(batch, 0)["input"])
+    def configure_callbacks(self) -> list[pl.Callback]:
+        """A net with a data-dependent initialisation (`initialize_from`, e.g. `PointNet`) gets
+        `DataDependentInit`, whatever `callbacks=` says (it keeps that callback's timing)."""
+        return [DataDependentInit()] if hasattr(self.net, "initialize_from") else []
 
     def _where(self, stage: str, batch_idx: int) -> str:
         return f"{stage} step {self.global_step} (epoch {self.current_epoch}, batch {batch_idx})"

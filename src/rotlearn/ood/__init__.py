@@ -1,19 +1,39 @@
-"""Floor 3: OOD scores, quantile thresholds and the test-time OOD evaluation (paper section V-A)."""
+"""Floor 3: OOD scores, quantile thresholds and the test-time OOD evaluation (paper section V-A):
+pure functions (`evaluation`), writers (`report`), the datamodule protocol they read (`source`)
+and the thin `OODEvaluation` callback that wires them."""
 
-from rotlearn.ood.callback import OODEvaluation, pr_quantiles
-from rotlearn.ood.evaluation import auroc, rank, rejection_row, spearman
+from rotlearn.ood.callback import OODEvaluation
+from rotlearn.ood.evaluation import (
+    auroc,
+    calibrated_threshold,
+    evaluate,
+    pr_quantiles,
+    rank,
+    rejection_row,
+    rejection_table,
+    score_sets,
+    spearman,
+    table_quantile,
+)
 from rotlearn.ood.scores import SCORES, Score, available_scores, keep_mask, quantile_threshold
+from rotlearn.ood.source import OODDataSource
 
 __all__ = [
     "SCORES",
+    "OODDataSource",
     "OODEvaluation",
     "Score",
     "auroc",
     "available_scores",
+    "calibrated_threshold",
+    "evaluate",
     "keep_mask",
     "pr_quantiles",
     "quantile_threshold",
     "rank",
     "rejection_row",
+    "rejection_table",
+    "score_sets",
     "spearman",
+    "table_quantile",
 ]

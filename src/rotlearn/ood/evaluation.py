@@ -1,21 +1,47 @@
-"""Rejection statistics for one score on one test set (paper section V-A, Table I).
+"""The OOD evaluation as pure functions (paper section V-A, Table I): no Lightning, no files.
 
-Given per-sample errors, scores, corrupted flags and a threshold: kept %, the error of the kept
-and of all samples, precision = |kept and clean| / |kept|, recall = |kept and clean| / |clean|,
-the AUROC of the score for telling corrupted from clean samples, and the Spearman correlation of
-the score with the error. Pure torch; no Lightning.
+`evaluate(predict_fn, loaders, flags, ...)` scores every sample of every set (`score_sets`) and
+tabulates rejection at each quantile threshold of the training scores (`rejection_table`). For one
+score on one test set (`rejection_row`): kept %, the error of the kept and of all samples,
+precision = |kept and clean| / |kept|, recall = |kept and clean| / |clean|, the AUROC of the score
+for telling OOD from clean samples, and the Spearman correlation of the score with the error.
 """
 
 from __future__ import annotations
 
+import logging
 import math
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from typing import TYPE_CHECKING, Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
+from rotlearn.geometry import angle_deg
+from rotlearn.heads import RotationPrediction
 from rotlearn.ood.scores import Score, keep_mask, quantile_threshold
 
-__all__ = ["auroc", "rank", "rejection_row", "spearman"]
+if TYPE_CHECKING:
+    import pandas as pd
+
+__all__ = [
+    "TEST_SETS",
+    "auroc",
+    "calibrated_threshold",
+    "evaluate",
+    "pr_quantiles",
+    "rank",
+    "rejection_row",
+    "rejection_table",
+    "score_sets",
+    "spearman",
+    "table_quantile",
+]
+
+log = logging.getLogger("rotlearn")
+
+TEST_SETS = ("clean", "corrupted")
 
 
 def rank(x: Tensor) -> Tensor:
@@ -110,3 +136,139 @@ def rejection_row(
         "auroc": auroc(scores, corrupted, score.keep_below),
         "spearman": spearman(scores, errors),
     }
+
+
+def pr_quantiles(start: float = 0.05, stop: float = 0.97, step: float = 0.02) -> list[float]:
+    """The quantiles of the precision-recall curve: 0.05 to 0.97 by 0.02."""
+    return [round(q, 6) for q in np.arange(start, stop + step / 2, step)]
+
+
+def table_quantile(name: str, table: Mapping[str, float], quantiles: Sequence[float]) -> float:
+    """The quantile at which score `name` enters Table I: `table[name]`, else the largest of
+    `quantiles` <= 0.75 (else their smallest)."""
+    if name in table:
+        return float(table[name])
+    below = [q for q in quantiles if q <= 0.75]
+    return max(below) if below else min(quantiles)
+
+
+Batch = Mapping[str, Tensor]
+
+
+def score_sets(
+    predict_fn: Callable[[Tensor], RotationPrediction],
+    loaders: Mapping[str, Iterable[Batch]],
+    flags: Mapping[str, Tensor],
+    scores: Sequence[Score],
+    input_scores: Mapping[str, Callable[[Tensor], Tensor]] | None = None,
+) -> dict[str, dict[str, Tensor]]:
+    """Every sample's error and scores, set by set.
+
+    Args:
+        predict_fn: (B, ...) inputs -> a `RotationPrediction` (call it in eval mode, without
+            gradients).
+        loaders: set name -> finished batches {"input", "R" (B, 3, 3)} (on the model's device,
+            in its dtype), e.g. "train", "clean", "corrupted", "noise".
+        flags: test-set name -> (N,) bool, in loader order: which samples are OOD (erased, or
+            from scenes not trained on).
+        scores: the scores; those without `fn` (the auto-encoder) are read from `input_scores`.
+        input_scores: score name -> (B, ...) inputs -> (B,) scores.
+
+    Returns:
+        set name -> {"error": (N,) degrees, one (N,) entry per score, and for the sets in `flags`
+        "corrupted": (N,) bool}, float64 on the CPU.
+    """
+    input_scores = dict(input_scores or {})
+    sets: dict[str, dict[str, Tensor]] = {}
+    for name, batches in loaders.items():
+        parts: list[dict[str, Tensor]] = []
+        for batch in batches:
+            prediction = predict_fn(batch["input"])
+            part = {"error": angle_deg(prediction.R, batch["R"]).double()}
+            for score in scores:
+                if score.fn is not None:
+                    values = score.fn(prediction)
+                else:
+                    values = input_scores[score.name](batch["input"])
+                part[score.name] = values.double()
+            parts.append({k: v.cpu() for k, v in part.items()})
+        sets[name] = {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+        if name in flags:
+            label = flags[name].bool().cpu()
+            if label.shape != sets[name]["error"].shape:
+                raise ValueError(
+                    f"flags[{name!r}] has shape {tuple(label.shape)}, but the set holds "
+                    f"{len(sets[name]['error'])} samples"
+                )
+            sets[name]["corrupted"] = label
+    return sets
+
+
+def rejection_table(
+    sets: Mapping[str, Mapping[str, Tensor]],
+    scores: Sequence[Score],
+    quantiles: Sequence[float],
+    table: Mapping[str, float] | None = None,
+    train: str = "train",
+) -> pd.DataFrame:
+    """One `rejection_row` per score, test set and quantile, thresholds from the `train` set.
+
+    Args:
+        sets: `score_sets`' output; the test sets are those of `TEST_SETS` that are present.
+        scores: the scores to tabulate.
+        quantiles: fractions of the training scores kept, each in [0, 1].
+        table: score -> its Table I quantile (`table_quantile`), evaluated too.
+        train: the set the thresholds come from.
+
+    Returns:
+        Columns set, in_table (whether the row is the score's Table I row), and those of
+        `rejection_row`; ordered by score, test set, quantile.
+    """
+    import pandas as pd
+
+    table = dict(table or {})
+    test_sets = [name for name in TEST_SETS if name in sets]
+    rows: list[dict[str, Any]] = []
+    for score in scores:
+        nan_count = {k: int((~torch.isfinite(v[score.name])).sum()) for k, v in sets.items()}
+        if any(nan_count.values()):
+            log.warning("OOD score %s is NaN or inf for %s samples (never kept)", score.name,
+                        nan_count)  # fmt: skip
+        table_q = table_quantile(score.name, table, quantiles)
+        for test_set in test_sets:
+            data = sets[test_set]
+            for q in sorted(set(quantiles) | {table_q}):
+                row = rejection_row(
+                    score, q, sets[train][score.name], data[score.name], data["error"],
+                    data["corrupted"],
+                )  # fmt: skip
+                rows.append({"set": test_set, "in_table": q == table_q, **row})
+    return pd.DataFrame(rows)
+
+
+def evaluate(
+    predict_fn: Callable[[Tensor], RotationPrediction],
+    loaders: Mapping[str, Iterable[Batch]],
+    flags: Mapping[str, Tensor],
+    scores: Sequence[Score],
+    quantiles: Sequence[float],
+    table: Mapping[str, float] | None = None,
+    input_scores: Mapping[str, Callable[[Tensor], Tensor]] | None = None,
+) -> pd.DataFrame:
+    """The OOD evaluation: `rejection_table(score_sets(...))` (see both for the arguments).
+
+    `loaders` needs "train" (the thresholds) and the test sets "clean" and / or "corrupted",
+    each with its `flags`.
+    """
+    sets = score_sets(predict_fn, loaders, flags, scores, input_scores)
+    return rejection_table(sets, scores, quantiles, table)
+
+
+def calibrated_threshold(frame: pd.DataFrame, score: str = "dt") -> dict[str, Any] | None:
+    """{"score", "threshold", "q"} of `score`'s Table I row on the clean test set (the threshold
+    `rotlearn.load` applies for keep flags), or None if the table has none."""
+    rows = frame[(frame["score"] == score) & frame["in_table"] & (frame["set"] == "clean")]
+    if rows.empty:
+        return None
+    return {"score": score, "threshold": float(rows["threshold"].iloc[0]),
+            "q": float(rows["q"].iloc[0])}  # fmt: skip

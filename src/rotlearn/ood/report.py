@@ -1,23 +1,33 @@
-"""Tables and figures of the OOD evaluation: Table I-style markdown, precision-recall curve,
-score-vs-error scatter and score box plots (paper Fig. 6c)."""
+"""Writers of the OOD evaluation: Table I-style markdown and CSV, the calibrated-threshold file,
+and TensorBoard scalars and figures (precision-recall curve, score-vs-error scatter, score box
+plots as in paper Fig. 6c)."""
 
 from __future__ import annotations
 
 import math
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import pandas as pd
 from torch import Tensor
 
+from rotlearn.checkpoint import THRESHOLDS_FILE
+from rotlearn.io import write_json_atomic, write_text_atomic
+from rotlearn.ood.evaluation import pr_quantiles, rejection_row
 from rotlearn.ood.scores import Score
 
 __all__ = [
     "TABLE_COLUMNS",
     "box_figure",
+    "log_tensorboard",
     "ood_markdown",
     "pr_figure",
     "scatter_figure",
     "table_rows",
+    "write_tables",
+    "write_thresholds",
 ]
 
 LABELS = {"dt": "DT", "eigengap": "gap", "raw_norm": "norm", "autoencoder": "AE"}
@@ -93,9 +103,9 @@ def ood_markdown(rep: str, frame: pd.DataFrame) -> str:
     return "\n\n".join([
         f"# OOD evaluation ({rep} head)",
         f"Test set: {n} pairs; the corrupted set erases the last {n_corrupted} of them "
-        "(paper section VI-C). Errors are mean angles in degrees over the kept pairs; precision "
-        "and recall are of keeping clean pairs (paper section V-A). Thresholds: quantile q of the "
-        "training scores.",
+        "(random erasing, as in the paper's Table I). Errors are mean angles in degrees over the "
+        "kept pairs; precision and recall are of keeping clean pairs. Thresholds: quantile q of "
+        "the training scores (paper section V-A).",
         "## Table I",
         markdown_table(table_rows(rep, frame), TABLE_COLUMNS),
         "## Every score and quantile",
@@ -113,7 +123,7 @@ def _figure():
 
 
 def pr_figure(score: Score, curve: list[dict]):
-    """Precision vs recall of keeping clean pairs, q from 0.05 to 0.97 (paper section V-A)."""
+    """Precision vs recall of keeping clean pairs, q from 0.05 to 0.97 (`pr_quantiles`)."""
     fig, ax = _figure()
     ax.plot([r["recall"] for r in curve], [r["precision"] for r in curve], marker=".")
     ax.set(xlabel="recall %", ylabel="precision %", title=f"{score.name}: corrupted test set")
@@ -152,3 +162,47 @@ def box_figure(score: Score, sets: dict[str, dict[str, Tensor]]):
     )
     fig.tight_layout()
     return fig
+
+
+def write_tables(run_dir: str | os.PathLike, rep: str, frame: pd.DataFrame) -> Path:
+    """`ood.csv` (every row of `frame`) and `ood.md` (`ood_markdown`) in `run_dir`, atomically;
+    returns the markdown's path."""
+    run_dir = Path(run_dir)
+    write_text_atomic(run_dir / "ood.csv", frame.to_csv(index=False))
+    return write_text_atomic(run_dir / "ood.md", ood_markdown(rep, frame))
+
+
+def write_thresholds(checkpoint_dir: str | os.PathLike, ood: Mapping[str, Any]) -> Path:
+    """The calibrated threshold {"score", "threshold", "q"} beside the checkpoints it belongs to
+    (`rotlearn.checkpoint.THRESHOLDS_FILE`, read by `rotlearn.load`), atomically."""
+    data = {"score": str(ood["score"]), "threshold": float(ood["threshold"]), "q": float(ood["q"])}
+    return write_json_atomic(Path(checkpoint_dir) / THRESHOLDS_FILE, data)
+
+
+def log_tensorboard(
+    writer: Any,
+    scores: Sequence[Score],
+    sets: Mapping[str, Mapping[str, Tensor]],
+    frame: pd.DataFrame,
+    step: int,
+) -> None:
+    """Every finite statistic of `frame` as a scalar `ood/<score>/q<q>/<set>/<key>`, and per
+    score the precision-recall curve on the corrupted set, the score-vs-error scatter and the
+    box plots (`sets` as `rotlearn.ood.evaluation.score_sets` returns them)."""
+    for row in frame.itertuples():
+        prefix = f"ood/{row.score}/q{row.q:g}/{row.set}"
+        for key in ("kept_pct", "err_mean_kept", "precision", "recall", "auroc", "spearman"):
+            value = getattr(row, key)
+            if not (isinstance(value, float) and math.isnan(value)):
+                writer.add_scalar(f"{prefix}/{key}", value, step)
+    corrupted = sets["corrupted"]
+    for score in scores:
+        curve = [
+            rejection_row(score, q, sets["train"][score.name], corrupted[score.name],
+                          corrupted["error"], corrupted["corrupted"])
+            for q in pr_quantiles()
+        ]  # fmt: skip
+        writer.add_figure(f"ood/{score.name}/precision_recall", pr_figure(score, curve), step)
+        writer.add_figure(f"ood/{score.name}/score_vs_error", scatter_figure(score, sets), step)
+        writer.add_figure(f"ood/{score.name}/boxes", box_figure(score, sets), step)
+    writer.flush()
