@@ -2,17 +2,20 @@
 
 from __future__ import annotations
 
+import math
 import os
 import subprocess
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
+from rotlearn.geometry import so3_exp
 from rotlearn.paths import config_dir
 
 CONFIG_DIR = config_dir()
@@ -106,3 +109,80 @@ def demo_overrides(demo_data: dict[str, Path], data: str) -> list[str]:
         "mav": [f"data.root={demo_data['mav']}", "data.resize=18", "data.image_size=16",
                 "data.num_workers=0"],
     }.get(data, [])  # fmt: skip
+
+
+# -- small datasets in the real on-disk layouts ---------------------------------------------
+
+
+def rot_y(deg: float) -> np.ndarray:
+    """The rotation by `deg` degrees about y (float64, 3 x 3)."""
+    return so3_exp(torch.tensor([0.0, math.radians(deg), 0.0], dtype=torch.float64)).numpy()
+
+
+def pose_line(R: np.ndarray, t=(0.0, 0.0, 0.0)) -> str:
+    return " ".join(f"{v:e}" for v in np.hstack([R, np.asarray(t)[:, None]]).ravel())
+
+
+def yaw_sequence(n: int, step_deg: float) -> list[np.ndarray]:
+    """n camera rotations turning by `step_deg` about y per frame."""
+    return [rot_y(step_deg * i) for i in range(n)]
+
+
+def write_kitti(
+    root: Path,
+    rotations: dict[str, list[np.ndarray]],
+    size: tuple[int, int] = (24, 16),
+    seed: int = 0,
+    smooth: bool = False,
+) -> Path:
+    """A KITTI layout: sequences/XX/image_2/NNNNNN.png (random colour; `smooth`: a coarse random
+    image resized up, which an auto-encoder can learn) and poses/XX.txt, one camera-to-world
+    [R | t] line per frame (t = (0, 0, frame)) for each sequence's rotations."""
+    cv2 = pytest.importorskip("cv2")
+    rng = np.random.default_rng(seed)
+    (root / "poses").mkdir(parents=True, exist_ok=True)
+    for seq, Rs in rotations.items():
+        folder = root / "sequences" / seq / "image_2"
+        folder.mkdir(parents=True, exist_ok=True)
+        for i in range(len(Rs)):
+            if smooth:
+                coarse = rng.integers(0, 256, (4, 6, 3), dtype=np.uint8)
+                image = cv2.resize(coarse, size)
+            else:
+                image = rng.integers(0, 256, (size[1], size[0], 3), dtype=np.uint8)
+            cv2.imwrite(str(folder / f"{i:06d}.png"), image)
+        lines = [pose_line(R, (0.0, 0.0, float(i))) for i, R in enumerate(Rs)]
+        (root / "poses" / f"{seq}.txt").write_text("\n".join(lines) + "\n")
+    return root
+
+
+def write_mav(root: Path, frames: int = 12, pose_gap_after: int | None = None) -> Path:
+    """Frames at 20 Hz (jittered), poses at 100 Hz of a steady yaw of 20 deg/s; three scenes."""
+    cv2 = pytest.importorskip("cv2")
+    rng = np.random.default_rng(1)
+    (root / "flea3" / "data").mkdir(parents=True)
+    (root / "pose").mkdir()
+    (root / "pairs").mkdir()
+    t_frames = (np.arange(frames) * 50e6 + rng.integers(-2e6, 2e6, frames) + 1e9).astype(np.int64)
+    rows = ["#timestamp [ns],filename"]
+    for t in t_frames:
+        cv2.imwrite(
+            str(root / "flea3" / "data" / f"{t}.png"), rng.integers(0, 256, (20, 26), np.uint8)
+        )
+        rows.append(f"{t},{t}.png")
+    (root / "flea3" / "data.csv").write_text("\n".join(rows) + "\n")
+    t_poses = np.arange(0, frames * 50e6 + 1e9 + 20e6, 10e6).astype(np.int64)
+    if pose_gap_after is not None:  # no pose for 100 ms after frame `pose_gap_after`
+        t0 = t_frames[pose_gap_after]
+        t_poses = t_poses[(t_poses < t0 - 50e6) | (t_poses > t0 + 50e6)]
+    rows = ["#timestamp, p_x, p_y, p_z, q_w, q_x, q_y, q_z"]
+    for t in t_poses:
+        half = math.radians(20.0 * t / 1e9) / 2
+        rows.append(f"{t},0,0,0,{math.cos(half):.9f},0,{math.sin(half):.9f},0")
+    (root / "pose" / "data.csv").write_text("\n".join(rows) + "\n")
+    third = frames // 3
+    for scene, (lo, hi) in {"outdoor": (0, third), "transition": (third, 2 * third),
+                            "indoor": (2 * third, frames)}.items():  # fmt: skip
+        pairs = "\n".join(f"{i},{i + 1}" for i in range(lo, hi - 1))
+        (root / "pairs" / f"{scene}.csv").write_text(pairs + "\n")
+    return root

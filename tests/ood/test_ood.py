@@ -27,7 +27,7 @@ from rotlearn.ood import (
     spearman,
 )
 from rotlearn.paths import config_dir
-from tests.test_image_data import write_kitti, yaw_sequence
+from tests.conftest import write_kitti, write_mav, yaw_sequence
 
 # -- thresholds --------------------------------------------------------------------------------
 
@@ -285,7 +285,6 @@ def test_the_report_collects_table_one(trained_run, make_cfg, tmp_path):
 
 
 def test_unseen_scenes_count_as_ood(tmp_path, make_cfg):
-    from tests.test_image_data import write_mav
 
     root = write_mav(tmp_path / "mav", frames=30)
     run_dir = tmp_path / "run"

@@ -15,32 +15,13 @@ from torch import nn
 from rotlearn.cli.train import ConfigError, build, train
 from rotlearn.lit import AutoEncoderModule, load_autoencoder
 from rotlearn.nets import ConvAutoEncoder
-from tests.conftest import SMALL_NET
+from tests.conftest import SMALL_NET, write_kitti
 
 TINY_NET = ["data.image_size=16", "net.channels=[8,8,8,8]", "net.hidden=16", "net.latent=4"]
 
 
 def tiny_autoencoder(pair_channels: int = 6, image_size: int = 16) -> ConvAutoEncoder:
     return ConvAutoEncoder(pair_channels, image_size, channels=[4, 8, 8], hidden=8, latent=4)
-
-
-def write_kitti(root: Path, frames: dict[str, int], size=(24, 16), seed=0) -> Path:
-    """sequences/XX/image_2/NNNNNN.png (smooth random colour) and poses/XX.txt (identity
-    rotations, one row-major 3 x 4 [R | t] line per frame) for each sequence."""
-    cv2 = pytest.importorskip("cv2")
-    rng = np.random.default_rng(seed)
-    (root / "poses").mkdir(parents=True, exist_ok=True)
-    for seq, n in frames.items():
-        folder = root / "sequences" / seq / "image_2"
-        folder.mkdir(parents=True, exist_ok=True)
-        for i in range(n):
-            coarse = rng.integers(0, 256, (4, 6, 3), dtype=np.uint8)
-            cv2.imwrite(str(folder / f"{i:06d}.png"), cv2.resize(coarse, size))
-        pose = np.hstack([np.eye(3), np.zeros((3, 1))]).ravel()
-        (root / "poses" / f"{seq}.txt").write_text(
-            "".join(" ".join(f"{v:e}" for v in pose) + "\n" for _ in range(n))
-        )
-    return root
 
 
 # -- the net ------------------------------------------------------------------------------------
@@ -134,7 +115,8 @@ def csv_column(run: Path, key: str) -> list[float]:
 
 
 def test_train_score_and_load(make_cfg, tmp_path):
-    root = write_kitti(tmp_path / "kitti", {"00": 9, "01": 17})
+    still = {seq: [np.eye(3)] * n for seq, n in {"00": 9, "01": 17}.items()}
+    root = write_kitti(tmp_path / "kitti", still, smooth=True)
     cfg = make_cfg(
         [
             "experiment=kitti_autoencoder",
