@@ -20,7 +20,14 @@ from torch import Tensor
 
 from rotlearn.heads import RotationPrediction
 
-__all__ = ["SCORES", "Score", "available_scores", "keep_mask", "quantile_threshold"]
+__all__ = [
+    "SCORES",
+    "Score",
+    "available_scores",
+    "keep_mask",
+    "quantile_threshold",
+    "register_score",
+]
 
 
 @dataclass(frozen=True)
@@ -55,6 +62,14 @@ SCORES: dict[str, Score] = {
     "raw_norm": Score("raw_norm", False, raw_norm, False, "norm of the raw network output"),
     "autoencoder": Score("autoencoder", True, None, False, "auto-encoder L1 reconstruction error"),
 }
+
+
+def register_score(score: Score) -> Score:
+    """Make `score` available by its name (`callbacks.ood.scores`); names are unique."""
+    if score.name in SCORES:
+        raise ValueError(f"an OOD score named {score.name!r} is already registered")
+    SCORES[score.name] = score
+    return score
 
 
 def available_scores(names: list[str], has_eigenvalues: bool, has_autoencoder: bool) -> list[Score]:
