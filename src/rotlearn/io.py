@@ -20,6 +20,7 @@ __all__ = [
     "cache_file",
     "parse_number_rows",
     "plain_name",
+    "read_json",
     "read_number_rows",
     "read_text_lines",
     "require_finite",
@@ -30,6 +31,15 @@ __all__ = [
 ]
 
 _INT = re.compile(r"[+-]?[0-9]+")
+
+
+def read_json(path: str | os.PathLike) -> Any:
+    """The JSON data of a record file (metrics.json, status.json, ...), or None where it is
+    missing, unreadable or not JSON (a run killed mid-write, a damaged or foreign file)."""
+    try:
+        return json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, ValueError):  # ValueError: JSON or UTF-8 decoding
+        return None
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> Path:

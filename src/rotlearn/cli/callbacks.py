@@ -10,7 +10,6 @@ status.json are PENDING).
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 from collections import Counter
 from pathlib import Path
@@ -21,7 +20,7 @@ from hydra.core.utils import JobReturn, JobStatus
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from rotlearn.io import write_json_atomic
+from rotlearn.io import read_json, write_json_atomic
 
 __all__ = [
     "JobStatusCallback",
@@ -35,13 +34,6 @@ log = logging.getLogger("rotlearn")
 PLANNED = "planned_jobs.json"
 STATUSES = ("PENDING", "RUNNING", "COMPLETED", "FAILED", "INTERRUPTED", "UNREADABLE")
 _BASIC_SWEEPER = "hydra._internal.core_plugins.basic_sweeper.BasicSweeper"
-
-
-def _read_json(path: Path) -> Any:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError):
-        return None
 
 
 @contextlib.contextmanager
@@ -64,7 +56,7 @@ def _sweep_lock(sweep_dir: Path):
 def _started_jobs(sweep_dir: Path) -> list[dict[str, Any]]:
     jobs = []
     for path in sorted(sweep_dir.glob("*/status.json")):
-        job = _read_json(path)
+        job = read_json(path)
         if not isinstance(job, dict):  # a job killed mid-write leaves no file, or a damaged one
             job = {"dir": str(path.parent), "status": "UNREADABLE", "error": f"cannot read {path}"}
         jobs.append(job)
@@ -84,7 +76,7 @@ def summarise_jobs(sweep_dir: str | Path) -> dict[str, Any]:
     with _sweep_lock(sweep_dir):
         jobs = _started_jobs(sweep_dir)
         started = {job.get("num") for job in jobs} | {job.get("dir") for job in jobs}
-        for job in _read_json(sweep_dir / PLANNED) or []:
+        for job in read_json(sweep_dir / PLANNED) or []:
             if job.get("num") not in started and (job.get("dir") or "?") not in started:
                 jobs.append({**job, "status": "PENDING"})
         jobs.sort(key=lambda job: (job.get("num") is None, job.get("num"), job.get("dir") or ""))

@@ -10,13 +10,11 @@ own run).
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import shutil
 import sys
 from pathlib import Path
-from typing import Any
 
 from lightning.fabric.plugins.environments import SLURMEnvironment
 from omegaconf import DictConfig
@@ -24,6 +22,7 @@ from omegaconf import DictConfig
 from rotlearn.checkpoint import load_checkpoint, resolve_checkpoint
 from rotlearn.cli.replay import saved_overrides
 from rotlearn.cli.schemas import validate
+from rotlearn.io import read_json
 from rotlearn.paths import config_dir
 from rotlearn.trust import UntrustedConfigError
 
@@ -74,22 +73,15 @@ def _refuse(message: str) -> SystemExit:
     return SystemExit(f"rotlearn-train: {message}")
 
 
-def _read_json(path: Path) -> Any:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError):
-        return None
-
-
 def _is_completed(run_dir: Path) -> bool:
     """A run that finished (metrics.json written, or status.json says COMPLETED)."""
-    status = _read_json(run_dir / "status.json") or {}
+    status = read_json(run_dir / "status.json") or {}
     return (run_dir / "metrics.json").exists() or status.get("status") == "COMPLETED"
 
 
 def _epochs_finished(run_dir: Path) -> int:
     """How many epochs a run trained: metrics.json's `epochs`, else last.ckpt's epoch + 1."""
-    metrics = _read_json(run_dir / "metrics.json") or {}
+    metrics = read_json(run_dir / "metrics.json") or {}
     if isinstance(metrics.get("epochs"), int):
         return metrics["epochs"]
     try:

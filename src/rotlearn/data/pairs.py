@@ -1,5 +1,8 @@
 """Image-pair datasets over frame caches, and their LightningDataModule base (KITTI, MAV).
 
+(Slightly above 350 lines on purpose: the pair index, the dataset and the datamodule base share one
+batch layout, documented once below.)
+
 A batch is {"input": (B, 2C, S, S) in the model's dtype, "R": (B, 3, 3), "q": (B, 4) (x, y, z, w),
 "corrupted": (B,) bool, "source": (B,) int64 (sequence / scene index), "index": (B,) int64}.
 Loader workers gather whole batches of uint8 frames from memory-mapped caches (`__getitems__`);

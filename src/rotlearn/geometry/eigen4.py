@@ -1,5 +1,9 @@
 """Batched eigensolver for symmetric 4x4 matrices: cyclic Jacobi, vectorised over the batch.
 
+(One module of about 390 lines on purpose: the Jacobi forward, the sorting network, the input
+checks and the analytic backward share one memory layout, rows of a (k, B) tensor, which splitting
+them would spread over several modules.)
+
 `sym4_eigh_min` returns the four eigenvalues (ascending) and the unit eigenvector of the smallest
 one with canonical sign, which is what the A head needs (paper eqs. 9, 11), with an analytic
 backward that stays finite where eigenvalues coincide (torch.linalg.eigh's is NaN/Inf there).

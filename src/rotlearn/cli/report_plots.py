@@ -1,0 +1,175 @@
+"""The plots and plot tables of `rotlearn-report` (paper Figs. 3 and 4), drawn from run directories.
+
+A plot definition comes from the sweep's `report.plots` (`rotlearn.cli.report`): `{kind: curves,
+metrics: [...]}` draws the per-epoch median over each setting's runs with a 10-90 % band;
+`{kind: box, x: <config key>, label: ...}` draws box plots of log10 per-sample test error per x
+value and setting, with a table of median errors.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from rotlearn.io import read_json
+
+__all__ = ["CURVE_METRICS", "draw_plots", "setting_order"]
+
+log = logging.getLogger("rotlearn")
+CURVE_METRICS = ["train/err_mean", "val/err_mean"]
+
+
+def _curves(run: Path, tag: str) -> np.ndarray | None:
+    """Per-epoch values of a scalar, from the run's CSV log or else its TensorBoard events."""
+    csv = run / "csv" / "metrics.csv"
+    if csv.is_file():
+        frame = pd.read_csv(csv)
+        if tag in frame:
+            values = frame.dropna(subset=[tag]).groupby("epoch")[tag].last()
+            return values.to_numpy(dtype=float)
+    events = run / "tensorboard"
+    if events.is_dir():
+        from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+        acc = EventAccumulator(str(events), size_guidance={"scalars": 0}).Reload()
+        if tag in acc.Tags().get("scalars", []):
+            return np.array([e.value for e in acc.Scalars(tag)], dtype=float)
+    return None
+
+
+def setting_order(done: pd.DataFrame, column: str = "setting") -> list[Any]:
+    """The distinct values of `column`, in the order of their first job (the sweep's order)."""
+    return list(dict.fromkeys(done[column].dropna()))
+
+
+def _sorted_values(values) -> list[Any]:
+    values = list(dict.fromkeys(values))
+    try:
+        return sorted(values)
+    except TypeError:
+        return sorted(values, key=str)
+
+
+def _label(plot: Mapping[str, Any]) -> str:
+    return str(plot.get("label") or str(plot["x"]).split(".")[-1])
+
+
+def _box_table(done: pd.DataFrame, plot: Mapping[str, Any]) -> str:
+    """Median test error per setting (rows) and value of the plot's x (columns)."""
+    x, label = str(plot["x"]), _label(plot)
+    values = _sorted_values(done[x].dropna())
+    head = "| setting | " + " | ".join(f"{label} {v:g}" if isinstance(v, (int, float))
+                                      else f"{label} {v}" for v in values) + " |"  # fmt: skip
+    lines = [head, "|---|" + "---|" * len(values)]
+    for setting in setting_order(done):
+        cells = []
+        for v in values:
+            sel = done[(done["setting"] == setting) & (done[x] == v)]["test/err_median"]
+            cells.append(f"{sel.median():.3f}" if len(sel) else "-")
+        lines.append(f"| {setting} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _plot_curves(done: pd.DataFrame, plot: Mapping[str, Any], path: Path) -> bool:
+    """Per-epoch median over each setting's runs, with a 10-90 % band, one panel per metric."""
+    plt = _pyplot()
+    tags = [str(t) for t in plot.get("metrics") or CURVE_METRICS]
+    fig, axes = plt.subplots(1, len(tags), figsize=(1 + 5 * len(tags), 4), sharey=True,
+                             squeeze=False)  # fmt: skip
+    drew = False
+    for ax, tag in zip(axes[0], tags, strict=True):
+        for setting in setting_order(done):
+            dirs = done.loc[done["setting"] == setting, "dir"]
+            curves = [c for c in (_curves(Path(d), tag) for d in dirs) if c is not None and len(c)]
+            if not curves:
+                continue
+            n = min(len(c) for c in curves)
+            p10, p50, p90 = np.percentile(np.stack([c[:n] for c in curves]), [10, 50, 90], axis=0)
+            epochs = np.arange(1, n + 1)
+            ax.plot(epochs, p50, label=f"{setting} (median of {len(curves)})")
+            ax.fill_between(epochs, p10, p90, alpha=0.25)
+            drew = True
+        ax.set(title=tag, xlabel="epoch", yscale="log")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0][0].set_ylabel("error (deg)")
+    fig.tight_layout()
+    if drew:
+        axes[0][-1].legend()
+        fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return drew
+
+
+def _plot_box(done: pd.DataFrame, plot: Mapping[str, Any], path: Path) -> bool:
+    """Box plots of log10 per-sample test error (`test_errors.json`) per x value and setting."""
+    plt = _pyplot()
+    x = str(plot["x"])
+    values, settings = _sorted_values(done[x].dropna()), setting_order(done)
+    fig, ax = plt.subplots(figsize=(3 + 2 * len(values), 4))
+    width = 0.8 / max(len(settings), 1)
+    drew = False
+    for i, setting in enumerate(settings):
+        data, positions = [], []
+        for j, value in enumerate(values):
+            errors = []
+            for d in done[(done["setting"] == setting) & (done[x] == value)]["dir"]:
+                errors.extend(read_json(Path(d) / "test_errors.json") or [])
+            if errors:
+                data.append(np.log10(np.maximum(errors, 1e-6)))
+                positions.append(j + (i - (len(settings) - 1) / 2) * width)
+        if data:
+            box = ax.boxplot(data, positions=positions, widths=width * 0.9, notch=True,
+                             patch_artist=True, showfliers=False)  # fmt: skip
+            for patch in box["boxes"]:
+                patch.set_facecolor(f"C{i}")
+            ax.plot([], [], color=f"C{i}", label=setting, linewidth=8)
+            drew = True
+    ax.set_xticks(range(len(values)), [f"{v:g}" if isinstance(v, (int, float)) else str(v)
+                                       for v in values])  # fmt: skip
+    ax.set(xlabel=_label(plot), ylabel="log10 test error (deg)")
+    ax.legend()
+    ax.grid(True, axis="y", alpha=0.3)
+    fig.tight_layout()
+    if drew:
+        fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return drew
+
+
+def draw_plots(done: pd.DataFrame, layout: Mapping[str, Any], out: Path) -> tuple[dict, list[str]]:
+    """Draw the layout's plots that the sweep has data for: ({file key: path}, report.md lines).
+    A box plot needs its x key to take two or more values among the completed runs."""
+    files, md, curves = {}, [], []
+    for plot in layout["plots"]:
+        kind = plot.get("kind")
+        if kind == "box" and plot.get("x") in done and done[plot["x"]].nunique() > 1:
+            label = _label(plot)
+            name = str(plot.get("file") or f"{label}_box.png")
+            md += [f"## Median test error (degrees) per {label}", "", _box_table(done, plot), ""]
+            if _plot_box(done, plot, out / name):
+                files[Path(name).stem] = out / name
+                md += [f"![log10 test error per {label}]({name})", ""]
+        elif kind == "curves":
+            name = str(plot.get("file") or "curves.png")
+            if _plot_curves(done, plot, out / name):
+                files[Path(name).stem] = out / name
+                curves += [f"![per-epoch error]({name})", ""]
+        elif kind not in ("box", "curves"):
+            log.warning("report: unknown plot kind %r (expected curves or box); skipped", kind)
+    if curves:
+        md += ["## Error per epoch", "", *curves]
+    return files, md
