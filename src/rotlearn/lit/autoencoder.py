@@ -110,7 +110,7 @@ class AutoEncoderModule(RunStateHooks, pl.LightningModule):
 def load_autoencoder(
     ckpt_path: str | os.PathLike, device: str | torch.device = "cpu"
 ) -> AutoEncoderModule:
-    """An `AutoEncoderModule`, in eval mode on `device`, from a checkpoint of a `task=autoencoder`
+    """An `AutoEncoderModule`, in eval mode on `device`, from a checkpoint of a `model=autoencoder`
     run (or a run directory's last one), read through `rotlearn.checkpoint.load_run` (weights
     only; the saved config may name allowlisted components only).
 
@@ -125,7 +125,7 @@ def load_autoencoder(
     if run.task != "autoencoder":
         raise ValueError(
             f"{run.path} is not an auto-encoder checkpoint: its run has task={run.task!r} "
-            "(train one with task=autoencoder, e.g. experiment=kitti_autoencoder)"
+            "(train one with model=autoencoder, e.g. experiment=kitti_autoencoder)"
         )
     module = AutoEncoderModule(run.build("net"))
     module.load_state_dict(run.state_dict)
