@@ -70,8 +70,8 @@ def test_the_dataset_example_writes_its_demo_and_trains(make_cfg, tmp_path, clea
 
     (_, code), (_, yaml) = examples("dataset")
     module = load_module("rotlearn.data.npz_pairs", code, tmp_path)
-    root = tmp_path / "npz_pairs"
-    assert len(module.write_demo(root, seed=0)) == 24
+    (root,) = module.write_demo(tmp_path, seed=0)
+    assert root == tmp_path / "npz_pairs" and len(list(root.glob("*/*.npz"))) == 24
     assert is_trusted_target("rotlearn.data.npz_pairs.NpzPairsDataModule")
     with pytest.raises(FileNotFoundError, match=r"no \.npz files"):
         module.read_split(tmp_path / "nowhere", "train")
