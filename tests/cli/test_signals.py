@@ -16,7 +16,7 @@ from omegaconf import OmegaConf, open_dict
 
 from rotlearn.cli.callbacks import JobStatusCallback, summarise_jobs
 from rotlearn.cli.report import make_report
-from rotlearn.lit import divergence
+from rotlearn.lit import barely_learned, divergence
 from tests.conftest import CONFIG_DIR, RESUMABLE, checkpoint_epoch, start_cli
 
 # --- signals -----------------------------------------------------------------------------------
@@ -159,6 +159,18 @@ GOOD = {"test/err_mean": 3.0, "test/identity_err_mean": 90.9}
 def test_divergence_flags_worse_than_identity_or_a_loss_that_grew(metrics, losses, diverged):
     reasons = divergence(metrics, losses)
     assert bool(reasons) is diverged, reasons
+
+
+@pytest.mark.parametrize(
+    ("err", "identity", "untrained"),
+    [(90.1, 90.9, True), (85.0, 90.9, True), (80.0, 90.9, False), (1.0, 90.9, False)],
+)
+def test_a_run_that_barely_beats_the_identity_is_named(err, identity, untrained):
+    """The loss=bingham optim.lr=1e-1 case: the NLL fell while the belief widened; the error
+    stayed at the identity's (90.1 vs 90.9 deg): not diverged, but said."""
+    message = barely_learned({"test/err_mean": err, "test/identity_err_mean": identity})
+    assert (message is not None) is untrained
+    assert barely_learned({"test/err_mean": err}) is None
 
 
 # --- SLURM requeue ------------------------------------------------------------------------------

@@ -2,7 +2,7 @@
 
 from rotlearn.lit.autoencoder import AutoEncoderModule, load_autoencoder
 from rotlearn.lit.callbacks import EpochLosses, EpochTimer, InterruptRecorder
-from rotlearn.lit.records import RunRecords, divergence
+from rotlearn.lit.records import RunRecords, barely_learned, divergence
 from rotlearn.lit.regressor import RotationRegressor
 
 __all__ = [
@@ -12,6 +12,7 @@ __all__ = [
     "InterruptRecorder",
     "RotationRegressor",
     "RunRecords",
+    "barely_learned",
     "divergence",
     "load_autoencoder",
 ]

@@ -2,8 +2,10 @@
 
 `RunRecords` writes, when testing ends, on global rank 0, atomically (`rotlearn.io`):
 - `metrics.json`: the final scalars of fitting and testing, the epochs and steps, the seeds, the
-  task and head, which weights were tested, the best checkpoint's monitored value, and whether
-  the run `diverged`. Only what the config and seeds determine, so a rerun gives an identical file;
+  task and head, which weights were tested, the best checkpoint's monitored value, whether the run
+  `diverged`, and `test/err_vs_identity` (the test error over that of predicting the identity; a
+  WARNING says when it stays above 0.9). Only what the config and seeds determine, so a rerun
+  gives an identical file;
 - `timing.json`: wall-clock seconds per epoch (from `EpochTimer`);
 - `test_errors.json`: the per-sample test errors in degrees, where the model keeps them (box plots
   of paper Fig. 4);
@@ -25,7 +27,7 @@ from lightning.pytorch.loggers import TensorBoardLogger
 from rotlearn.io import write_json_atomic
 from rotlearn.lit.callbacks import EpochLosses, EpochTimer
 
-__all__ = ["RunRecords", "divergence"]
+__all__ = ["RunRecords", "barely_learned", "divergence"]
 
 log = logging.getLogger("rotlearn")
 
@@ -55,6 +57,20 @@ def divergence(
                 f"training loss grew from {lowest:.4g} (lowest epoch) to {last:.4g} (last epoch)"
             )
     return reasons
+
+
+def barely_learned(metrics: dict[str, Any], ratio: float = 0.9) -> str | None:
+    """Why a run that did not diverge still looks untrained (None: it learned): its final test
+    error is above `ratio` times the error of predicting the identity. (A likelihood loss can
+    fall steadily while the belief merely widens, leaving the rotations untrained.)"""
+    err = metrics.get("test/err_mean")
+    identity = metrics.get("test/identity_err_mean")
+    if err is None or identity is None or not identity > 0 or not err > ratio * identity:
+        return None
+    return (
+        f"final test error {err:.2f} deg is {err / identity:.2f}x that of predicting the "
+        f"identity ({identity:.2f} deg): the model barely learned (try another optim.lr)"
+    )
 
 
 def _scalars(metrics: dict[str, Any]) -> dict[str, float]:
@@ -102,6 +118,13 @@ class RunRecords(pl.Callback):
         for reason in reasons:
             log.warning("%s diverged: %s", self.dirpath, reason)
         metrics["diverged"] = bool(reasons)
+        if "test/err_mean" in metrics and metrics.get("test/identity_err_mean"):
+            metrics["test/err_vs_identity"] = (
+                metrics["test/err_mean"] / metrics["test/identity_err_mean"]
+            )
+        untrained = None if reasons else barely_learned(metrics)
+        if untrained:
+            log.warning("%s: %s", self.dirpath, untrained)
         self.metrics = metrics
         if trainer.is_global_zero:
             self._write(trainer, pl_module, metrics)
