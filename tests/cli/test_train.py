@@ -169,6 +169,13 @@ def test_cli_refuses_phi_max_out_of_range_naming_the_key(tmp_path):
     assert "config key data.phi_max_deg: must lie in (0, 180]" in result.stderr
 
 
+def test_a_bad_value_of_a_new_run_leaves_no_run_directory(tmp_path):
+    result = run_cli(["optim.lr=fast", "trainer.max_epochs=two"], tmp_path)
+    assert result.returncode != 0
+    assert "config key" in result.stderr and "nothing was written" in result.stderr
+    assert not (tmp_path / "outputs").exists()
+
+
 def test_multirun_gives_each_job_its_own_directory_and_metrics(tmp_path):
     sweep = tmp_path / "sweep"
     args = ["-m", "rep=quat,sixd,a,svd9d", "optim.lr=1e-4,1e-3", "trainer.max_epochs=1"]

@@ -213,9 +213,36 @@ def _hydra_main(cfg: DictConfig) -> float:
     return metrics.get("val/err_median", metrics.get("val/loss", math.nan))
 
 
+def _refuse_an_invalid_new_run(argv: list[str]) -> None:
+    """Validate a new single run's config before Hydra creates its directory, so that a bad value
+    leaves nothing behind (SystemExit naming the key). Sweeps (each job is validated by `build`
+    and listed FAILED), flags such as --help or --cfg, and resumes (`rotlearn.cli.resume`) are
+    left to their own paths; a config that does not compose is left for Hydra to report."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    if any(a.startswith("-") or a.startswith("ckpt_path=") for a in argv):
+        return
+    if GlobalHydra.instance().is_initialized():
+        return
+    overrides = [a for a in argv if not a.lstrip("+~").startswith(("hydra.", "hydra/"))]
+    try:
+        with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
+            cfg = compose("train", [*overrides, "paths.output_dir=new-run"])
+    except (HydraException, OmegaConfBaseException):
+        return
+    try:
+        validate(cfg)
+    except ConfigError as exc:
+        raise SystemExit(f"rotlearn-train: {exc} (nothing was written)") from None
+
+
 def main() -> float:
     """Entry point of `rotlearn-train`; returns the validation median error (for sweepers)."""
     argv = sys.argv[1:]
+    _refuse_an_invalid_new_run(argv)
     args = resume_arguments(argv)
     if args != argv:  # a resume that will train: its last argument is hydra.run.dir=<run dir>
         kept = keep_earlier_records(Path(args[-1].split("=", 1)[1]))
