@@ -94,9 +94,10 @@ def apply_jitter(x: Tensor, jitter: Tensor, channels: int) -> Tensor:
 
 
 class AugmentedPairs(Dataset):
-    """The training pairs, each batch with its draws: "swap" (B,) bool (probability `swap`) and
-    "jitter" (B, 2) (brightness factor in [1 - b, 1 + b], contrast factor in [1 - c, 1 + c],
-    uniform), from a generator seeded by (`seed`, the batch's pair indices).
+    """The training pairs, each batch with its draws: "swap" (B,) bool (probability `swap`; only
+    where `swap` > 0) and "jitter" (B, 2) (brightness factor in [1 - b, 1 + b], contrast factor in
+    [1 - c, 1 + c], uniform; only where b or c > 0), from a generator seeded by (`seed`, the
+    batch's pair indices); the same draws whichever of them is on.
 
     Args:
         pairs: a dataset with `__getitems__` (`rotlearn.data.pairs.ImagePairs`).
@@ -121,8 +122,11 @@ class AugmentedPairs(Dataset):
         generator = torch.Generator().manual_seed(seed)
         draws = torch.rand(n, 3, generator=generator)
         half = torch.tensor([self.photometric["brightness"], self.photometric["contrast"]])
-        jitter = 1.0 + (2.0 * draws[:, 1:] - 1.0) * half
-        return {**batch, "swap": draws[:, 0] < self.swap, "jitter": jitter}
+        if self.swap > 0:
+            batch["swap"] = draws[:, 0] < self.swap
+        if half.any():
+            batch["jitter"] = 1.0 + (2.0 * draws[:, 1:] - 1.0) * half
+        return batch
 
     def __getitem__(self, i: int) -> dict[str, Tensor]:
         return {k: v[0] for k, v in self.__getitems__([i]).items()}
