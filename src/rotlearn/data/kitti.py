@@ -86,6 +86,8 @@ class KittiOdometryDataModule(ImagePairDataModule):
         test_sequences: sequences to test on (paper: one of 00, 02, 05).
         camera: "image_2" (left colour, the paper's) or "image_0" (left gray).
         delta: frame step of a pair (i, i + delta).
+        deltas: frame steps of the training pairs: (i, i + d) for each d (several pairs per
+            frame); None: `delta`. The test pairs keep `delta`.
         image_size: S of the S x S frames (paper: 224).
         pair_channels: channels of a stacked pair; must be 6 (two RGB frames). It is a config
             key so that the net can read it (`${data.pair_channels}`).
@@ -101,6 +103,7 @@ class KittiOdometryDataModule(ImagePairDataModule):
         test_sequences: Sequence[int | str] = ("00",),
         camera: str = "image_2",
         delta: int = 1,
+        deltas: Sequence[int] | None = None,
         image_size: int = 224,
         pair_channels: int = 6,
         cache_dir: str | None = None,
@@ -128,6 +131,14 @@ class KittiOdometryDataModule(ImagePairDataModule):
             if not names:
                 raise ConfigValueError(key, "no sequence left (train minus test sequences)")
         self.delta, self.image_size = int(delta), int(image_size)
+        if deltas is not None:
+            steps = list(deltas)
+            bad = [d for d in steps if isinstance(d, bool) or not isinstance(d, int) or d < 1]
+            if not steps or bad or len(set(steps)) != len(steps):
+                raise ConfigValueError(
+                    "deltas", f"must be distinct positive integers or null, got {steps!r}"
+                )
+        self.deltas = [int(d) for d in deltas] if deltas is not None else None
         self.cache_dir = Path(cache_dir) if cache_dir else self.root / ".rotlearn_cache"
 
     def preprocess(self, image: np.ndarray) -> np.ndarray:
@@ -153,8 +164,10 @@ class KittiOdometryDataModule(ImagePairDataModule):
             raise FileNotFoundError(f"sequence {sequence}: no .png frames in {folder}")
         return [self._inside(f, sequence) for f in files]
 
-    def sequence_pairs(self, sequence: str) -> PairIndex:
-        """The pairs (i, i + delta) of one sequence, its frames cached."""
+    def sequence_pairs(self, sequence: str, deltas: Sequence[int] | None = None) -> PairIndex:
+        """The pairs (i, i + d) of one sequence for each d of `deltas` (None: `delta`), in that
+        order, its frames cached."""
+        deltas = [self.delta] if deltas is None else list(deltas)
         files = self.frames(sequence)
         poses_path = self._inside(self.root / "poses" / f"{sequence}.txt", sequence)
         if not poses_path.is_file():
@@ -165,9 +178,9 @@ class KittiOdometryDataModule(ImagePairDataModule):
                 f"{poses_path}: {len(poses)} poses, but {files[0].parent} holds {len(files)} "
                 "frames (one pose line per frame expected)"
             )
-        if len(files) <= self.delta:
+        if len(files) <= max(deltas):
             raise ValueError(
-                f"sequence {sequence}: {len(files)} frames, none with a frame {self.delta} later"
+                f"sequence {sequence}: {len(files)} frames, none with a frame {max(deltas)} later"
             )
         cache = cache_file(
             self.cache_dir,
@@ -182,18 +195,22 @@ class KittiOdometryDataModule(ImagePairDataModule):
             {"resize_square": self.image_size},
             desc=f"caching KITTI {sequence}/{self.camera}",
         )
-        first = np.arange(len(files) - self.delta)
-        R = poses[:, :, :3]
-        C = relative_rotation(torch.from_numpy(R[first]), torch.from_numpy(R[first + self.delta]))
+        first = np.concatenate([np.arange(len(files) - d) for d in deltas])
+        second = first + np.repeat(deltas, [len(files) - d for d in deltas])
+        R = torch.from_numpy(poses[:, :, :3])
+        C = relative_rotation(R[first], R[second])
         return PairIndex(
             caches=[cache.with_suffix(".npy")],
             source=np.zeros(len(first), dtype=np.int64),
             first=first,
-            second=first + self.delta,
+            second=second,
             R=C.numpy(),
             names=[sequence],
         )
 
     def load(self, split: str) -> PairIndex:
-        names = self.train_sequences if split == "train" else self.test_sequences
-        return PairIndex.concat([self.sequence_pairs(name) for name in names])
+        if split == "train":
+            return PairIndex.concat(
+                [self.sequence_pairs(n, self.deltas) for n in self.train_sequences]
+            )
+        return PairIndex.concat([self.sequence_pairs(name) for name in self.test_sequences])

@@ -1,15 +1,17 @@
 """Image-pair datasets over frame caches, and their LightningDataModule base (KITTI, MAV).
 
-(Slightly above 350 lines on purpose: the pair index, the dataset and the datamodule base share one
-batch layout, documented once below.)
+(Above 350 lines on purpose: the pair index, the dataset and the datamodule base share one batch
+layout, documented once below; the augmentation itself lives in `rotlearn.data.augment`.)
 
 A batch is {"input": (B, 2C, S, S) in the model's dtype, "R": (B, 3, 3), "q": (B, 4) (x, y, z, w),
-"corrupted": (B,) bool, "source": (B,) int64 (sequence / scene index), "index": (B,) int64}.
+"corrupted": (B,) bool, "source": (B,) int64 (sequence / scene index), "index": (B,) int64}
+(training batches with augmentation also carry the loader's draws "swap" and "jitter",
+`rotlearn.data.augment`, which the finishing step applies and removes).
 Loader workers gather whole batches of uint8 frames from memory-mapped caches (`__getitems__`);
-the conversion to floats, the normalisation and the erasing of corrupted test pairs happen after
-the transfer, on the model's device, in ONE step: `ImagePairDataModule.finish_batch`, which
-Lightning's `on_after_batch_transfer` and every other caller (the OOD evaluation, the
-data-dependent initialisation, benchmarks) use.
+the conversion to floats, the training augmentation, the normalisation and the erasing of
+corrupted test pairs happen after the transfer, on the model's device, in ONE step:
+`ImagePairDataModule.finish_batch`, which Lightning's `on_after_batch_transfer` and every other
+caller (the OOD evaluation, the data-dependent initialisation, benchmarks) use.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset, get_worker_info
 
+from rotlearn.data import augment
 from rotlearn.data.corruption import corrupted_flags, draw_erasing_boxes, erase_boxes
 from rotlearn.data.draws import SPLITS, draw_seed
 from rotlearn.errors import ConfigValueError, require_positive_ints
@@ -171,7 +174,13 @@ class ImagePairDataModule(pl.LightningDataModule):
         num_val: test pairs, evenly spaced and never corrupted, also scored every epoch
             (monitoring only; they are never trained on).
         mean, std: input normalisation after scaling pixels to [0, 1].
-        seed: the data seed (shuffling, test/train split where random, erasing boxes).
+        seed: the data seed (shuffling, test/train split where random, erasing boxes,
+            augmentation draws).
+        swap_pairs: probability that a training pair has its two frames swapped and its target
+            inverted (C_12 = C_21^T; q conjugated). Training only.
+        photometric: {"brightness": b, "contrast": c}, each in [0, 1): per training pair, the
+            same brightness factor in [1 - b, 1 + b] and contrast factor in [1 - c, 1 + c] for
+            both frames (`rotlearn.data.augment`). None: off. Training only.
     """
 
     def __init__(
@@ -184,6 +193,8 @@ class ImagePairDataModule(pl.LightningDataModule):
         mean: float = 0.0,
         std: float = 1.0,
         seed: int = 0,
+        swap_pairs: float = 0.0,
+        photometric: dict[str, float] | None = None,
     ) -> None:
         super().__init__()
         require_positive_ints(batch_size=batch_size, eval_batch_size=eval_batch_size)
@@ -200,6 +211,10 @@ class ImagePairDataModule(pl.LightningDataModule):
         self.num_workers, self.num_val = int(num_workers), int(num_val)
         self.corrupt_fraction = float(corrupt_fraction)
         self.mean, self.std, self.seed = float(mean), float(std), int(seed)
+        if isinstance(swap_pairs, bool) or not 0.0 <= swap_pairs <= 1.0:
+            raise ConfigValueError("swap_pairs", f"must lie in [0, 1], got {swap_pairs!r}")
+        self.swap_pairs = float(swap_pairs)
+        self.photometric = augment.check_photometric(photometric)
         self.sets: dict[str, ImagePairs] = {}
 
     def load(self, split: str) -> PairIndex:  # pragma: no cover
@@ -234,7 +249,11 @@ class ImagePairDataModule(pl.LightningDataModule):
         )
 
     def train_dataloader(self) -> DataLoader:
-        return self._loader("train", self.batch_size, shuffle=True)
+        """Shuffled training batches; with their augmentation draws where any is on."""
+        dataset = self.sets["train"]
+        if self.swap_pairs > 0 or any(self.photometric.values()):
+            dataset = augment.AugmentedPairs(dataset, self.swap_pairs, self.photometric, self.seed)
+        return self._loader("train", self.batch_size, shuffle=True, dataset=dataset)
 
     # -- what the OOD evaluation reads (`rotlearn.ood.source.OODDataSource`) -------------------
 
@@ -304,8 +323,10 @@ class ImagePairDataModule(pl.LightningDataModule):
         device: torch.device | str | None = None,
         dtype: torch.dtype | None = None,
     ) -> Any:
-        """A loader batch as the model sees it: on `device`, uint8 pairs erased where
-        `corrupted`, then floats (x / 255 - mean) / std in `dtype`; R and q in `dtype` too.
+        """A loader batch as the model sees it: on `device`, uint8 pairs swapped where the
+        training loader drew "swap" (R transposed, q conjugated), erased where `corrupted`, then
+        floats x / 255, jittered where it drew "jitter", normalised (x - mean) / std, in
+        `dtype`; R and q in `dtype` too. The draws' keys are removed.
 
         Args:
             batch: a batch of `ImagePairs` (a batch whose input is not uint8 is only moved).
@@ -321,10 +342,21 @@ class ImagePairDataModule(pl.LightningDataModule):
         if images is None or images.dtype != torch.uint8:
             return batch
         dtype = dtype if dtype is not None else batch["R"].dtype
+        batch = dict(batch)
+        R, q = batch["R"], batch["q"]
+        swap, jitter = batch.pop("swap", None), batch.pop("jitter", None)
+        if swap is not None:
+            images, R, q = augment.swap_pairs(images, R, q, swap)
         if bool(batch["corrupted"].any()):
             images = erase_boxes(images, batch["boxes"], batch["corrupted"])
-        x = self.normalize(images, dtype)
-        return {**batch, "input": x, "R": batch["R"].to(dtype), "q": batch["q"].to(dtype)}
+        if jitter is None:
+            x = self.normalize(images, dtype)
+        else:
+            x = augment.apply_jitter(
+                images.to(dtype).mul_(1.0 / 255.0), jitter, images.shape[1] // 2
+            )
+            x = x.sub_(self.mean).div_(self.std)
+        return {**batch, "input": x, "R": R.to(dtype), "q": q.to(dtype)}
 
     def on_after_batch_transfer(self, batch: Any, dataloader_idx: int) -> Any:
         """`finish_batch` where the transfer put the batch, in its R's dtype."""
