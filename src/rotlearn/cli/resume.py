@@ -21,9 +21,8 @@ from omegaconf import DictConfig
 
 from rotlearn.checkpoint import load_checkpoint, resolve_checkpoint
 from rotlearn.cli.replay import saved_overrides
-from rotlearn.cli.schemas import validate
+from rotlearn.cli.schemas import validate_command_line
 from rotlearn.io import read_json
-from rotlearn.paths import config_dir
 from rotlearn.trust import UntrustedConfigError
 
 __all__ = ["checkpoint_to_resume", "keep_earlier_records", "resume_arguments"]
@@ -158,15 +157,8 @@ def _refuse_rewriting_a_completed_run(run_dir: Path, previous: list[str], new: l
 
 def _refuse_an_invalid_config(run_dir: Path, args: list[str]) -> None:
     """Compose and validate the resumed run's config before Hydra writes anything into it."""
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-
-    if GlobalHydra.instance().is_initialized():  # inside another Hydra app: `build` validates
-        return
-    overrides = [a for a in args if not a.lstrip("+~").startswith(("hydra.", "hydra/"))]
     try:
-        with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
-            validate(compose("train", [*overrides, f"paths.output_dir={run_dir}"]))
+        validate_command_line(args, str(run_dir))
     except Exception as exc:  # any composition or validation error: nothing was written
         raise _refuse(f"refusing to resume {run_dir}: {exc}") from None
 

@@ -280,3 +280,25 @@ def validate(cfg: DictConfig) -> None:
         make_head(cfg.rep.name, cfg.rep.out_dim, cfg.rep.get("solver"))
     except ConfigError as exc:
         raise exc.within("rep") from None
+
+
+def validate_command_line(args: list[str], output_dir: str) -> None:
+    """Compose the train config of a command line (its Hydra keys left out, `paths.output_dir`
+    set to `output_dir`) and `validate` it, before Hydra starts and writes anything. Does nothing
+    inside a running Hydra app (there `build` validates).
+
+    Raises:
+        hydra.errors.HydraException, omegaconf.errors.OmegaConfBaseException: it does not compose.
+        ConfigError: a value is invalid (naming its key).
+    """
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from rotlearn.paths import config_dir
+
+    if GlobalHydra.instance().is_initialized():
+        return
+    overrides = [a for a in args if not a.lstrip("+~").startswith(("hydra.", "hydra/"))]
+    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
+        cfg = compose("train", [*overrides, f"paths.output_dir={output_dir}"])
+    validate(cfg)

@@ -26,7 +26,7 @@ from omegaconf import DictConfig, OmegaConf
 from rotlearn.checkpoint import load_checkpoint
 from rotlearn.cli.callbacks import record_job
 from rotlearn.cli.resume import checkpoint_to_resume, keep_earlier_records, resume_arguments
-from rotlearn.cli.schemas import validate
+from rotlearn.cli.schemas import validate, validate_command_line
 from rotlearn.errors import ConfigError
 from rotlearn.lit import EpochLosses, InterruptRecorder, RunRecords
 from rotlearn.paths import config_dir
@@ -218,23 +218,15 @@ def _refuse_an_invalid_new_run(argv: list[str]) -> None:
     leaves nothing behind (SystemExit naming the key). Sweeps (each job is validated by `build`
     and listed FAILED), flags such as --help or --cfg, and resumes (`rotlearn.cli.resume`) are
     left to their own paths; a config that does not compose is left for Hydra to report."""
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
     if any(a.startswith("-") or a.startswith("ckpt_path=") for a in argv):
         return
-    if GlobalHydra.instance().is_initialized():
-        return
-    overrides = [a for a in argv if not a.lstrip("+~").startswith(("hydra.", "hydra/"))]
     try:
-        with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
-            cfg = compose("train", [*overrides, "paths.output_dir=new-run"])
+        validate_command_line(argv, "new-run")
     except (HydraException, OmegaConfBaseException):
         return
-    try:
-        validate(cfg)
     except ConfigError as exc:
         raise SystemExit(f"rotlearn-train: {exc} (nothing was written)") from None
 
