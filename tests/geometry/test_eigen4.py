@@ -34,7 +34,7 @@ from rotlearn.geometry.eigen4 import (
     sym4_eigh_min,
     validate_sym4,
 )
-from rotlearn.heads import a_from_quat, a_from_vec
+from rotlearn.geometry import a_from_quat, a_from_vec
 from tests.conftest import gen
 
 F32, F64 = torch.float32, torch.float64

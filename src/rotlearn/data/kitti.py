@@ -22,8 +22,7 @@ import torch
 from rotlearn.data.images import frame_cache, resize_square
 from rotlearn.data.pairs import ImagePairDataModule, PairIndex
 from rotlearn.errors import ConfigValueError, require_positive_ints
-from rotlearn.geometry import relative_rotation
-from rotlearn.heads.svd import special_orthogonalize
+from rotlearn.geometry import relative_rotation, special_orthogonalize
 from rotlearn.io import cache_file, plain_name, read_number_rows, resolve_inside
 from rotlearn.trust import config_target
 

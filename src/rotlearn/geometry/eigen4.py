@@ -55,6 +55,7 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from rotlearn.errors import batch_index
+from rotlearn.geometry.autocast import float32_under_autocast
 
 __all__ = [
     "DEFAULT_GAP_EPS",
@@ -275,12 +276,13 @@ class _Sym4EighMin(torch.autograd.Function):
     harmless; the clamp keeps l1 = l2 (and A = cI) finite. grad_A is exactly symmetric: the
     gradient along symmetric perturbations, so that a mirrored A (a_from_vec) gets the right
     gradient in both triangles.
+
+    New-style Function (forward without ctx, `setup_context`, an explicit `vmap` rule), so
+    torch.func (vmap of grad) and torch.compile trace it.
     """
 
     @staticmethod
-    def forward(
-        ctx, A: Tensor, gap_eps: float, rounds: int, use_eigh: bool
-    ) -> tuple[Tensor, Tensor]:
+    def forward(A: Tensor, gap_eps: float, rounds: int, use_eigh: bool) -> tuple[Tensor, ...]:
         B = A.shape[0]
         if use_eigh:
             eigenvalues, vectors = torch.linalg.eigh(A, UPLO="U")
@@ -291,15 +293,31 @@ class _Sym4EighMin(torch.autograd.Function):
             chunk = _CHUNK_PER_THREAD * torch.get_num_threads() if A.device.type == "cpu" else B
             for start in range(0, B, max(chunk, 1)):
                 _solve(A[start : start + chunk], W[..., start : start + chunk], rounds)
+        # (B, 4) views of W's rows: no copy, and q.unbind(-1) gives contiguous components. W
+        # itself is the third output (not differentiable), for setup_context to save.
+        return W[:, 4].t(), W[0, :4].t(), W
+
+    @staticmethod
+    def setup_context(ctx, inputs: tuple, output: tuple[Tensor, ...]) -> None:
+        W = output[2]
+        ctx.mark_non_differentiable(W)
         ctx.save_for_backward(W)
-        ctx.gap_eps = gap_eps
+        ctx.gap_eps = inputs[1]
         ctx.set_materialize_grads(False)
-        # (B, 4) views of W's rows: no copy, and q.unbind(-1) gives contiguous components.
-        return W[:, 4].t(), W[0, :4].t()
+
+    @staticmethod
+    def vmap(info, in_dims: tuple, A: Tensor, gap_eps: float, rounds: int, use_eigh: bool):
+        """torch.func.vmap rule: the vmapped dimension joins the batch of matrices (one call)."""
+        A = A.expand(info.batch_size, *A.shape) if in_dims[0] is None else A.movedim(in_dims[0], 0)
+        n = A.shape[0]
+        eigenvalues, q, W = _Sym4EighMin.apply(A.reshape(-1, 4, 4), gap_eps, rounds, use_eigh)
+        split = (n, -1)
+        outputs = (eigenvalues.unflatten(0, split), q.unflatten(0, split), W.unflatten(-1, split))
+        return outputs, (0, 0, 2)
 
     @staticmethod
     @once_differentiable
-    def backward(ctx, grad_l: Tensor | None, grad_q: Tensor | None):
+    def backward(ctx, grad_l: Tensor | None, grad_q: Tensor | None, _grad_W: None = None):
         (W,) = ctx.saved_tensors
         V, lam = W[:, :4], W[:, 4]  # (4 columns, 4 rows, B), (4, B)
         if grad_q is None and grad_l is None:
@@ -325,6 +343,7 @@ class _Sym4EighMin(torch.autograd.Function):
         return G.permute(2, 0, 1), None, None, None
 
 
+@float32_under_autocast
 def sym4_eigh_min(
     A: Tensor,
     *,
@@ -337,7 +356,9 @@ def sym4_eigh_min(
 
     Differentiable: the analytic backward of `_Sym4EighMin` (paper eq. 9 for q, v_i^T dA v_i for
     the eigenvalues), finite for repeated eigenvalues. Device-agnostic; no host synchronisation
-    when `check=False`. Every output element depends on its own matrix only.
+    when `check=False`. Every output element depends on its own matrix only. Works under
+    torch.func.vmap/grad and torch.compile (with `check=False`). Under autocast (CPU or CUDA)
+    float16/bfloat16 input is cast to float32 and the solver runs in float32 with autocast off.
 
     Args:
         A: (..., 4, 4) symmetric matrices, float32 or float64, any batch shape (also () and
@@ -360,7 +381,7 @@ def sym4_eigh_min(
             input makes torch.linalg.eigh raise; jacobi propagates NaN.
 
     Returns:
-        eigenvalues: (..., 4), ascending.
+        eigenvalues: (..., 4), ascending, in A's dtype (float32 under autocast).
         q: (..., 4), the unit eigenvector of the smallest eigenvalue as a quaternion (x, y, z, w),
             sign exactly as `quat_canonical` (w > 0; ties by the first nonzero of w, x, y, z).
         Both are (strided) views of one buffer that the backward keeps.
@@ -389,5 +410,5 @@ def sym4_eigh_min(
     A = A.reshape(-1, 4, 4)
     use_eigh = method == "eigh" or (method == "auto" and A.shape[0] < EIGH_BELOW)
     n_rounds = DEFAULT_ROUNDS[A.dtype] if rounds is None else int(rounds)
-    eigenvalues, q = _Sym4EighMin.apply(A, float(gap_eps), n_rounds, use_eigh)
+    eigenvalues, q, _ = _Sym4EighMin.apply(A, float(gap_eps), n_rounds, use_eigh)
     return eigenvalues.reshape(*batch, 4), q.reshape(*batch, 4)

@@ -7,6 +7,15 @@ subclass decorated with `@register_head`) and one `conf/rep/<name>.yaml`; nothin
 import importlib
 import pkgutil
 
+# The maps the heads use live in rotlearn.geometry (their one home); they are re-exported here so
+# that code written against earlier versions (`from rotlearn.heads import a_from_vec`) still runs.
+from rotlearn.geometry import (
+    a_from_quat,
+    a_from_vec,
+    sixd_to_rotmat,
+    special_orthogonalize,
+    vec_from_a,
+)
 from rotlearn.heads.base import (
     HEADS,
     RotationHead,
@@ -15,9 +24,9 @@ from rotlearn.heads.base import (
     register_head,
 )
 from rotlearn.heads.quat import QuatHead
-from rotlearn.heads.sixd import SixDHead, sixd_to_rotmat
-from rotlearn.heads.svd import SVD9DHead, special_orthogonalize
-from rotlearn.heads.symmetric import AHead, a_from_quat, a_from_vec, a_min_eigvec, vec_from_a
+from rotlearn.heads.sixd import SixDHead
+from rotlearn.heads.svd import SVD9DHead
+from rotlearn.heads.symmetric import AHead, a_min_eigvec
 
 __all__ = [
     "HEADS",

@@ -11,9 +11,12 @@ O(B * C_out * C_in) work rather than O(B * N * C_out * C_in).
 from __future__ import annotations
 
 import warnings
+from typing import Any
 
 import torch
 from torch import Tensor, nn
+
+from rotlearn.geometry.autocast import REDUCED_DTYPES, autocast_enabled
 
 __all__ = ["LinearMaxPool", "linear_max"]
 
@@ -71,22 +74,38 @@ def _selection_matrices(index: Tensor, grad: Tensor, num_points: int) -> tuple[T
 
 
 class _LinearMaxPoolFn(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, points: Tensor, weight: Tensor, bias: Tensor, chunk: int) -> Tensor:
-        values, index = linear_max(points, weight, bias, chunk)
-        ctx.save_for_backward(points, weight, index)
-        return values
+    """`linear_max` with the sparse backward; all inputs in one dtype. New-style Function
+    (`setup_context`), so torch.compile traces it. Outputs: values and the (integer, not
+    differentiable) indices of the selected points."""
 
     @staticmethod
-    def backward(ctx, grad: Tensor) -> tuple[Tensor | None, ...]:
+    def forward(points: Tensor, weight: Tensor, bias: Tensor, chunk: int) -> tuple[Tensor, Tensor]:
+        return linear_max(points, weight, bias, chunk)
+
+    @staticmethod
+    def setup_context(ctx: Any, inputs: tuple[Any, ...], output: tuple[Tensor, Tensor]) -> None:
+        points, weight, _, _ = inputs
+        ctx.mark_non_differentiable(output[1])
+        ctx.save_for_backward(points, weight, output[1])
+
+    @staticmethod
+    def backward(ctx: Any, grad: Tensor, _grad_index: Any = None) -> tuple[Tensor | None, ...]:
         points, weight, index = ctx.saved_tensors
         B, N, D = points.shape
-        with warnings.catch_warnings():
+        # Sparse CSR products have no float16/bfloat16 kernels: those run in float32 (the
+        # products are O(B * C_out * C_in), small next to the forward's GEMM).
+        work = torch.float32 if grad.dtype in REDUCED_DTYPES else grad.dtype
+        grad = grad.to(work)
+        with warnings.catch_warnings(), torch.autocast(grad.device.type, enabled=False):
             warnings.simplefilter("ignore")  # "sparse CSR support is in beta"
             P, Pt = _selection_matrices(index, grad.contiguous(), N)
-            grad_points = (Pt @ weight).view_as(points) if ctx.needs_input_grad[0] else None
-            grad_weight = P @ points.reshape(B * N, D) if ctx.needs_input_grad[1] else None
-        grad_bias = grad.sum(0) if ctx.needs_input_grad[2] else None
+            grad_points = grad_weight = grad_bias = None
+            if ctx.needs_input_grad[0]:
+                grad_points = (Pt @ weight.to(work)).view_as(points).to(points.dtype)
+            if ctx.needs_input_grad[1]:
+                grad_weight = (P @ points.reshape(B * N, D).to(work)).to(weight.dtype)
+        if ctx.needs_input_grad[2]:
+            grad_bias = grad.sum(0).to(weight.dtype)
         return grad_points, grad_weight, grad_bias, None
 
 
@@ -95,6 +114,8 @@ class LinearMaxPool(nn.Module):
 
     Same parameters, initialisation and state-dict keys (`linear.weight`, `linear.bias`) as a
     wrapped `nn.Linear`; the same values, and the same gradient as `Linear` + `max(dim=-2)`.
+    Under autocast it computes like `nn.Linear` there: the product in the autocast dtype, whose
+    output it returns (the sparse backward runs in float32 and casts back).
 
     Args:
         in_features, out_features: the linear map's sizes.
@@ -113,11 +134,22 @@ class LinearMaxPool(nn.Module):
         flat = points.reshape(-1, n, d)
         chunk = max(1, self.chunk_points // max(n, 1))
         weight, bias = self.linear.weight, self.linear.bias
-        if torch.is_grad_enabled() and (points.requires_grad or weight.requires_grad):
-            out = _LinearMaxPoolFn.apply(flat, weight, bias, chunk)
+        device_type = points.device.type
+        if autocast_enabled(device_type):
+            # As nn.Linear under autocast: the product in the autocast dtype (bfloat16 with
+            # precision=bf16-mixed), and so is the output; the casts carry the gradients back.
+            dtype = torch.get_autocast_dtype(device_type)
+            with torch.autocast(device_type, enabled=False):
+                out = self._pool(flat.to(dtype), weight.to(dtype), bias.to(dtype), chunk)
         else:
-            out = linear_max(flat, weight, bias, chunk)[0]
+            out = self._pool(flat, weight, bias, chunk)
         return out.reshape(*lead, -1)
+
+    @staticmethod
+    def _pool(points: Tensor, weight: Tensor, bias: Tensor, chunk: int) -> Tensor:
+        if torch.is_grad_enabled() and (points.requires_grad or weight.requires_grad):
+            return _LinearMaxPoolFn.apply(points, weight, bias, chunk)[0]
+        return linear_max(points, weight, bias, chunk)[0]
 
     def extra_repr(self) -> str:
         return f"chunk_points={self.chunk_points}"
