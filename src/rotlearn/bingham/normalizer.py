@@ -110,19 +110,40 @@ def _talbot(lam: Tensor, need_moments: bool) -> tuple[Tensor, Tensor | None]:
 
 
 class _LogNormalizer(torch.autograd.Function):
-    """log N(lam) for (B, 3) valid coefficients; backward multiplies by the saved moments."""
+    """log N(lam) for (B, 3) valid coefficients; backward multiplies by the saved moments.
+
+    New-style Function (`setup_context`, an explicit `vmap` rule: the vmapped dimension joins the
+    rows), so torch.func and torch.compile trace it. `need_moments`: whether a gradient will be
+    asked for (the moments are then computed with the values, from the same nodes).
+    """
 
     @staticmethod
-    def forward(ctx, lam: Tensor) -> Tensor:
-        log_n, mom = _talbot(lam, need_moments=ctx.needs_input_grad[0])
-        ctx.save_for_backward(mom if mom is not None else lam.new_empty(0))
-        return log_n
+    def forward(lam: Tensor, need_moments: bool) -> tuple[Tensor, Tensor]:
+        log_n, mom = _talbot(lam, need_moments=need_moments)
+        return log_n, mom if mom is not None else lam.new_empty(0)
+
+    @staticmethod
+    def setup_context(ctx, inputs: tuple, output: tuple[Tensor, Tensor]) -> None:
+        ctx.mark_non_differentiable(output[1])
+        ctx.save_for_backward(output[1])
+
+    @staticmethod
+    def vmap(info, in_dims: tuple, lam: Tensor, need_moments: bool):
+        lam = (
+            lam.expand(info.batch_size, *lam.shape)
+            if in_dims[0] is None
+            else lam.movedim(in_dims[0], 0)
+        )
+        n = lam.shape[0]
+        log_n, mom = _LogNormalizer.apply(lam.reshape(-1, 3), need_moments)
+        mom = mom.unflatten(0, (n, -1)) if mom.numel() else mom.expand(n, 0)
+        return (log_n.unflatten(0, (n, -1)), mom), (0, 0)
 
     @staticmethod
     @once_differentiable
-    def backward(ctx, grad: Tensor) -> Tensor:
+    def backward(ctx, grad: Tensor, _grad_mom: Tensor | None = None) -> tuple[Tensor, None]:
         (mom,) = ctx.saved_tensors
-        return grad.unsqueeze(-1) * mom
+        return grad.unsqueeze(-1) * mom, None
 
 
 def _working_dtype(dtype: torch.dtype) -> torch.dtype:
@@ -135,7 +156,9 @@ def _log_normalizer3(lam: Tensor) -> Tensor:
     flat = lam.reshape(-1, 3).to(work)
     if flat.shape[0] == 0:
         return lam.new_zeros(lam.shape[:-1])
-    return _LogNormalizer.apply(flat).reshape(lam.shape[:-1]).to(lam.dtype)
+    need_moments = torch.is_grad_enabled() and flat.requires_grad
+    log_n, _ = _LogNormalizer.apply(flat, need_moments)
+    return log_n.reshape(lam.shape[:-1]).to(lam.dtype)
 
 
 def log_normalizer(lam: Tensor) -> Tensor:
