@@ -18,6 +18,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from rotlearn.geometry import (
+    a_from_quat,
+    a_from_vec,
     angle_deg,
     quat_canonical,
     quat_multiply,
@@ -34,7 +36,6 @@ from rotlearn.geometry.eigen4 import (
     sym4_eigh_min,
     validate_sym4,
 )
-from rotlearn.geometry import a_from_quat, a_from_vec
 from tests.conftest import gen
 
 F32, F64 = torch.float32, torch.float64

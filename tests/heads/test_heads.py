@@ -9,7 +9,16 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from rotlearn.geometry import quat_to_rotmat, random_rotmat, rotmat_to_quat, so3_exp
+from rotlearn.geometry import (
+    a_from_quat,
+    a_from_vec,
+    quat_to_rotmat,
+    rotmat_to_quat,
+    sixd_to_rotmat,
+    special_orthogonalize,
+    symmatrixvec_to_quat,
+    vec_from_a,
+)
 from rotlearn.heads import (
     HEADS,
     AHead,
@@ -17,13 +26,8 @@ from rotlearn.heads import (
     RotationHead,
     SixDHead,
     SVD9DHead,
-    a_from_quat,
-    a_from_vec,
     a_min_eigvec,
     make_head,
-    sixd_to_rotmat,
-    special_orthogonalize,
-    vec_from_a,
 )
 from tests.conftest import gen
 
@@ -115,34 +119,6 @@ def test_make_head_out_dim(name):
 # ---------------------------------------------------------------------------------------------
 
 
-def test_a_from_vec_order_eq8():
-    theta = torch.arange(10.0)
-    expected = torch.tensor(
-        [
-            [0.0, 1.0, 2.0, 3.0],
-            [1.0, 4.0, 5.0, 6.0],
-            [2.0, 5.0, 7.0, 8.0],
-            [3.0, 6.0, 8.0, 9.0],
-        ]
-    )
-    A = a_from_vec(theta)
-    assert torch.equal(A, expected)
-    assert A[0, 0] == theta[0] and A[0, 1] == theta[1] and A[1, 1] == theta[4]
-    assert A[3, 3] == theta[9]
-
-
-@pytest.mark.parametrize("lead", [(), (5,), (2, 3)])
-def test_a_from_vec_round_trip_and_symmetric(lead):
-    theta = randn(1, (*lead, 10))
-    A = a_from_vec(theta)
-    assert A.shape == (*lead, 4, 4)
-    assert torch.equal(A, A.transpose(-1, -2))
-    assert torch.equal(vec_from_a(A), theta)
-    M = randn(2, (*lead, 4, 4))
-    S = M + M.transpose(-1, -2)
-    assert torch.equal(a_from_vec(vec_from_a(S)), S)
-
-
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_a_head_min_eigenvector(dtype):
     raw = randn(3, (64, 10), dtype)
@@ -211,84 +187,9 @@ def test_sixd_columns_as_documented(dtype):
     torch.testing.assert_close(sixd_to_rotmat(scaled), R, atol=10 * ATOL[dtype], rtol=0)
 
 
-@pytest.mark.parametrize("dtype", DTYPES)
-def test_sixd_of_first_two_columns_is_identity_map(dtype):
-    R = scipy_rotmats(7, 32).to(dtype)
-    v = torch.cat((R[..., :, 0], R[..., :, 1]), dim=-1)
-    torch.testing.assert_close(sixd_to_rotmat(v), R, atol=ATOL[dtype], rtol=0)
-
-
 # ---------------------------------------------------------------------------------------------
 # SVD-9D
 # ---------------------------------------------------------------------------------------------
-
-
-@pytest.mark.parametrize("dtype", DTYPES)
-def test_special_orthogonalize_fixes_rotations(dtype):
-    R = scipy_rotmats(8, 32).to(dtype)
-    torch.testing.assert_close(special_orthogonalize(R), R, atol=10 * ATOL[dtype], rtol=0)
-    eye = torch.eye(3, dtype=dtype)
-    torch.testing.assert_close(special_orthogonalize(2 * eye), eye, atol=10 * ATOL[dtype], rtol=0)
-
-
-@pytest.mark.parametrize("dtype", DTYPES)
-def test_special_orthogonalize_negative_determinant(dtype):
-    M = randn(9, (64, 3, 3), dtype)
-    M = torch.where((torch.linalg.det(M) > 0)[:, None, None], -M, M)
-    assert (torch.linalg.det(M) < 0).all()
-    R = special_orthogonalize(M)
-    assert_rotation(R, 10 * ATOL[dtype])
-    # exact answer: for R0 diag(3, 2, -1) the closest rotation is R0 itself (flip the smallest)
-    R0 = scipy_rotmats(10, 16).to(dtype)
-    M2 = R0 @ torch.diag(torch.tensor([3.0, 2.0, -1.0], dtype=dtype))
-    torch.testing.assert_close(special_orthogonalize(M2), R0, atol=10 * ATOL[dtype], rtol=0)
-
-
-def test_special_orthogonalize_polar_factor():
-    # M = R0 P with P symmetric positive definite: the closest rotation is R0 (polar decomposition)
-    R0 = scipy_rotmats(11, 16)
-    B = randn(12, (16, 3, 3))
-    P = B @ B.transpose(-1, -2) + 0.1 * torch.eye(3, dtype=F64)
-    torch.testing.assert_close(special_orthogonalize(R0 @ P), R0, atol=1e-9, rtol=0)
-
-
-def test_special_orthogonalize_is_closest_brute_force():
-    M = randn(13, (20, 3, 3))
-    R = special_orthogonalize(M)
-    best = (R - M).square().sum((-1, -2))
-    candidates = random_rotmat((100,), generator=gen(14), dtype=F64)  # (100, 3, 3)
-    dist = (candidates[:, None] - M[None]).square().sum((-1, -2))  # (100, 20)
-    assert (best <= dist.min(0).values).all()
-    # and no nearby rotation R Exp(small) is closer either (local optimality)
-    nearby = R[None] @ so3_exp(1e-2 * randn(15, (100, 20, 3)))
-    assert (best <= (nearby - M[None]).square().sum((-1, -2))).all()
-
-
-ROT_Z90 = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=F64)
-
-
-@pytest.mark.parametrize("kind", ["rotation", "exact_rotation", "I", "2I"])
-def test_special_orthogonalize_backward_finite_at_repeated_singular_values(kind):
-    M0 = {
-        "rotation": scipy_rotmats(16, 1)[0],  # singular values 1 up to rounding
-        "exact_rotation": ROT_Z90,  # singular values exactly (1, 1, 1)
-        "I": torch.eye(3, dtype=F64),
-        "2I": 2 * torch.eye(3, dtype=F64),
-    }[kind]
-    w = randn(17, (3, 3))
-    M = M0.clone().requires_grad_()
-    (g,) = torch.autograd.grad((special_orthogonalize(M) * w).sum(), M)
-    assert not torch.isnan(g).any()
-    assert torch.isfinite(g).all() and g.abs().sum() > 0
-    # the polar factor is smooth there: the backward matches finite differences
-    assert torch.autograd.gradcheck(special_orthogonalize, (M,))
-    if kind != "rotation":
-        # contrast (holds on this torch version): with exactly repeated singular values, plain
-        # SVD-based U @ Vh has a NaN gradient (its backward divides by s_i^2 - s_j^2 = 0). For
-        # the rounded rotation it is finite but, at this conditioning, not reliable: not asserted.
-        U, _, Vh = torch.linalg.svd(M)
-        (g_plain,) = torch.autograd.grad(((U @ Vh) * w).sum(), M)
-        assert torch.isnan(g_plain).any()
 
 
 def test_gradcheck_special_orthogonalize():
@@ -321,3 +222,31 @@ def test_quat_head_sign_invariant(dtype):
     # the scale of the raw output does not matter either
     torch.testing.assert_close(head(5.0 * raw).R, a.R, atol=ATOL[dtype], rtol=0)
     assert math.isfinite(a.R.sum().item())
+
+
+# ---------------------------------------------------------------------------------------------
+# every head under mixed precision
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", HEAD_NAMES)
+def test_heads_give_float32_rotations_under_autocast(name):
+    # a bf16-mixed network hands the head bfloat16 numbers; the head computes in float32
+    head = make_head(name)
+    raw = randn(22, (16, head.out_dim), torch.float32).to(torch.bfloat16).requires_grad_()
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        pred = head(raw)
+    for value in (pred.R, pred.q, pred.A, pred.eigenvalues):
+        assert value is None or value.dtype == torch.float32
+    assert_rotation(pred.R.detach(), ATOL[torch.float32])
+    reference = head(raw.detach().float())
+    torch.testing.assert_close(pred.R, reference.R, atol=1e-6, rtol=0)
+    (pred.R * randn(23, (16, 3, 3), torch.float32)).sum().backward()
+    assert raw.grad.dtype == torch.bfloat16 and torch.isfinite(raw.grad.float()).all()
+
+
+def test_a_head_is_the_one_call_map():
+    raw = randn(24, (8, 10))
+    pred = AHead(solver="jacobi")(raw)
+    q, eigenvalues = symmatrixvec_to_quat(raw, solver="jacobi", return_eigenvalues=True)
+    assert torch.equal(pred.q, q) and torch.equal(pred.eigenvalues, eigenvalues)
