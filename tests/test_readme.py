@@ -1,0 +1,35 @@
+"""The README's drop-in example runs as written."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import torch
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+HEADING = "## Use the A layer in your own model"
+
+
+def section_code(heading: str) -> str:
+    """The first ```python block after `heading` (and before the next section)."""
+    text = README.read_text()
+    assert heading in text, f"README has no section {heading!r}"
+    section = text.split(heading, 1)[1].split("\n## ", 1)[0]
+    blocks = re.findall(r"```python\n(.*?)```", section, flags=re.S)
+    assert blocks, f"README section {heading!r} has no python block"
+    return blocks[0]
+
+
+def test_drop_in_example_runs_and_trains():
+    code = section_code(HEADING)
+    assert len(code.strip().splitlines()) <= 16  # stays a short example
+    namespace: dict = {}
+    torch.manual_seed(0)
+    exec(compile(code, str(README), "exec"), namespace)
+    model, q, loss = namespace["model"], namespace["q"], namespace["loss"]
+    assert q.shape == (8, 4) and bool(torch.isfinite(loss))
+    torch.testing.assert_close(q.norm(dim=-1), torch.ones(8), atol=1e-5, rtol=0)
+    grads = [p.grad for p in model.parameters()]
+    assert all(g is not None and bool(torch.isfinite(g).all()) for g in grads)
+    assert any(bool(g.abs().sum() > 0) for g in grads)
