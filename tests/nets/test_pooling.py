@@ -195,3 +195,26 @@ def test_initialize_from_is_a_no_op_when_off_or_given_one_sample(center_init, ba
     before = {k: v.clone() for k, v in net.state_dict().items()}
     net.initialize_from(torch.randn((batch, 5, 6), generator=gen(5)))
     assert all(torch.equal(before[k], v) for k, v in net.state_dict().items())
+
+
+@pytest.mark.parametrize("reduced", [torch.bfloat16, torch.float16])
+def test_under_autocast_it_computes_like_linear_then_max(reduced):
+    # nn.Linear under autocast multiplies in the autocast dtype; so does the pool, whose backward
+    # (sparse products, which have no bf16/fp16 kernels) runs in float32 and casts back
+    pool = make_pool(torch.float32, chunk_points=64)
+    x = torch.randn((4, 20, C_IN), generator=gen(3))
+    linear, _ = naive(pool, x)
+    xa, xb = x.clone().requires_grad_(), x.clone().requires_grad_()
+    with torch.autocast("cpu", dtype=reduced):
+        out = pool(xa)
+        ref = linear(xb).max(dim=-2).values
+    assert out.dtype == ref.dtype == reduced
+    torch.testing.assert_close(out, ref, atol=2e-2, rtol=1e-2)  # rounding differs (bias, order)
+    g = torch.randn(out.shape, generator=gen(4)).to(reduced)
+    (out * g).sum().backward()
+    (ref * g).sum().backward()
+    for mine, theirs in ((pool.linear.weight, linear.weight), (pool.linear.bias, linear.bias)):
+        assert mine.grad.dtype == torch.float32  # parameters stay float32
+        torch.testing.assert_close(mine.grad, theirs.grad, atol=2e-2, rtol=2e-2)
+    assert xa.grad.dtype == torch.float32
+    torch.testing.assert_close(xa.grad, xb.grad, atol=2e-2, rtol=2e-2)
