@@ -23,6 +23,7 @@ from rotlearn.bingham.descriptors import (
     dispersion_from_eigenvalues,
     eigenvalues,
 )
+from rotlearn.geometry.autocast import float32_under_autocast
 
 __all__ = ["log_normalizer", "log_prob", "moments", "nll", "normalizer"]
 
@@ -227,6 +228,7 @@ def _quad_form(A: Tensor, q: Tensor) -> Tensor:
     return (q.unsqueeze(-2) @ A @ q.unsqueeze(-1)).squeeze(-1).squeeze(-1)
 
 
+@float32_under_autocast
 def log_prob(A: Tensor, q: Tensor) -> Tensor:
     """log p(q; A) = -q^T A q + l1 - log N(lam) w.r.t. the uniform probability measure on S^3.
 
@@ -240,6 +242,7 @@ def log_prob(A: Tensor, q: Tensor) -> Tensor:
         (...,) log densities; exp integrates to 1 against the uniform probability measure
         (subtract `LOG_AREA_S3` for the surface measure). Invariant to q -> -q and A -> A + cI.
         Differentiable in A (through eigenvalues only, well defined at repeated ones) and q.
+        Under autocast computed in float32 and returned in float32.
     """
     _check_A(A)
     _float_dtype(q, "q")

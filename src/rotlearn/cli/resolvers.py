@@ -7,7 +7,7 @@ import math
 import numpy as np
 from omegaconf import OmegaConf
 
-__all__ = ["loguniform_trial", "register_resolvers"]
+__all__ = ["gpu_precision", "loguniform_trial", "register_resolvers"]
 
 
 def loguniform_trial(trial: int, trials: int, seed: int, low: float, high: float) -> float:
@@ -30,9 +30,22 @@ def loguniform_trial(trial: int, trials: int, seed: int, low: float, high: float
     return float(math.exp(log_low + (slot + offset) / trials * (log_high - log_low)))
 
 
+def gpu_precision() -> str:
+    """The Trainer precision for this machine's GPU (`trainer=gpu`): "bf16-mixed" where the GPU
+    has bfloat16 arithmetic (compute capability 8.0 and newer: A100, H100, RTX 30xx/40xx),
+    "16-mixed" (float16 with loss scaling) on older GPUs, "32-true" without a GPU."""
+    import torch
+
+    if not torch.cuda.is_available():
+        return "32-true"
+    return "bf16-mixed" if torch.cuda.is_bf16_supported(including_emulation=False) else "16-mixed"
+
+
 def register_resolvers() -> None:
-    """Make `${rl.loguniform:trial,trials,seed,low,high}` available to every config."""
+    """Make `${rl.loguniform:trial,trials,seed,low,high}` and `${rl.gpu_precision:}` available to
+    every config."""
     OmegaConf.register_new_resolver("rl.loguniform", loguniform_trial, replace=True)
+    OmegaConf.register_new_resolver("rl.gpu_precision", gpu_precision, replace=True)
 
 
 register_resolvers()

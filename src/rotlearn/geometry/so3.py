@@ -11,6 +11,7 @@ import math
 import torch
 from torch import Tensor
 
+from rotlearn.geometry.autocast import float32_under_autocast
 from rotlearn.geometry.quaternion import quat_canonical, quat_to_rotmat, rotmat_to_quat
 
 __all__ = [
@@ -113,6 +114,7 @@ def so3_log(R: Tensor) -> Tensor:
     return so3_log_quat(rotmat_to_quat(R))
 
 
+@float32_under_autocast
 def relative_rotation(R_w1: Tensor, R_w2: Tensor) -> Tensor:
     """The rotation C_21 = R_w2^T R_w1 from frame 1 to frame 2 (paper section VI-C).
 
@@ -124,6 +126,6 @@ def relative_rotation(R_w1: Tensor, R_w2: Tensor) -> Tensor:
         R_w1, R_w2: (..., 3, 3) camera-to-world rotations of the first and second frame.
 
     Returns:
-        (..., 3, 3) C_21.
+        (..., 3, 3) C_21, in the inputs' dtype (float32 under autocast).
     """
     return R_w2.transpose(-1, -2) @ R_w1
