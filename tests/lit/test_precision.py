@@ -113,4 +113,5 @@ def test_bf16_mixed_trains_the_a_head_with_other_losses(make_cfg, loss):
     model.training_step = spy_step
     trainer.fit(model, datamodule=datamodule)
     assert losses[0].dtype == torch.float32 and bool(torch.isfinite(losses[0]))
-    assert any(not torch.equal(p.detach(), b) for p, b in zip(model.parameters(), before, strict=True))
+    after = list(model.parameters())
+    assert any(not torch.equal(p.detach(), b) for p, b in zip(after, before, strict=True))
