@@ -67,12 +67,19 @@ def test_layers_end_a_bf16_autocast_model_in_float32(layer):
     assert all(bool(torch.isfinite(p.grad).all()) for p in model.parameters())
 
 
-def test_compiled_model_ending_in_a_layer_trains():
-    # aot_eager traces forward and backward through torch.compile's graph capture (AOTAutograd)
-    # without needing a C++ compiler; inductor also works here but compiles for minutes on 2 cores.
+@pytest.mark.parametrize(
+    "backend",
+    [
+        # graph capture of forward and backward (dynamo + AOTAutograd), no C++ compiler needed
+        "aot_eager",
+        # torch.compile's default: generates and compiles C++ (about 2.5 minutes on 2 busy cores)
+        pytest.param("inductor", marks=pytest.mark.slow),
+    ],
+)
+def test_compiled_model_ending_in_a_layer_trains(backend):
     torch.manual_seed(0)
     model = nn.Sequential(nn.Linear(8, 32), nn.ReLU(), nn.Linear(32, 10), ALayer())
-    compiled = torch.compile(model, backend="aot_eager")
+    compiled = torch.compile(model, backend=backend)
     optimizer = torch.optim.Adam(model.parameters(), lr=1e-2)
     x = randn(5, (64, 8), torch.float32)
     target = nn.functional.normalize(randn(6, (64, 4), torch.float32), dim=-1)
