@@ -34,6 +34,11 @@ def autocast_enabled(device_type: str) -> bool:
     return torch.is_autocast_enabled(device_type)
 
 
+# One cheap check for "autocast is on for some device type" (private in torch, hence the
+# fallback: where it is missing, the per-device check below always runs).
+_ANY_AUTOCAST = getattr(torch._C, "_is_any_autocast_enabled", None)
+
+
 def _upcast(value: Any) -> Any:
     if isinstance(value, Tensor) and value.dtype in REDUCED_DTYPES:
         return value.float()
@@ -55,6 +60,8 @@ def float32_under_autocast(fn: F) -> F:
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
+        if _ANY_AUTOCAST is not None and not _ANY_AUTOCAST():
+            return fn(*args, **kwargs)
         first = next((a for a in (*args, *kwargs.values()) if isinstance(a, Tensor)), None)
         if first is None or not autocast_enabled(first.device.type):
             return fn(*args, **kwargs)
