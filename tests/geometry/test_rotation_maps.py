@@ -310,3 +310,28 @@ def test_vmap_grad_of_sixd_to_rotmat_matches_autograd():
     target = random_rotmat((6,), generator=gen(13), dtype=F64)
     vmapped = torch.func.vmap(torch.func.grad(loss))(v, target)
     torch.testing.assert_close(vmapped, per_sample_grads(loss, v, target), atol=1e-12, rtol=0)
+
+
+# ---------------------------------------------------------------------------------------------
+# torch.compile: one graph (no graph break) for forward and backward
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "size, fn",
+    [
+        pytest.param(10, lambda x: symmatrixvec_to_quat(x, solver="eigh"), id="a-eigh"),
+        pytest.param(6, sixd_to_rotmat, id="sixd"),
+        pytest.param(9, lambda x: special_orthogonalize(x.unflatten(-1, (3, 3))), id="svd9d"),
+    ],
+)
+def test_maps_compile_to_one_graph(size, fn):
+    x = randn(14, (16, size), torch.float32)
+    compiled = torch.compile(fn, backend="aot_eager", fullgraph=True)  # raises on a graph break
+    weights = randn(15, fn(x).shape, torch.float32)
+    leaf, ref = x.clone().requires_grad_(), x.clone().requires_grad_()
+    out = compiled(leaf)
+    (out * weights).sum().backward()
+    (fn(ref) * weights).sum().backward()
+    torch.testing.assert_close(out, fn(x), atol=1e-6, rtol=0)
+    torch.testing.assert_close(leaf.grad, ref.grad, atol=1e-5, rtol=1e-5)
