@@ -72,7 +72,7 @@ def test_layers_end_a_bf16_autocast_model_in_float32(layer):
     [
         # graph capture of forward and backward (dynamo + AOTAutograd), no C++ compiler needed
         "aot_eager",
-        # torch.compile's default: generates and compiles C++ (about 2.5 minutes on 2 busy cores)
+        # torch.compile's default: generates and compiles C++ (2.5 min cold on 2 busy cores)
         pytest.param("inductor", marks=pytest.mark.slow),
     ],
 )
