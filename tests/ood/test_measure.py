@@ -167,5 +167,8 @@ def test_a_tiny_mav_run_scores_its_extra_sets(tmp_path, make_cfg):
     sets = read_samples(run_dir / "ood_samples.csv")
     assert {"train", "clean", "corrupted", "noise", "indoor"} == set(sets)
     assert (run_dir / "ood_examples.png").stat().st_size > 0
-    with pytest.raises(ConfigValueError, match=r"extra_sets\.x\.nope"):
-        train(make_cfg([*overrides, "callbacks.ood.extra_sets={x: {nope: 1}}"], tmp_path / "r2"))
+    bad = [o for o in overrides if "extra_sets" not in o]
+    bad.append("callbacks.ood.extra_sets={x: {nope: 1}}")
+    with pytest.raises(ConfigValueError, match=r"extra_sets\.x\.nope"):  # at setup, before training
+        train(make_cfg(bad, run_dir=tmp_path / "r2"))
+    assert not (tmp_path / "r2" / "checkpoints").exists()
