@@ -172,3 +172,29 @@ def test_a_tiny_mav_run_scores_its_extra_sets(tmp_path, make_cfg):
     with pytest.raises(ConfigValueError, match=r"extra_sets\.x\.nope"):  # at setup, before training
         train(make_cfg(bad, run_dir=tmp_path / "r2"))
     assert not (tmp_path / "r2" / "checkpoints").exists()
+
+
+def test_the_reproduction_configs_compose_and_validate(make_cfg):
+    """`make reproduce-ood`'s three training commands: Table I with the paper's rows, the A head
+    with the Bingham loss, and Fig. 8 with its extra sets."""
+    from rotlearn.cli.schemas import validate
+
+    kitti = make_cfg(["experiment=kitti_ood_demo"])
+    validate(kitti)
+    rows = kitti.report.paper.rows
+    assert [(r.rep, r.get("score")) for r in rows] == [
+        ("quat", None), ("sixd", None), ("sixd", "autoencoder"), ("a", None), ("a", "dt"),
+    ]  # fmt: skip
+    assert rows[4].precision == 99.0 and kitti.callbacks.ood.table.dt == 0.75
+    assert list(kitti.callbacks.ood.autoencoder_train.reps) == ["sixd"]
+    bingham = make_cfg(["experiment=kitti_ood_demo", "rep=a", "loss=bingham"])
+    validate(bingham)
+    assert bingham.loss._target_.endswith("BinghamNLLLoss")
+    mav = make_cfg(["experiment=mav_ood_demo"])
+    validate(mav)
+    assert dict(mav.callbacks.ood.extra_sets) == {
+        "indoor": {"test_scenes": ["indoor"]},
+        "indoor_transition": {"test_scenes": ["indoor", "transition"]},
+    }
+    assert set(mav.report.ood.sets) == {"clean", "indoor", "indoor_transition"}
+    assert make_cfg(["data=kitti", "callbacks=ood"]).callbacks.ood.extra_sets is None
