@@ -298,7 +298,7 @@ def draw_ood(
             for row, (setting, sets, scores) in enumerate(runs):
                 for col, score in enumerate(scores):
                     axes[row][col].set_visible(True)
-                    draw(score, sets, ax=axes[row][col], title=f"{setting}: {score.name}")
+                    draw(score, sets, ax=axes[row][col], title=f"{setting}:\n{score.name}")
             files[key] = _save(fig, plt, out / f"{key}.png")
             md += [f"### {what}", "", f"![{what}]({key}.png)", ""]
         md = ["### Precision-recall over the quantile q (q = 0.05 to 0.97)", "",

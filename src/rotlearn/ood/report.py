@@ -165,6 +165,7 @@ def scatter_figure(score: Score, sets: Mapping[str, Mapping[str, Tensor]], ax=No
                    label=label)  # fmt: skip
     ax.set(xlabel=f"{score.name} ({'low' if score.keep_below else 'high'} = confident)",
            ylabel="error (deg)", yscale="log", title=title)  # fmt: skip
+    ax.title.set_fontsize(9)
     ax.legend(fontsize=7)
     fig.tight_layout()
     return fig
@@ -198,6 +199,7 @@ def box_figure(score: Score, sets: Mapping[str, Mapping[str, Tensor]], ax=None, 
         ylabel=score.name,
         title=title or f"{score.name} ({'low' if score.keep_below else 'high'} = confident)",
     )
+    ax.title.set_fontsize(9)
     fig.tight_layout()
     return fig
 
