@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed
 ARGS   ?=
 
 .DEFAULT_GOAL := help
-.PHONY: help venv train test test-full lint format bench reproduce-cpu demo-data tensorboard clean
+.PHONY: help venv train test test-full lint format bench reproduce-cpu reproduce-ood demo-data tensorboard clean
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-12s %s\n", $$1, $$2}'
@@ -47,6 +47,20 @@ reproduce-cpu: $(STAMP) ## paper Figs. 3 and 4 sized for this CPU (about 25 min)
 	$(BIN)/rotlearn-train -m experiment=synthetic_phi_max_cpu trainer.enable_progress_bar=false \
 		hydra.sweep.dir=outputs/reproduce-cpu/synthetic_phi_max_cpu
 	@echo "reports: outputs/reproduce-cpu/*/report.md"
+
+OOD := outputs/reproduce-ood
+reproduce-ood: $(STAMP) ## paper Table I (KITTI demo) and Fig. 8 (MAV demo), about 40 min, with reports
+	@test -d data/demo/kitti || $(BIN)/rotlearn-make-demo-data --out data/demo --only kitti
+	@test -d data/demo/mav || $(BIN)/rotlearn-make-demo-data --out data/demo --only mav
+	$(BIN)/rotlearn-train -m experiment=kitti_ood_demo trainer.enable_progress_bar=false \
+		hydra.sweep.dir=$(OOD)/kitti_ood_demo
+	$(BIN)/rotlearn-train experiment=kitti_ood_demo rep=a loss=bingham hydra.mode=RUN \
+		trainer.enable_progress_bar=false hydra.run.dir=$(OOD)/kitti_ood_demo_bingham
+	$(BIN)/rotlearn-train -m experiment=mav_ood_demo trainer.enable_progress_bar=false \
+		hydra.sweep.dir=$(OOD)/mav_ood_demo
+	$(BIN)/rotlearn-report $(OOD)/kitti_ood_demo $(OOD)/kitti_ood_demo_bingham
+	$(BIN)/rotlearn-report $(OOD)/mav_ood_demo
+	@echo "reports: $(OOD)/kitti_ood_demo/report.md (Table I), $(OOD)/mav_ood_demo/report.md (Fig. 8)"
 
 demo-data: $(STAMP) ## write small datasets in the real layouts under data/demo
 	$(BIN)/rotlearn-make-demo-data --out data/demo

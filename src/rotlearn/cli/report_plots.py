@@ -4,11 +4,17 @@ A plot definition comes from the sweep's `report.plots` (`rotlearn.cli.report`):
 metrics: [...]}` draws the per-epoch median over each setting's runs with a 10-90 % band;
 `{kind: box, x: <config key>, label: ...}` draws box plots of log10 per-sample test error per x
 value and setting, with a table of median errors.
+
+`draw_ood` draws the OOD figures of the runs that have an OOD evaluation (`ood.csv`,
+`ood_samples.csv`, `ood_examples.png`, written by `rotlearn.ood.OODEvaluation`): precision-recall
+over q, error against score, score box plots (paper Fig. 6c), the error per test set (paper
+Fig. 8b) and each run's erased example pairs. The figure code per panel is `rotlearn.ood.report`'s.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -18,7 +24,7 @@ import pandas as pd
 
 from rotlearn.io import read_json
 
-__all__ = ["CURVE_METRICS", "draw_plots", "setting_order"]
+__all__ = ["CURVE_METRICS", "draw_ood", "draw_plots", "setting_order"]
 
 log = logging.getLogger("rotlearn")
 CURVE_METRICS = ["train/err_mean", "val/err_mean"]
@@ -172,4 +178,142 @@ def draw_plots(done: pd.DataFrame, layout: Mapping[str, Any], out: Path) -> tupl
             log.warning("report: unknown plot kind %r (expected curves or box); skipped", kind)
     if curves:
         md += ["## Error per epoch", "", *curves]
+    return files, md
+
+
+def _ood_samples(frames: list) -> list[tuple[str, dict, list]]:
+    """(setting, sets, scores) of each run whose `ood_samples.csv` is readable."""
+    from rotlearn.ood.report import SAMPLES_FILE, read_samples
+    from rotlearn.ood.scores import SCORES
+
+    runs = []
+    for run, frame in frames:
+        path = Path(run["dir"]) / SAMPLES_FILE
+        if not path.is_file():
+            continue
+        try:
+            sets = read_samples(path)
+        except (ValueError, OSError, pd.errors.ParserError) as exc:
+            log.warning("report: %s unreadable (%s); its OOD figures are skipped", path, exc)
+            continue
+        names = [n for n in dict.fromkeys(frame["score"]) if n in SCORES and n in sets["train"]]
+        runs.append((str(run["setting"]), sets, [SCORES[n] for n in names]))
+    return runs
+
+
+def _grid(plt, rows: int, cols: int, size=(4.0, 3.2)):
+    fig, axes = plt.subplots(rows, cols, figsize=(size[0] * cols, size[1] * rows), squeeze=False)
+    for ax in axes.flat:
+        ax.set_visible(False)
+    return fig, axes
+
+
+def _save(fig, plt, path: Path) -> Path:
+    from rotlearn.ood.report import save_figure
+
+    fig.tight_layout()
+    save_figure(fig, path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def _sets_bars(frames: list, set_names: Mapping[str, str], path: Path) -> bool:
+    """Paper Fig. 8b: mean error of the kept pairs per test set (clean and extra sets), one bar
+    per head alone and head + score at its Table I quantile."""
+    from rotlearn.ood.report import LABELS
+
+    plt = _pyplot()
+    sets = list(dict.fromkeys(s for _, f in frames for s in f["set"] if s != "corrupted"))
+    bars: dict[str, list[float]] = {}
+    for run, frame in frames:
+        by_set = {s: frame[frame["set"] == s] for s in sets}
+        bars[str(run["setting"])] = [
+            float(rows["err_mean_all"].iloc[0]) if len(rows) else np.nan for rows in by_set.values()
+        ]
+        table = frame[frame["in_table"]]
+        for score in table["score"].unique():
+            label = f"{run['setting']} + {LABELS.get(score, score)}"
+            bars[label] = []
+            for s in sets:
+                rows = table[(table["score"] == score) & (table["set"] == s)]
+                bars[label].append(float(rows["err_mean_kept"].iloc[0]) if len(rows) else np.nan)
+    if len(sets) < 2 or not bars:
+        return False
+    fig, ax = plt.subplots(figsize=(2 + 2.2 * len(sets), 4))
+    width = 0.8 / len(bars)
+    for i, (label, heights) in enumerate(bars.items()):
+        x = np.arange(len(sets)) + (i - (len(bars) - 1) / 2) * width
+        ax.bar(x, heights, width=width * 0.95, label=label, color=f"C{i % 10}")
+    ax.set_xticks(range(len(sets)), [set_names.get(s, s) for s in sets])
+    ax.set(ylabel="mean error of kept pairs (deg)")
+    ax.legend(fontsize=7)
+    ax.grid(True, axis="y", alpha=0.3)
+    _save(fig, plt, path)
+    return True
+
+
+def draw_ood(
+    done: pd.DataFrame,
+    frames: list,
+    layout: Mapping[str, Any],
+    out: Path,
+    set_names: Mapping[str, str] | None = None,
+) -> tuple[dict, list[str]]:
+    """The OOD figures of the runs in `frames` ((run row, its ood.csv) pairs): ({file key: path},
+    report.md lines). Per head and score, from each run's `ood_samples.csv`: precision-recall
+    over q on each flagged set but the clean one (`ood_pr.png`), error against score on the
+    half-erased set (`ood_scatter.png`), score box plots (`ood_box.png`); the error per test set
+    (`ood_sets.png`, when runs have extra sets); each run's `ood_examples.png`, linked."""
+    from rotlearn.ood.evaluation import precision_recall_curve
+    from rotlearn.ood.report import LABELS, box_figure, pr_figure, scatter_figure
+
+    set_names = dict(set_names or {})
+    files: dict[str, Path] = {}
+    md: list[str] = []
+    plt = _pyplot()
+    runs = _ood_samples(frames)
+    if runs:
+        flagged = list(dict.fromkeys(n for _, sets, _ in runs for n, v in sets.items()
+                                     if n != "clean" and "corrupted" in v))  # fmt: skip
+        fig, axes = _grid(plt, 1, len(flagged), size=(5.0, 4.0))
+        for ax, name in zip(axes[0], flagged, strict=True):
+            curves = {}
+            for setting, sets, scores in runs:
+                for score in scores:
+                    if name in sets:
+                        curves[f"{setting} + {LABELS.get(score.name, score.name)}"] = (
+                            precision_recall_curve(score, sets["train"][score.name], sets[name])
+                        )
+            if curves:
+                ax.set_visible(True)
+                first = next(s for _, _, scores in runs for s in scores)
+                pr_figure(first, curves, ax=ax, title=f"{set_names.get(name, name)}")
+        files["ood_pr"] = _save(fig, plt, out / "ood_pr.png")
+        n_cols = max(len(scores) for _, _, scores in runs)
+        for key, draw, what in (
+            ("ood_scatter", scatter_figure, "Error against score on the half-erased test set"),
+            ("ood_box", box_figure, "Score distributions (paper Fig. 6c)"),
+        ):
+            fig, axes = _grid(plt, len(runs), n_cols)
+            for row, (setting, sets, scores) in enumerate(runs):
+                for col, score in enumerate(scores):
+                    axes[row][col].set_visible(True)
+                    draw(score, sets, ax=axes[row][col], title=f"{setting}:\n{score.name}")
+            files[key] = _save(fig, plt, out / f"{key}.png")
+            md += [f"### {what}", "", f"![{what}]({key}.png)", ""]
+        md = ["### Precision-recall over the quantile q (q = 0.05 to 0.97)", "",
+              "![precision-recall over q](ood_pr.png)", "", *md]  # fmt: skip
+    if _sets_bars(frames, set_names, out / "ood_sets.png"):
+        files["ood_sets"] = out / "ood_sets.png"
+        md += ["### Error per test set (paper Fig. 8b)", "", "![error per test set](ood_sets.png)",
+               ""]  # fmt: skip
+    examples = [(run, Path(run["dir"]) / "ood_examples.png") for run, _ in frames]
+    examples = [(run, path) for run, path in examples if path.is_file()]
+    if examples:
+        md += ["### Example test pairs with their scores", ""]
+        for run, path in examples:
+            md += [f"{run['setting']} (job {run['job']}):", "",
+                   f"![examples {run['setting']}]({os.path.relpath(path, out)})", ""]  # fmt: skip
+    if md:
+        md = ["## OOD figures", "", *md]
     return files, md

@@ -2,14 +2,19 @@
 
 A thin callback: after the regular test, it reads the datamodule through `OODDataSource`, scores
 the TRAINING set (unshuffled, unaugmented), the clean test set and the same test set with its last
-`corrupt_fraction` randomly erased, and pure-noise pairs (`rotlearn.ood.evaluation`), then writes
-`ood.csv` and a Table I-style `ood.md` to the run directory, the calibrated DT threshold beside the
-run's checkpoints (`ood_thresholds.json`, read by `rotlearn.load` for keep flags), and scalars and
-figures to TensorBoard (`rotlearn.ood.report`).
+`corrupt_fraction` randomly erased, pure-noise pairs, and each extra evaluation set (`extra_sets`:
+the test split of a copy of the datamodule with some settings changed, e.g. unseen scenes, appended
+to the clean test set and counted as OOD) (`rotlearn.ood.evaluation`), then writes `ood.csv` and a
+Table I-style `ood.md` to the run directory, every sample's error and scores (`ood_samples.csv`,
+for `rotlearn-report`'s figures), a grid of erased example pairs with their scores
+(`ood_examples.png`), the calibrated DT threshold beside the run's checkpoints
+(`ood_thresholds.json`, read by `rotlearn.load` for keep flags), and scalars and figures to
+TensorBoard (`rotlearn.ood.report`).
 """
 
 from __future__ import annotations
 
+import copy
 import functools
 import logging
 import math
@@ -24,10 +29,11 @@ from lightning.pytorch.loggers import TensorBoardLogger
 from omegaconf import DictConfig, OmegaConf
 from torch import Tensor
 
-from rotlearn.data.corruption import corrupted_flags
+from rotlearn.data.corruption import corrupted_flags, erase_boxes
 from rotlearn.errors import ConfigValueError
 from rotlearn.ood.evaluation import (
     calibrated_threshold,
+    mixed_set,
     rejection_table,
     score_sets,
 )
@@ -35,9 +41,37 @@ from rotlearn.ood.scores import SCORES, available_scores
 from rotlearn.ood.source import OODDataSource
 from rotlearn.trust import config_target
 
-__all__ = ["OODEvaluation"]
+__all__ = ["OODEvaluation", "extra_source"]
 
 log = logging.getLogger("rotlearn")
+RESERVED_SETS = ("train", "clean", "corrupted", "noise")
+
+
+def check_settings(source: Any, name: str, overrides: dict[str, Any]) -> None:
+    """Raise `ConfigValueError` (key `extra_sets.<name>.<setting>`) for a setting that the
+    datamodule `source` does not have."""
+    for key in overrides:
+        if key.startswith("_") or not hasattr(source, key) or callable(getattr(source, key)):
+            raise ConfigValueError(
+                f"extra_sets.{name}.{key}", f"{type(source).__name__} has no setting {key!r}"
+            )
+
+
+def extra_source(source: Any, name: str, overrides: dict[str, Any]) -> Any:
+    """A set-up copy of the image-pair datamodule `source` with some of its settings changed
+    (`OODEvaluation(extra_sets=...)`): its test split is an extra evaluation set. Its training
+    split stays that of `source`, so `unseen_pairs` still compares with what was trained on.
+
+    Raises:
+        ConfigValueError: (key `extra_sets.<name>.<setting>`) if `source` has no such setting.
+    """
+    check_settings(source, name, overrides)
+    extra = copy.copy(source)
+    for key, value in overrides.items():
+        setattr(extra, key, list(value) if isinstance(value, (list, tuple)) else value)
+    extra.sets = {}  # `setup` builds the splits again from the changed settings
+    extra.setup("test")
+    return extra
 
 
 @config_target
@@ -52,7 +86,8 @@ class OODEvaluation(pl.Callback):
         autoencoder_ckpt: checkpoint of `rotlearn-train experiment=<data>_autoencoder`.
         autoencoder_train: without a checkpoint, train an auto-encoder here first (a Lightning
             Trainer, `rotlearn.lit.autoencoder.fit_autoencoder`), on the same training pairs:
-            {epochs, lr, and ConvAutoEncoder's channels, hidden, latent}; it is saved as
+            {epochs, lr, and ConvAutoEncoder's channels, hidden, latent; reps: the heads whose
+            runs train it (paper Table I: [sixd]; absent: every head)}; it is saved as
             `<run>/autoencoder.ckpt` (reusable as `autoencoder_ckpt`). For demos; on real data
             train it once with its experiment instead.
         corrupt_fraction: the last fraction of the test set that is erased for the corrupted set.
@@ -63,6 +98,13 @@ class OODEvaluation(pl.Callback):
         unseen_scenes_ood: count test pairs from sequences / scenes absent from training as OOD
             (with the erased ones) in precision, recall and AUROC: the MAV experiment, where
             the indoor and transition scenes are the unseen environments (paper Fig. 8).
+        extra_sets: {name: {datamodule setting: value}}: for each, the test split of a copy of
+            the datamodule with those settings (e.g. `{indoor: {test_scenes: [indoor]}}` for
+            MAV, `{unseen: {test_sequences: ["01"]}}` for KITTI) is scored, appended to the clean
+            test set with every one of its pairs counted as OOD, and tabulated as the set `name`
+            (paper Fig. 8: outdoor, + indoor, + transition from one model).
+        examples: erased test pairs (and a third as many clean ones) drawn with their scores in
+            `ood_examples.png`; 0: none.
     """
 
     def __init__(
@@ -76,6 +118,8 @@ class OODEvaluation(pl.Callback):
         noise_pairs: int = 64,
         max_train_pairs: int | None = None,
         unseen_scenes_ood: bool = False,
+        extra_sets: dict[str, dict[str, Any]] | None = None,
+        examples: int = 6,
     ) -> None:
         super().__init__()
         self.quantiles = [float(q) for q in quantiles]
@@ -100,8 +144,21 @@ class OODEvaluation(pl.Callback):
         self.table = {"autoencoder": 1.0, **(table or {})}
         self.noise_pairs, self.max_train_pairs = int(noise_pairs), max_train_pairs
         self.unseen_scenes_ood = bool(unseen_scenes_ood)
+        if isinstance(extra_sets, DictConfig):
+            extra_sets = OmegaConf.to_container(extra_sets, resolve=True)
+        self.extra_sets = dict(extra_sets or {})
+        for name, overrides in self.extra_sets.items():
+            if name in RESERVED_SETS or not isinstance(overrides, dict) or not overrides:
+                raise ConfigValueError(
+                    f"extra_sets.{name}",
+                    f"needs a name other than {list(RESERVED_SETS)} and a non-empty mapping of "
+                    f"datamodule settings (e.g. {{test_scenes: [indoor]}}), got {overrides!r}",
+                )
+        if int(examples) < 0:
+            raise ConfigValueError("examples", f"must be >= 0, got {examples}")
+        self.examples = int(examples)
 
-    def _autoencoder(self, trainer: pl.Trainer, device: torch.device):
+    def _autoencoder(self, trainer: pl.Trainer, device: torch.device, head: Any = None):
         """The auto-encoder of the `autoencoder` score: loaded, trained here on the datamodule's
         training pairs, or None."""
         from rotlearn.lit.autoencoder import fit_autoencoder, load_autoencoder, save_autoencoder
@@ -112,8 +169,11 @@ class OODEvaluation(pl.Callback):
             return load_autoencoder(self.autoencoder_ckpt, device=device)
         if not self.autoencoder_train:
             return None
-        source: OODDataSource = trainer.datamodule
         spec = dict(self.autoencoder_train)
+        reps = spec.pop("reps", None)
+        if reps is not None and getattr(head, "name", None) not in list(reps):
+            return None
+        source: OODDataSource = trainer.datamodule
         epochs, lr = int(spec.pop("epochs", 20)), float(spec.pop("lr", 5e-4))
         channels, size = source.pair_shape()[0], source.pair_shape()[-1]
         net = {"_target_": "rotlearn.nets.ConvAutoEncoder", "pair_channels": channels,
@@ -144,7 +204,40 @@ class OODEvaluation(pl.Callback):
             "corrupted": map(finish, source.eval_loader("test", erase=erase)),
             "noise": [finish(source.noise_batch(self.noise_pairs))],
         }
+        for name, overrides in self.extra_sets.items():
+            extra = extra_source(source, name, overrides)
+            clean = torch.zeros(extra.pair_count("test"), dtype=torch.bool)
+            loaders[f"extra:{name}"] = map(finish, extra.eval_loader("test", erase=clean))
         return loaders, {"clean": unseen, "corrupted": erase | unseen}
+
+    def _examples(self, source: OODDataSource, sets: dict[str, dict[str, Tensor]]):
+        """(images, captions) of `examples` erased test pairs and a third as many clean ones,
+        evenly spaced: uint8 (K, 2C, S, S) as erased, and per pair its error and scores."""
+        flags = corrupted_flags(source.pair_count("test"), self.corrupt_fraction)
+        erased = torch.nonzero(flags).flatten()
+        clean = torch.nonzero(~flags).flatten()
+        picks = []
+        for pool, count in ((clean, -(-self.examples // 3)), (erased, self.examples)):
+            if len(pool) and count:
+                spots = np.unique(np.linspace(0, len(pool) - 1, min(count, len(pool))).astype(int))
+                picks += pool[torch.from_numpy(spots)].tolist()
+        if not picks:
+            return None
+        batches = list(source.eval_loader("test", indices=picks, erase=flags))
+        images = torch.cat([erase_boxes(b["input"], b["boxes"], b["corrupted"]) for b in batches])
+        keys = [k for k in sets["corrupted"] if k not in ("error", "corrupted")]
+        captions = [
+            {"erased": bool(flags[i]), "error": float(sets["corrupted"]["error"][i]),
+             **{k: float(sets["corrupted"][k][i]) for k in keys}}
+            for i in picks
+        ]  # fmt: skip
+        return images, captions
+
+    def setup(self, trainer: pl.Trainer, pl_module: pl.LightningModule, stage: str) -> None:
+        """Check the extra sets' settings against the datamodule before anything is trained."""
+        source = trainer.datamodule
+        for name, overrides in self.extra_sets.items():
+            check_settings(source, name, overrides)
 
     def on_test_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         source = trainer.datamodule
@@ -154,7 +247,7 @@ class OODEvaluation(pl.Callback):
             )
         if not trainer.is_global_zero:
             return
-        autoencoder = self._autoencoder(trainer, pl_module.device)
+        autoencoder = self._autoencoder(trainer, pl_module.device, pl_module.head)
         scores = available_scores(
             self.score_names, pl_module.head.defines_belief, autoencoder is not None
         )
@@ -165,20 +258,40 @@ class OODEvaluation(pl.Callback):
         with torch.inference_mode():
             sets = score_sets(pl_module, loaders, flags, scores, input_scores)
         pl_module.train(was_training)
+        for name in self.extra_sets:
+            sets[name] = mixed_set(sets["clean"], sets.pop(f"extra:{name}"))
         frame = rejection_table(sets, scores, self.quantiles, self.table)
-        self._write(trainer, pl_module, scores, sets, frame)
+        examples = self._examples(source, sets) if self.examples else None
+        self._write(trainer, pl_module, scores, sets, frame, examples)
 
-    def _write(self, trainer, module, scores, sets, frame) -> None:
-        from rotlearn.ood.report import log_tensorboard, write_tables, write_thresholds
+    def _write(self, trainer, module, scores, sets, frame, examples) -> None:
+        from rotlearn.ood.report import (
+            examples_figure,
+            log_tensorboard,
+            save_figure,
+            write_samples,
+            write_tables,
+            write_thresholds,
+        )
 
         run_dir = Path(trainer.default_root_dir)
         rep = getattr(module.head, "name", type(module.head).__name__)
         frame.insert(0, "rep", rep)
         log.info("OOD evaluation: %s", write_tables(run_dir, rep, frame))
+        write_samples(run_dir, sets)
+        figure = None
+        if examples is not None:
+            figure = examples_figure(*examples)
+            save_figure(figure, run_dir / "ood_examples.png")
         checkpoints = getattr(trainer.checkpoint_callback, "dirpath", None)
         ood = calibrated_threshold(frame, "dt")
         if ood is not None and checkpoints and Path(checkpoints).is_dir():
             write_thresholds(checkpoints, ood)
         for logger in trainer.loggers:
             if isinstance(logger, TensorBoardLogger):
-                log_tensorboard(logger.experiment, scores, sets, frame, trainer.global_step)
+                log_tensorboard(logger.experiment, scores, sets, frame, trainer.global_step,
+                                examples=figure)  # fmt: skip
+        if figure is not None:
+            import matplotlib.pyplot as plt
+
+            plt.close(figure)

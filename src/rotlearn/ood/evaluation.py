@@ -2,9 +2,12 @@
 
 `evaluate(predict_fn, loaders, flags, ...)` scores every sample of every set (`score_sets`) and
 tabulates rejection at each quantile threshold of the training scores (`rejection_table`). For one
-score on one test set (`rejection_row`): kept %, the error of the kept and of all samples,
-precision = |kept and clean| / |kept|, recall = |kept and clean| / |clean|, the AUROC of the score
-for telling OOD from clean samples, and the Spearman correlation of the score with the error.
+score on one test set (`rejection_row`): kept %, the error (mean, median) of the kept and of all
+samples, precision = |kept and clean| / |kept| (the paper's Table I "Precision": its numbers fit
+this, not its footnote), recall = |kept and clean| / |clean|, the % of OOD samples rejected, the
+AUROC of the score for telling OOD from clean samples, and the Spearman correlation of the score
+with the error. `precision_recall_curve` is the same row over many quantiles; `mixed_set` appends
+an extra evaluation set (e.g. pairs of unseen scenes) to the test set, flagged OOD.
 """
 
 from __future__ import annotations
@@ -30,7 +33,9 @@ __all__ = [
     "auroc",
     "calibrated_threshold",
     "evaluate",
+    "mixed_set",
     "pr_quantiles",
+    "precision_recall_curve",
     "rank",
     "rejection_row",
     "rejection_table",
@@ -108,14 +113,15 @@ def rejection_row(
 
     Returns:
         A flat dict: score, q, threshold, n, n_corrupted, nan_scores, kept_pct, err_mean_all,
-        err_median_all, err_mean_kept, err_median_kept, precision, recall (percent; NaN where
-        undefined), auroc and spearman (score vs error).
+        err_median_all, err_mean_kept, err_median_kept, precision, recall, ood_rejected (percent
+        of the OOD samples not kept; NaN where undefined), auroc and spearman (score vs error).
     """
     threshold = quantile_threshold(train_scores, q, score.keep_below)
     kept = keep_mask(scores, threshold, score.keep_below)
     clean = ~corrupted
-    n_kept, n_clean = int(kept.sum()), int(clean.sum())
+    n_kept, n_clean, n_ood = int(kept.sum()), int(clean.sum()), int(corrupted.sum())
     kept_clean = int((kept & clean).sum())
+    rejected_ood = int((~kept & corrupted).sum())
     mean_all, median_all = _stats(errors.double())
     mean_kept, median_kept = _stats(errors[kept].double())
     return {
@@ -133,6 +139,7 @@ def rejection_row(
         "err_median_kept": median_kept,
         "precision": 100.0 * kept_clean / n_kept if n_kept else math.nan,
         "recall": 100.0 * kept_clean / n_clean if n_clean else math.nan,
+        "ood_rejected": 100.0 * rejected_ood / n_ood if n_ood else math.nan,
         "auroc": auroc(scores, corrupted, score.keep_below),
         "spearman": spearman(scores, errors),
     }
@@ -141,6 +148,51 @@ def rejection_row(
 def pr_quantiles(start: float = 0.05, stop: float = 0.97, step: float = 0.02) -> list[float]:
     """The quantiles of the precision-recall curve: 0.05 to 0.97 by 0.02."""
     return [round(q, 6) for q in np.arange(start, stop + step / 2, step)]
+
+
+def precision_recall_curve(
+    score: Score,
+    train_scores: Tensor,
+    test: Mapping[str, Tensor],
+    quantiles: Sequence[float] | None = None,
+) -> list[dict[str, float | int | str]]:
+    """`rejection_row` of `score` on one flagged test set at each quantile (default
+    `pr_quantiles()`): the precision-recall curve over q.
+
+    Args:
+        score: the score.
+        train_scores: (N_train,) its training scores (the thresholds).
+        test: a flagged set of `score_sets`: {"error", "corrupted", score.name: (N,)}.
+        quantiles: the q values, each in [0, 1].
+    """
+    qs = pr_quantiles() if quantiles is None else quantiles
+    return [
+        rejection_row(score, q, train_scores, test[score.name], test["error"], test["corrupted"])
+        for q in qs
+    ]
+
+
+def mixed_set(base: Mapping[str, Tensor], extra: Mapping[str, Tensor]) -> dict[str, Tensor]:
+    """A test set followed by an extra set whose samples all count as OOD (paper Fig. 8: the
+    outdoor test pairs, then those of the unseen indoor scene).
+
+    Args:
+        base: a flagged set of `score_sets` ({"error", "corrupted", scores...}, (N,) each).
+        extra: a set of `score_sets` with the same keys (its own "corrupted" flags are ignored).
+
+    Returns:
+        {key: (N + M,)}: `base` then `extra`, "corrupted" True on the M extra samples.
+
+    Raises:
+        ValueError: if the two sets have different keys.
+    """
+    keys = set(base) - {"corrupted"}
+    if keys != set(extra) - {"corrupted"}:
+        raise ValueError(f"cannot mix sets with keys {sorted(base)} and {sorted(extra)}")
+    mixed = {k: torch.cat([base[k], extra[k]]) for k in keys}
+    ood = torch.ones(len(extra["error"]), dtype=torch.bool)
+    mixed["corrupted"] = torch.cat([base["corrupted"].bool(), ood])
+    return mixed
 
 
 def table_quantile(name: str, table: Mapping[str, float], quantiles: Sequence[float]) -> float:
@@ -214,7 +266,7 @@ def rejection_table(
     """One `rejection_row` per score, test set and quantile, thresholds from the `train` set.
 
     Args:
-        sets: `score_sets`' output; the test sets are those of `TEST_SETS` that are present.
+        sets: `score_sets`' output.
         scores: the scores to tabulate.
         quantiles: fractions of the training scores kept, each in [0, 1].
         table: score -> its Table I quantile (`table_quantile`), evaluated too.
@@ -222,12 +274,15 @@ def rejection_table(
 
     Returns:
         Columns set, in_table (whether the row is the score's Table I row), and those of
-        `rejection_row`; ordered by score, test set, quantile.
+        `rejection_row`; ordered by score, test set, quantile. The test sets are those of
+        `TEST_SETS` that are present, then every other set with "corrupted" flags (extra
+        evaluation sets, e.g. `mixed_set`), in their order.
     """
     import pandas as pd
 
     table = dict(table or {})
     test_sets = [name for name in TEST_SETS if name in sets]
+    test_sets += [n for n, v in sets.items() if n not in test_sets and "corrupted" in v]
     rows: list[dict[str, Any]] = []
     for score in scores:
         nan_count = {k: int((~torch.isfinite(v[score.name])).sum()) for k, v in sets.items()}
