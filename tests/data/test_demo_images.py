@@ -13,7 +13,7 @@ from rotlearn.cli.make_demo_data import demo_writers, main
 from rotlearn.data import kitti_demo, mav_demo
 from rotlearn.data.kitti_demo import write_kitti_demo
 from rotlearn.data.mav_demo import MAV_PAIR_GAPS, MAV_POSE_HEADER, write_mav_demo
-from rotlearn.data.synth import camera_matrix
+from rotlearn.data.synth import camera_matrix, exp_rotvec
 
 KITTI = {"sequences": ("00", "01"), "frames": 6, "width": 248, "height": 76}  # 1 degree: 2.6 px
 MAV = {"frames": 40, "width": 64, "height": 52}
@@ -143,6 +143,28 @@ def test_kitti_consecutive_frames_differ_by_the_written_rotation(kitti):
                 assert _warp_gain(frames[i], frames[i + 1], K, C_21.T) < 1.0  # the wrong way
 
 
+def _perturbed(C: np.ndarray, degrees: float) -> list[np.ndarray]:
+    """C turned further by `degrees` about each camera axis, either way (6 rotations)."""
+    axes = np.vstack((np.eye(3), -np.eye(3)))
+    return [exp_rotvec(np.radians(degrees) * axis) @ C for axis in axes]
+
+
+def test_kitti_frames_pin_the_rotation_to_a_quarter_degree(kitti):
+    """The written rotation explains the image change clearly better than any rotation off it
+    by 0.25 degrees (0.6 pixels here) about any axis: the poses are exact, not just roughly
+    right."""
+    K = _calib(kitti, "00")["P2"].reshape(3, 4)[:, :3]
+    for sequence in KITTI["sequences"]:
+        R = _kitti_poses(kitti, sequence)[:, :, :3]
+        folder = kitti / "sequences" / sequence / "image_2"
+        frames = [cv2.imread(str(folder / f"{i:06d}.png")) for i in range(KITTI["frames"])]
+        for i in range(KITTI["frames"] - 1):
+            C_21 = R[i + 1].T @ R[i]
+            gain = _warp_gain(frames[i], frames[i + 1], K, C_21)
+            for wrong in _perturbed(C_21, 0.25):
+                assert gain > 1.2 * _warp_gain(frames[i], frames[i + 1], K, wrong), (sequence, i)
+
+
 def test_kitti_test_sequence_views_a_street_unseen_in_training_and_11_revisits_02(
     tmp_path, monkeypatch
 ):
@@ -238,8 +260,8 @@ def test_mav_indoor_frames_are_darker_and_flatter(mav):
 
 def test_mav_frames_differ_by_the_rotation_of_their_nearest_poses(mav):
     """Inside a scene, the scalar-first quaternions of the nearest poses explain the motion
-    between the frames of each written pair, and the inverse rotation does not (the transition
-    cross-fades, so it is left out)."""
+    between the frames of each written pair, clearly better than the inverse rotation or one a
+    degree off about any axis (the transition cross-fades, so it is left out)."""
     stamps = _frames_csv(mav)
     pose_times, rows = _poses_csv(mav)
     R = [_rotmat_wxyz(rows[np.abs(pose_times - t).argmin(), 3:]) for t in stamps]
@@ -252,8 +274,11 @@ def test_mav_frames_differ_by_the_rotation_of_their_nearest_poses(mav):
         for i, j in pairs:
             C_21 = R[j].T @ R[i]
             if _angle_deg(C_21) > 1.5:
-                assert _warp_gain(frames[i], frames[j], K, C_21) > 3.0, (scene, i, j)
+                gain = _warp_gain(frames[i], frames[j], K, C_21)
+                assert gain > 3.0, (scene, i, j)
                 assert _warp_gain(frames[i], frames[j], K, C_21.T) < 1.0, (scene, i, j)
+                for wrong in _perturbed(C_21, 1.0):  # 0.7 pixels here
+                    assert gain > 1.2 * _warp_gain(frames[i], frames[j], K, wrong), (scene, i, j)
                 checked += 1
     assert checked >= 5
 
