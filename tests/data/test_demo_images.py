@@ -12,8 +12,8 @@ import pytest
 from rotlearn.cli.make_demo_data import demo_writers, main
 from rotlearn.data import kitti_demo, mav_demo
 from rotlearn.data.kitti_demo import write_kitti_demo
-from rotlearn.data.mav_demo import MAV_POSE_HEADER, write_mav_demo
-from rotlearn.data.synth import camera_matrix
+from rotlearn.data.mav_demo import MAV_PAIR_GAPS, MAV_POSE_HEADER, write_mav_demo
+from rotlearn.data.synth import camera_matrix, exp_rotvec
 
 KITTI = {"sequences": ("00", "01"), "frames": 6, "width": 248, "height": 76}  # 1 degree: 2.6 px
 MAV = {"frames": 40, "width": 64, "height": 52}
@@ -143,6 +143,53 @@ def test_kitti_consecutive_frames_differ_by_the_written_rotation(kitti):
                 assert _warp_gain(frames[i], frames[i + 1], K, C_21.T) < 1.0  # the wrong way
 
 
+def _perturbed(C: np.ndarray, degrees: float) -> list[np.ndarray]:
+    """C turned further by `degrees` about each camera axis, either way (6 rotations)."""
+    axes = np.vstack((np.eye(3), -np.eye(3)))
+    return [exp_rotvec(np.radians(degrees) * axis) @ C for axis in axes]
+
+
+def test_kitti_frames_pin_the_rotation_to_a_quarter_degree(kitti):
+    """The written rotation explains the image change clearly better than any rotation off it
+    by 0.25 degrees (0.6 pixels here) about any axis: the poses are exact, not just roughly
+    right."""
+    K = _calib(kitti, "00")["P2"].reshape(3, 4)[:, :3]
+    for sequence in KITTI["sequences"]:
+        R = _kitti_poses(kitti, sequence)[:, :, :3]
+        folder = kitti / "sequences" / sequence / "image_2"
+        frames = [cv2.imread(str(folder / f"{i:06d}.png")) for i in range(KITTI["frames"])]
+        for i in range(KITTI["frames"] - 1):
+            C_21 = R[i + 1].T @ R[i]
+            gain = _warp_gain(frames[i], frames[i + 1], K, C_21)
+            for wrong in _perturbed(C_21, 0.25):
+                assert gain > 1.2 * _warp_gain(frames[i], frames[i + 1], K, wrong), (sequence, i)
+
+
+def test_kitti_test_sequence_views_a_street_unseen_in_training_and_11_revisits_02(
+    tmp_path, monkeypatch
+):
+    """Each sequence views its own street (so the default test sequence 00 is a scene never
+    trained on), except the revisit 11, which views 02's street on its own trajectory; a
+    street depends only on (seed, its sequence), not on which others are written."""
+    from rotlearn.data import natural
+
+    drawn, real = [], natural.street_panorama
+    monkeypatch.setattr(
+        natural, "street_panorama", lambda rng, w: drawn.append(real(rng, w)) or drawn[-1]
+    )
+    small = {"frames": 3, "width": 62, "height": 19}
+    root = write_kitti_demo(tmp_path / "a", sequences=("00", "02", "11"), **small)
+    street_00, street_02, street_11 = drawn
+    assert not np.array_equal(street_00, street_02)
+    np.testing.assert_array_equal(street_11, street_02)
+    assert kitti_demo.kitti_scene("11") == "02" and kitti_demo.kitti_scene("00") == "00"
+    assert "11" in kitti_demo.KITTI_SEQUENCES
+    poses = [(root / "poses" / f"{s}.txt").read_bytes() for s in ("02", "11")]
+    assert poses[0] != poses[1]
+    write_kitti_demo(tmp_path / "b", sequences=("02",), **small)
+    np.testing.assert_array_equal(drawn[-1], street_02)
+
+
 def test_kitti_is_deterministic_in_the_seed(kitti, tmp_path):
     same = write_kitti_demo(tmp_path / "same", **KITTI)
     other = write_kitti_demo(tmp_path / "other", **KITTI, seed=1)
@@ -187,12 +234,14 @@ def test_mav_pose_rate_keeps_the_nearest_pose_label_within_0_05_degrees(mav):
     assert rate.max() * 0.0015 < 0.05 and 5.0 < rate.mean() < 25.0
 
 
-def test_mav_pairs_are_consecutive_inside_disjoint_scenes(mav):
+def test_mav_pairs_are_a_few_frames_apart_inside_disjoint_scenes(mav):
     ranges = {}
     for scene in ("outdoor", "transition", "indoor"):
         pairs = np.loadtxt(mav / "pairs" / f"{scene}.csv", delimiter=",", dtype=int, ndmin=2)
         assert len(pairs) > 0
-        np.testing.assert_array_equal(pairs[:, 1], pairs[:, 0] + 1)
+        gaps = pairs[:, 1] - pairs[:, 0]
+        assert set(gaps.tolist()) == set(MAV_PAIR_GAPS)
+        assert len(np.unique(pairs, axis=0)) == len(pairs)
         assert pairs.min() >= 0 and pairs.max() < MAV["frames"]
         ranges[scene] = (pairs.min(), pairs.max())
     assert ranges["outdoor"][1] < ranges["transition"][0]
@@ -211,7 +260,8 @@ def test_mav_indoor_frames_are_darker_and_flatter(mav):
 
 def test_mav_frames_differ_by_the_rotation_of_their_nearest_poses(mav):
     """Inside a scene, the scalar-first quaternions of the nearest poses explain the motion
-    between frames 8 apart (the transition cross-fades, so it is left out)."""
+    between the frames of each written pair, clearly better than the inverse rotation or one a
+    degree off about any axis (the transition cross-fades, so it is left out)."""
     stamps = _frames_csv(mav)
     pose_times, rows = _poses_csv(mav)
     R = [_rotmat_wxyz(rows[np.abs(pose_times - t).argmin(), 3:]) for t in stamps]
@@ -221,10 +271,14 @@ def test_mav_frames_differ_by_the_rotation_of_their_nearest_poses(mav):
     checked = 0
     for scene in ("outdoor", "indoor"):
         pairs = np.loadtxt(mav / "pairs" / f"{scene}.csv", delimiter=",", dtype=int, ndmin=2)
-        for i in range(pairs.min(), pairs.max() - 7):
-            C_21 = R[i + 8].T @ R[i]
+        for i, j in pairs:
+            C_21 = R[j].T @ R[i]
             if _angle_deg(C_21) > 1.5:
-                assert _warp_gain(frames[i], frames[i + 8], K, C_21) > 3.0, (scene, i)
+                gain = _warp_gain(frames[i], frames[j], K, C_21)
+                assert gain > 3.0, (scene, i, j)
+                assert _warp_gain(frames[i], frames[j], K, C_21.T) < 1.0, (scene, i, j)
+                for wrong in _perturbed(C_21, 1.0):  # 0.7 pixels here
+                    assert gain > 1.2 * _warp_gain(frames[i], frames[j], K, wrong), (scene, i, j)
                 checked += 1
     assert checked >= 5
 
@@ -290,6 +344,17 @@ def test_main_writes_the_chosen_datasets(tmp_path, monkeypatch, capsys):
 
 
 def test_the_smallest_mav_has_a_pair_in_every_scene(tmp_path):
-    root = write_mav_demo(tmp_path, frames=10, width=32, height=26)
+    root = write_mav_demo(tmp_path, frames=36, width=32, height=26)
     for scene in ("outdoor", "transition", "indoor"):
         assert (root / "pairs" / f"{scene}.csv").read_text().strip()
+    root = write_mav_demo(tmp_path, frames=10, width=32, height=26, gaps=(1,))
+    for scene in ("outdoor", "transition", "indoor"):
+        assert (root / "pairs" / f"{scene}.csv").read_text().strip()
+
+
+def test_too_few_mav_frames_for_the_gaps_are_refused_before_writing(tmp_path):
+    with pytest.raises(ValueError, match="scene"):
+        write_mav_demo(tmp_path, frames=20, width=32, height=26)
+    with pytest.raises(ValueError, match="gaps"):
+        write_mav_demo(tmp_path, frames=40, width=32, height=26, gaps=(0, 2))
+    assert list(tmp_path.iterdir()) == []

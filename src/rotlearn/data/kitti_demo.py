@@ -9,12 +9,16 @@ tests). `write_kitti_demo(out)` writes `<out>/kitti/`:
 Camera axes as in KITTI: x right, y down, z forward.
 
 The images are rendered and the folder written as `rotlearn.data.synth` says: the orientations
-are exactly the rotations between the images; the dataset appears only when complete.
+are exactly the rotations between the images; the dataset appears only when complete. The scenes
+are photo-textured street panoramas (`rotlearn.data.natural.street_panorama`: real textures,
+1/f spectra, occlusion, shading); each sequence views its own scene, so whichever sequence is
+tested on shows a street never seen in training, except the revisits (by default sequence 11
+drives a new trajectory through sequence 02's street: a seen scene to compare with).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +26,6 @@ import numpy as np
 from rotlearn.data.synth import (
     camera_matrix,
     exp_rotvec,
-    outdoor_panorama,
     panorama_width,
     pixel_rays,
     render,
@@ -31,7 +34,12 @@ from rotlearn.data.synth import (
     write_png,
 )
 
-__all__ = ["write_demo", "write_kitti_demo"]
+__all__ = ["KITTI_REVISITS", "KITTI_SEQUENCES", "kitti_scene", "write_demo", "write_kitti_demo"]
+
+# The paper's sequences (test on 00, 02 or 05; train on the others), plus 11, a revisit.
+KITTI_SEQUENCES = ("00", "02", "05", "06", "07", "08", "09", "10", "11")
+# sequence -> the sequence whose street it views (on its own trajectory and starting heading)
+KITTI_REVISITS = {"11": "02"}
 
 
 def _kitti_rotvecs(rng: np.random.Generator, steps: int) -> np.ndarray:
@@ -68,14 +76,28 @@ def _kitti_calib(K: np.ndarray) -> str:
     return "".join(f"{k}: {' '.join(f'{v:e}' for v in m.ravel())}\n" for k, m in rows.items())
 
 
+def kitti_scene(name: str, revisits: Mapping[str, str] = KITTI_REVISITS) -> str:
+    """The sequence whose street `name` views: `revisits[name]` if listed, else `name` itself."""
+    return revisits.get(name, name)
+
+
 def _write_kitti_sequence(
-    root: Path, name: str, seed: int, frames: int, K: np.ndarray, width: int, height: int
+    root: Path,
+    name: str,
+    scene: str,
+    seed: int,
+    frames: int,
+    K: np.ndarray,
+    width: int,
+    height: int,
 ) -> None:
-    """One sequence: poses, times.txt, calib.txt and image_2 frames. Every sequence views the
-    same world (one panorama from `seed`), like KITTI's drives through one city, each from its
-    own starting heading (a roll of the panorama) and with its own motion, from separate streams
-    of (seed, sequence number)."""
-    world = outdoor_panorama(np.random.default_rng([seed, 1, 0]), panorama_width(K))
+    """One sequence: poses, times.txt, calib.txt and image_2 frames. The sequence views the
+    street panorama of `scene` (a sequence name; drawn from the stream (seed, scene number)),
+    from its own starting heading (a roll of the panorama) and with its own motion, from
+    separate streams of (seed, sequence number)."""
+    from rotlearn.data.natural import street_panorama
+
+    world = street_panorama(np.random.default_rng([seed, 1, 2, int(scene)]), panorama_width(K))
     heading = np.random.default_rng([seed, 1, int(name), 0]).integers(world.shape[1])
     panorama = np.roll(world, heading, axis=1)
     poses = _kitti_poses(np.random.default_rng([seed, 1, int(name), 1]), frames)
@@ -92,23 +114,33 @@ def _write_kitti_sequence(
 
 def write_kitti_demo(
     out: str | Path,
-    sequences: Sequence[str] = ("00", "02", "05", "06", "07", "08", "09", "10"),
+    sequences: Sequence[str] = KITTI_SEQUENCES,
     frames: int = 300,
     width: int = 310,
     height: int = 94,
     seed: int = 0,
+    revisits: Mapping[str, str] = KITTI_REVISITS,
 ) -> Path:
     """Write a demo KITTI odometry dataset (layout in the module docstring); returns `<out>/kitti`.
 
-    Every sequence views one procedural panorama at infinity (drawn from `seed`), from its own
-    starting heading, under pure rotation: R_wc(i + 1) = R_wc(i) Exp(omega_i), omega_i (camera
-    frame) a smooth random process of about 1 degree per frame (mostly 0.3-1.5, mean ~1), mostly
-    yaw whose sign turns every few tens of frames, so neither "identity" nor "the mean rotation"
-    predicts it. The camera also moves 1 m per frame along its z axis; with the scene at infinity
-    this has no visual effect. Intrinsics: `camera_matrix(width, height)` (80 degrees across),
-    P2 = [K | 0]. Poses are written with "%e" (7 significant digits); the images are rendered
-    from the float64 poses they round (orthonormal to ~1e-14), exact up to the renderer's
-    1/32-pixel interpolation grid (~0.01 degrees at 310 pixels across).
+    Scenes (what is seen, for "unseen scene" tests): every sequence views its own street, a
+    photo-textured panorama at infinity (`rotlearn.data.natural.street_panorama`) drawn from
+    (seed, sequence number), so a test sequence (conf/data/kitti.yaml and experiment=
+    kitti_ood_demo test on 00 and train on 02, 05-10) shows a street never seen in training;
+    a sequence listed in `revisits` instead views the street of the sequence it maps to, on its
+    own trajectory (default: 11 revisits 02, so `data.test_sequences=[11]` tests on new views
+    of a training street; 11 is not among the default training sequences). Sequence names must
+    be digits; scenes are deterministic in `seed` and do not depend on which sequences are
+    written.
+
+    Each sequence starts at its own heading and turns under pure rotation: R_wc(i + 1) = R_wc(i)
+    Exp(omega_i), omega_i (camera frame) a smooth random process of about 1 degree per frame (mostly
+    0.3-1.5, mean ~1), mostly yaw whose sign turns every few tens of frames, so neither "identity"
+    nor "the mean rotation" predicts it. The camera also moves 1 m per frame along its z axis; with
+    the scene at infinity this has no visual effect. Intrinsics: `camera_matrix(width, height)` (80
+    degrees across), P2 = [K | 0]. Poses are written with "%e" (7 significant digits); the images
+    are rendered from the float64 poses they round (orthonormal to ~1e-14), exact up to the
+    renderer's 1/32-pixel interpolation grid (~0.01 degrees at 310 pixels across).
 
     Args:
         out: parent folder.
@@ -117,13 +149,15 @@ def write_kitti_demo(
         width, height: image size in pixels.
         seed: content seed; the same seed writes the same files.
     """
-    if frames < 2 or not all(s.isdigit() for s in sequences):
+    names = [*sequences, *revisits.values()]
+    if frames < 2 or not all(str(s).isdigit() for s in names):
         raise ValueError(f"need frames >= 2 and digit sequence names, got {frames}, {sequences}")
     out = Path(out)
     K = camera_matrix(width, height)
     with staged(out, "kitti", ["kitti"]) as stage:
         for name in sequences:
-            _write_kitti_sequence(stage / "kitti", name, seed, frames, K, width, height)
+            scene = kitti_scene(name, revisits)
+            _write_kitti_sequence(stage / "kitti", name, scene, seed, frames, K, width, height)
     return out / "kitti"
 
 

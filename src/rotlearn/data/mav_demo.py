@@ -6,16 +6,19 @@ tests). `write_mav_demo(out)` writes `<out>/mav/`:
     pose/data.csv         "#timestamp [ns], p_RS_R_x [m], ..., q_RS_w [], q_RS_x [], q_RS_y [],
                           q_RS_z []", 200 Hz: position (m) and camera-to-world orientation R_wc
                           as a Hamilton quaternion SCALAR FIRST (w x y z; rotlearn uses x y z w)
-    pairs/{outdoor,transition,indoor}.csv   headerless "id1,id2" rows: consecutive frames (0-based
-                          rows of flea3/data.csv) inside one scene
+    pairs/{outdoor,transition,indoor}.csv   headerless "id1,id2" rows: frames (0-based rows of
+                          flea3/data.csv) a few apart (`MAV_PAIR_GAPS`) inside one scene
 Frame timestamps are jittered off the pose clock: match them to the nearest pose (within 30 ms).
 
 The images are rendered and the folder written as `rotlearn.data.synth` says: the orientations
-are exactly the rotations between the images; the dataset appears only when complete.
+are exactly the rotations between the images; the dataset appears only when complete. The outdoor
+scene is a photo-textured street (`rotlearn.data.natural.street_panorama`), the indoor one a
+darker room (`room_panorama`: plaster and wood, framed pictures, doors, ceiling lights, tiles).
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import cv2
@@ -24,8 +27,6 @@ import numpy as np
 from rotlearn.data.synth import (
     camera_matrix,
     euler_quat,
-    indoor_panorama,
-    outdoor_panorama,
     panorama_width,
     pixel_rays,
     quat_rotmat,
@@ -34,7 +35,7 @@ from rotlearn.data.synth import (
     write_png,
 )
 
-__all__ = ["MAV_POSE_HEADER", "write_demo", "write_mav_demo"]
+__all__ = ["MAV_PAIR_GAPS", "MAV_POSE_HEADER", "write_demo", "write_mav_demo"]
 
 MAV_POSE_HEADER = (
     "#timestamp [ns], p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], "
@@ -45,6 +46,9 @@ _MAV_POSE_NS = 5_000_000  # 200 Hz
 _MAV_FRAME_NS = 50_000_000  # 20 Hz nominal, 10 pose periods
 _MAV_JITTER_NS = (1_000, 1_500_000)  # |frame time - nominal time|, never 0: off the pose clock
 _MAV_SCENES = (("outdoor", 0.45), ("transition", 0.10), ("indoor", 0.45))
+# A pair (i, i + g) for each gap g (frames at 20 Hz): 0.2-0.4 s, about 2-6 degrees (mean ~3.5)
+# at the trajectory's rates, i.e. a few pixels even at 64 x 64; three pairs per frame.
+MAV_PAIR_GAPS = (4, 6, 8)
 
 
 class _MavTrajectory:
@@ -96,13 +100,22 @@ def _seconds(t_ns: np.ndarray) -> np.ndarray:
     return (t_ns - _MAV_T0_NS).astype(np.float64) * 1e-9
 
 
-def _scene_bounds(frames: int) -> dict[str, tuple[int, int]]:
+def _scene_bounds(frames: int, least: int = 2) -> dict[str, tuple[int, int]]:
     """Frame ranges [start, stop) of the scenes, in time order (~45 %, ~10 %, ~45 %; at least
-    2 frames each, so each has a pair)."""
+    `least` frames each, so that each has a pair).
+
+    Raises:
+        ValueError: `frames` too few for `least` frames in every scene.
+    """
     bounds, start = {}, 0
     for k, (name, fraction) in enumerate(_MAV_SCENES):
         last = k == len(_MAV_SCENES) - 1
-        stop = frames if last else start + max(2, round(fraction * frames))
+        stop = frames if last else start + max(least, round(fraction * frames))
+        if stop - start < least:
+            raise ValueError(
+                f"{frames} frames leave the {name} scene {stop - start} frames; each scene needs "
+                f"{least} (the largest pair gap + 1): write more frames or smaller gaps"
+            )
         bounds[name], start = (start, stop), stop
     return bounds
 
@@ -128,9 +141,8 @@ def _mav_frame(panoramas, rays, R_wc: np.ndarray, blend: float) -> np.ndarray:
     return np.rint((1.0 - blend) * views[0] + blend * views[1]).astype(np.uint8)
 
 
-def _scene_blend(frames: int) -> np.ndarray:
+def _scene_blend(bounds: dict[str, tuple[int, int]], frames: int) -> np.ndarray:
     """(frames,) indoor weight: 0 outdoors, rising linearly through the transition, 1 indoors."""
-    bounds = _scene_bounds(frames)
     start, stop = bounds["transition"]
     blend = np.zeros(frames)
     blend[start:stop] = np.arange(1, stop - start + 1) / (stop - start + 1)
@@ -139,31 +151,48 @@ def _scene_blend(frames: int) -> np.ndarray:
 
 
 def write_mav_demo(
-    out: str | Path, frames: int = 600, width: int = 320, height: int = 256, seed: int = 0
+    out: str | Path,
+    frames: int = 1200,
+    width: int = 320,
+    height: int = 256,
+    seed: int = 0,
+    gaps: Sequence[int] = MAV_PAIR_GAPS,
 ) -> Path:
     """Write a demo MAV (EuRoC-like) dataset (layout in the module docstring); returns `<out>/mav`.
 
     A camera (`camera_matrix(width, height)`, 80 degrees across; the real flea3 is 640x512)
-    turns smoothly through three scenes in time order: ~45 % of the frames "outdoor" (a bright,
-    busy panorama), ~10 % "transition" (a cross-fade between the two views), ~45 % "indoor" (a
-    darker panorama of flat panels and edges). Each frame is rendered at its own timestamp,
+    turns smoothly through three scenes in time order: ~45 % of the frames "outdoor" (a bright
+    photo-textured street), ~10 % "transition" (a cross-fade between the two views), ~45 %
+    "indoor" (a darker room of other textures). Each scene's pairs are (i, i + g) for each gap g
+    of `gaps` with both frames inside the scene (default 4, 6, 8 frames: mean ~3.5 degrees;
+    1200 frames give ~1600 outdoor pairs). Unseen scenes: trained on `outdoor` (the paper's
+    and experiment=mav_ood_demo's choice), the indoor and transition pairs view a scene never
+    seen in training; the outdoor test pairs (a seeded 10 % of its pairs, chosen by
+    `rotlearn.data.mav`) are new pairs of the training scene. Each frame is rendered at its
+    own timestamp,
     which lies 1 us to 1.5 ms off the 200 Hz pose clock: the nearest pose is off by < 0.05
     degrees. pose/data.csv quaternions are w x y z (scalar first), camera to world.
 
     Args:
         out: parent folder.
-        frames: number of frames (>= 10, so that every scene has a pair).
+        frames: number of frames, enough for max(gaps) + 1 in every scene: 4 (max(gaps) + 1)
+            always are (36 for the default gaps).
         width, height: image size in pixels.
         seed: content seed; the same seed writes the same files.
+        gaps: frame gaps of the pairs (positive integers).
     """
-    if frames < 10:
-        raise ValueError(f"need frames >= 10, got {frames}")
+    from rotlearn.data.natural import room_panorama, street_panorama
+
+    gaps = sorted({int(g) for g in gaps})
+    if not gaps or gaps[0] < 1:
+        raise ValueError(f"gaps must be positive integers, got {gaps}")
+    bounds = _scene_bounds(frames, gaps[-1] + 1)
     out = Path(out)
     rngs = [np.random.default_rng([seed, 2, stream]) for stream in range(4)]
     K = camera_matrix(width, height)
     panoramas = [
         cv2.cvtColor(make(rng, panorama_width(K)), cv2.COLOR_BGR2GRAY)
-        for make, rng in zip((outdoor_panorama, indoor_panorama), rngs[:2], strict=True)
+        for make, rng in zip((street_panorama, room_panorama), rngs[:2], strict=True)
     ]
     trajectory = _MavTrajectory(rngs[2])
     pose_ns, frame_ns = _mav_clock(rngs[3], frames)
@@ -174,12 +203,12 @@ def write_mav_demo(
         _write_mav_poses(root / "pose" / "data.csv", trajectory, pose_ns)
         rows = "".join(f"{t},{t}.png\n" for t in frame_ns)
         (root / "flea3" / "data.csv").write_text("#timestamp [ns],filename\n" + rows)
-        for name, (start, stop) in _scene_bounds(frames).items():
-            pairs = "".join(f"{i},{i + 1}\n" for i in range(start, stop - 1))
+        for name, (start, stop) in bounds.items():
+            pairs = "".join(f"{i},{i + g}\n" for g in gaps for i in range(start, stop - g))
             (root / "pairs" / f"{name}.csv").write_text(pairs)
         rays = pixel_rays(K, width, height)
         rotations = quat_rotmat(trajectory.quat(_seconds(frame_ns)))
-        for t, R_wc, blend in zip(frame_ns, rotations, _scene_blend(frames), strict=True):
+        for t, R_wc, blend in zip(frame_ns, rotations, _scene_blend(bounds, frames), strict=True):
             image = _mav_frame(panoramas, rays, R_wc, blend)
             write_png(root / "flea3" / "data" / f"{t}.png", image)
     return out / "mav"

@@ -5,9 +5,9 @@
   name (an older copy stays until the new one is complete);
 - shapes: `airplane_mesh`, a random airplane with no rotational symmetry;
 - rotations: float64 numpy wrappers of `rotlearn.geometry` (quaternions x y z w);
-- panoramas at infinity (equirectangular textures) and `render`, the pinhole view of one under
-  pure camera rotation, so that the written orientations are exactly the rotations between the
-  images (up to the renderer's 1/32-pixel interpolation grid);
+- `render`, the pinhole view of a panorama at infinity (an equirectangular texture, drawn by
+  `rotlearn.data.natural`) under pure camera rotation, so that the written orientations are
+  exactly the rotations between the images (up to the renderer's 1/32-pixel interpolation grid);
 - `smooth_series`, a smooth random process for trajectories.
 """
 
@@ -31,10 +31,7 @@ __all__ = [
     "camera_matrix",
     "euler_quat",
     "exp_rotvec",
-    "indoor_panorama",
-    "outdoor_panorama",
     "panorama_width",
-    "periodic_noise",
     "pixel_rays",
     "quat_rotmat",
     "render",
@@ -124,89 +121,6 @@ def euler_quat(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarr
 def quat_rotmat(q: np.ndarray) -> np.ndarray:
     """Rotation matrices (..., 3, 3) of quaternions (..., 4), x y z w."""
     return quat_to_rotmat(torch.from_numpy(q)).numpy()
-
-
-# ---- panoramas -----------------------------------------------------------------------------------
-
-
-def periodic_noise(rng: np.random.Generator, height: int, width: int, cells: int, channels: int):
-    """Smooth unit-variance noise (height, width, channels) float32, `cells` features around the
-    horizon, periodic in width (the panorama's longitude wraps without a seam)."""
-    cells = max(2, min(cells, width // 3))
-    grid = rng.standard_normal((max(2, cells // 2), cells, channels)).astype(np.float32)
-    tiled = cv2.resize(np.tile(grid, (1, 3, 1)), (3 * width, height), interpolation=cv2.INTER_CUBIC)
-    noise = tiled.reshape(height, 3 * width, channels)[:, width : 2 * width]
-    return noise / max(float(noise.std()), 1e-6)
-
-
-def _octaves(rng: np.random.Generator, shape: tuple[int, int, int], cells: Sequence[int]):
-    """Sum of `periodic_noise` of `shape` (H, W, C) at each feature count in `cells`, the
-    amplitude of each proportional to cells ** -0.25 (fine detail nearly as strong as coarse),
-    scaled to unit variance."""
-    total = np.zeros(shape, np.float32)
-    for c in cells:
-        total += c**-0.25 * periodic_noise(rng, shape[0], shape[1], c, shape[2])
-    return total / total.std()
-
-
-def _wrapped(x: int, width: int) -> tuple[int, int, int]:
-    """x and its copies one panorama width left and right: a shape drawn at all three shows on
-    both sides of the longitude seam."""
-    return (x - width, x, x + width)
-
-
-def _random_shapes(rng: np.random.Generator, canvas: np.ndarray, count: int, palette) -> None:
-    """Draw `count` anti-aliased filled circles, filled rectangles and lines, of colours from
-    palette(rng) -> BGR tuple, onto `canvas` (H, W, 3) uint8; sizes in degrees of longitude."""
-    height, width = canvas.shape[:2]
-    unit = width / 360.0  # pixels per degree
-    for _ in range(count):
-        kind, x, y = rng.integers(3), int(rng.integers(width)), int(rng.integers(height))
-        colour = palette(rng)
-        if kind == 0:
-            radius = max(1, int(unit * rng.uniform(0.5, 6.0)))
-            for u in _wrapped(x, width):
-                cv2.circle(canvas, (u, y), radius, colour, -1, cv2.LINE_AA)
-        elif kind == 1:
-            w, h = (max(1, int(unit * s)) for s in rng.uniform(0.5, 8.0, 2))
-            for u in _wrapped(x, width):
-                cv2.rectangle(canvas, (u, y), (u + w, y + h), colour, -1)
-        else:
-            dx, dy = (int(unit * s) for s in rng.uniform(-15.0, 15.0, 2))
-            thickness = int(rng.integers(1, 4))
-            for u in _wrapped(x, width):
-                cv2.line(canvas, (u, y), (u + dx, y + dy), colour, thickness, cv2.LINE_AA)
-
-
-def outdoor_panorama(rng: np.random.Generator, width: int) -> np.ndarray:
-    """Equirectangular BGR uint8 (width // 2, width): a bright sky over a darker green ground
-    (horizon at latitude 0), both shaded by multi-scale noise (features from 60 degrees down to
-    about 12 pixels) quantised into flat terraces (flat areas keep the PNGs small), under many
-    small shapes and lines of random colours."""
-    height = width // 2
-    shade = _octaves(rng, (height, width, 1), (6, 24, 96, width // 12))
-    ground = (np.arange(height) >= height // 2)[:, None, None]
-    base = np.where(ground, np.float32([70, 115, 95]), np.float32([210, 175, 140]))
-    image = np.clip(base + 15.0 * np.round(40.0 / 15.0 * shade), 0, 255).astype(np.uint8)
-    _random_shapes(rng, image, width // 3, lambda r: tuple(int(v) for v in r.integers(0, 256, 3)))
-    return image
-
-
-def indoor_panorama(rng: np.random.Generator, width: int) -> np.ndarray:
-    """Equirectangular BGR uint8 (width // 2, width), darker than outdoors: overlapping flat
-    grey-brown walls and panels with sharp edges, thin dark frames, and smooth faint shading."""
-    height = width // 2
-    unit = width / 360.0  # pixels per degree
-    image = np.full((height, width, 3), 35, np.uint8)
-    for _ in range(max(8, width // 8)):
-        x, y = int(rng.integers(width)), int(rng.integers(height))
-        w, h = (int(unit * s) for s in rng.uniform((2.0, 2.0), (25.0, 20.0)))
-        colour = tuple(int(v) for v in rng.integers(15, 110) + rng.integers(-10, 10, 3))
-        for u in _wrapped(x, width):
-            cv2.rectangle(image, (u, y), (u + w, y + h), colour, -1)
-    _random_shapes(rng, image, width // 20, lambda r: (int(r.integers(0, 50)),) * 3)
-    shading = 6.0 * periodic_noise(rng, height, width, width // 12, 1)
-    return np.clip(image + shading, 0, 255).astype(np.uint8)
 
 
 # ---- rendering -----------------------------------------------------------------------------------
