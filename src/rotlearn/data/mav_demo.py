@@ -18,7 +18,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from rotlearn.data.synth import (
@@ -33,6 +32,9 @@ from rotlearn.data.synth import (
     staged,
     write_png,
 )
+from rotlearn.extras import import_extra
+
+cv2 = import_extra("cv2", "the MAV demo writer")
 
 __all__ = ["MAV_POSE_HEADER", "write_demo", "write_mav_demo"]
 

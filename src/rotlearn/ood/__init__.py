@@ -2,6 +2,10 @@
 pure functions (`evaluation`), writers (`report`), the datamodule protocol they read (`source`)
 and the thin `OODEvaluation` callback that wires them."""
 
+from rotlearn.extras import require
+
+require("train", "rotlearn.ood")
+
 from rotlearn.ood.callback import OODEvaluation
 from rotlearn.ood.evaluation import (
     auroc,
