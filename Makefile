@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed
 ARGS   ?=
 
 .DEFAULT_GOAL := help
-.PHONY: help venv train test test-full lint format bench docs reproduce-cpu demo-data tensorboard clean
+.PHONY: help venv train test test-full lint format bench reproduce-cpu demo-data tensorboard clean
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-12s %s\n", $$1, $$2}'
@@ -43,6 +43,7 @@ format: $(STAMP) ## apply ruff fixes and formatting
 bench: $(STAMP) ## benchmarks: results as JSON under bench/results and a printed table
 	$(BIN)/python bench/run.py $(ARGS)
 
+.PHONY: docs
 docs: $(STAMP) ## API documentation site in docs/_build/html (a warning fails the build)
 	$(BIN)/sphinx-build -W --keep-going -q -b html docs docs/_build/html $(ARGS)
 	@echo "open docs/_build/html/index.html"
