@@ -107,7 +107,7 @@ def test_import_rotlearn_is_light():
 
 @pytest.mark.parametrize(
     "module",
-    ["rotlearn.lit", "rotlearn.cli.train", "rotlearn.data", "rotlearn.ood", "rotlearn.metrics"],
+    ["rotlearn.lit", "rotlearn.cli.train", "rotlearn.data", "rotlearn.metrics"],
 )
 def test_modules_of_the_train_extra_name_it(module):
     result = run_without_extras(f"import {module}")

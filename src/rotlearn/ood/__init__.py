@@ -2,16 +2,14 @@
 pure functions (`evaluation`), writers (`report`), the datamodule protocol they read (`source`)
 and the thin `OODEvaluation` callback that wires them."""
 
-from rotlearn.extras import require
-
-require("train", "rotlearn.ood")
-
 from rotlearn.ood.callback import OODEvaluation
 from rotlearn.ood.evaluation import (
     auroc,
     calibrated_threshold,
     evaluate,
+    mixed_set,
     pr_quantiles,
+    precision_recall_curve,
     rank,
     rejection_row,
     rejection_table,
@@ -32,7 +30,9 @@ __all__ = [
     "calibrated_threshold",
     "evaluate",
     "keep_mask",
+    "mixed_set",
     "pr_quantiles",
+    "precision_recall_curve",
     "quantile_threshold",
     "rank",
     "rejection_row",
