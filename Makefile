@@ -13,13 +13,15 @@ help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-12s %s\n", $$1, $$2}'
 	@echo "  pass options with ARGS, e.g.  make train ARGS='rep=sixd optim.lr=1e-3'"
 
-$(STAMP): pyproject.toml
+# constraints.txt pins the development environment to the local torch build (the package itself
+# declares the range it supports); users install with plain `pip install rotlearn[...]`.
+$(STAMP): pyproject.toml constraints.txt
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	$(BIN)/python -m pip install --quiet -c constraints.txt -e '.[dev]'
 	@touch $@
 
-venv: $(STAMP) ## create or refresh .venv (torch==2.13.0 CPU build, dev tools)
+venv: $(STAMP) ## create or refresh .venv (torch==2.13.0 CPU build, every extra, dev tools)
 
 train: $(STAMP) ## train the default experiment (A head, synthetic Wahba data); ARGS=overrides
 	$(BIN)/rotlearn-train $(ARGS)
@@ -40,6 +42,11 @@ format: $(STAMP) ## apply ruff fixes and formatting
 
 bench: $(STAMP) ## benchmarks: results as JSON under bench/results and a printed table
 	$(BIN)/python bench/run.py $(ARGS)
+
+.PHONY: docs
+docs: $(STAMP) ## API documentation site in docs/_build/html (a warning fails the build)
+	$(BIN)/sphinx-build -W --keep-going -q -b html docs docs/_build/html $(ARGS)
+	@echo "open docs/_build/html/index.html"
 
 reproduce-cpu: $(STAMP) ## paper Figs. 3 and 4 sized for this CPU (about 25 min), each with its report
 	$(BIN)/rotlearn-train -m experiment=synthetic_lr_cpu trainer.enable_progress_bar=false \
@@ -69,5 +76,5 @@ tensorboard: $(STAMP) ## open TensorBoard on every run under outputs/
 	$(BIN)/tensorboard --logdir outputs --bind_all
 
 clean: ## remove the venv and caches (keeps outputs/ and data/)
-	rm -rf $(VENV) .pytest_cache .ruff_cache .hypothesis build dist src/*.egg-info
+	rm -rf $(VENV) .pytest_cache .ruff_cache .hypothesis build dist src/*.egg-info docs/_build
 	find . -name __pycache__ -type d -prune -exec rm -rf {} +

@@ -23,6 +23,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from rotlearn.extras import require
 from rotlearn.trust import UntrustedConfigError, trusted_config
 
 __all__ = [
@@ -197,6 +198,7 @@ def load_run(path: str | os.PathLike, task: str | None = None) -> SavedRun:
             interpolation; the message names the key path. Nothing was built.
         ValueError: not a rotlearn checkpoint, or of another task.
     """
+    require("train", "load_run (a checkpoint's model is rebuilt from its Hydra config)")
     ckpt = resolve_checkpoint(path)
     checkpoint = load_checkpoint(ckpt)
     saved = checkpoint.get("rotlearn_config")

@@ -18,6 +18,7 @@ import torch
 from torch import Tensor, nn
 
 from rotlearn.checkpoint import load_run
+from rotlearn.extras import require
 from rotlearn.heads import RotationHead
 
 __all__ = ["CHUNK_ELEMENTS", "Predictor", "RotationEstimate", "load"]
@@ -168,6 +169,7 @@ def load(
     saved config may only name allowlisted components (`UntrustedConfigError`, naming the key),
     checked before the network and head are rebuilt from it.
     """
+    require("train", "rotlearn.load (it rebuilds the model from the checkpoint's Hydra config)")
     from omegaconf import OmegaConf
 
     run = load_run(ckpt_path, task="rotation")

@@ -4,6 +4,11 @@ from __future__ import annotations
 
 import torch
 from torch import Tensor
+
+from rotlearn.extras import require
+
+require("train", "rotlearn.metrics")
+
 from torchmetrics import Metric
 from torchmetrics.utilities import dim_zero_cat
 

@@ -11,6 +11,7 @@ something else (an OmegaConf interpolation `${...}`). The user's own command lin
 never checked.
 
 The allowlist:
+
 - rotlearn's own components: the classes and functions marked with `@config_target` where they are
   defined (a new dataset or net marks itself; no list to edit elsewhere). A target
   `rotlearn.<module>.<Name>` is looked up by importing that rotlearn module (rotlearn's own code)

@@ -9,7 +9,7 @@ a setting is labelled by `report.lead` (the head's name) and its other differing
 `group=choice` (the choice from `.hydra/hydra.yaml` or the overrides) or keys as `key=value`.
 
 The layout comes from the sweep's `report` config node (an experiment's, e.g.
-`conf/experiment/synthetic_phi_max.yaml`), over `DEFAULT_REPORT`:
+`conf/experiment/synthetic_phi_max.yaml`), over `DEFAULT_REPORT`::
 
     report:
       lead: rep.name                  # the key whose value starts each row label

@@ -1,5 +1,9 @@
 """Floor 2: LightningDataModules, dataset readers and demo-data writers."""
 
+from rotlearn.extras import require
+
+require("train", "rotlearn.data (Lightning DataModules)")
+
 from rotlearn.data.corruption import corrupted_flags, draw_erasing_boxes, erase_boxes
 from rotlearn.data.draws import DrawDataModule, draw_seed
 from rotlearn.data.kitti import KittiOdometryDataModule, read_kitti_poses

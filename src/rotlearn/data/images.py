@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rotlearn.extras import import_extra
 from rotlearn.io import write_text_atomic
 
 __all__ = [
@@ -34,7 +35,7 @@ def read_image(path: Path, gray: bool = False) -> np.ndarray:
         FileNotFoundError: naming the file, if it is missing.
         ValueError: naming the file, if it is not a decodable image (empty, truncated, garbage).
     """
-    import cv2
+    cv2 = import_extra("cv2", "reading and resizing images")
 
     if not Path(path).is_file():
         raise FileNotFoundError(f"{path}: no such image file")
@@ -46,7 +47,7 @@ def read_image(path: Path, gray: bool = False) -> np.ndarray:
 
 def resize_square(image: np.ndarray, size: int) -> np.ndarray:
     """KITTI (paper VI-C): resize to size x size, ignoring the aspect ratio (area filter)."""
-    import cv2
+    cv2 = import_extra("cv2", "reading and resizing images")
 
     return cv2.resize(image, (size, size), interpolation=cv2.INTER_AREA)
 
@@ -54,7 +55,7 @@ def resize_square(image: np.ndarray, size: int) -> np.ndarray:
 def resize_center_crop(image: np.ndarray, resize: int, crop: int) -> np.ndarray:
     """MAV (paper section VI-D): the shorter side to `resize` (aspect kept), then the central
     crop x crop window, as torchvision's Resize(resize) -> CenterCrop(crop)."""
-    import cv2
+    cv2 = import_extra("cv2", "reading and resizing images")
 
     height, width = image.shape[:2]
     scale = resize / min(height, width)

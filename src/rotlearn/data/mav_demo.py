@@ -21,7 +21,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from rotlearn.data.synth import (
@@ -34,6 +33,9 @@ from rotlearn.data.synth import (
     staged,
     write_png,
 )
+from rotlearn.extras import import_extra
+
+cv2 = import_extra("cv2", "the MAV demo writer")
 
 __all__ = ["MAV_PAIR_GAPS", "MAV_POSE_HEADER", "write_demo", "write_mav_demo"]
 

@@ -24,6 +24,7 @@ from torch.utils.data import DataLoader
 
 from rotlearn.data.draws import SPLITS, DrawDataModule
 from rotlearn.errors import ConfigValueError, require_positive_ints
+from rotlearn.extras import import_extra
 from rotlearn.geometry import quat_to_rotmat, so3_exp_quat
 from rotlearn.io import (
     cache_file,
@@ -70,7 +71,7 @@ def _parse_obj(path: Path, text: str):
     Raises:
         ValueError: naming the file, whatever trimesh raised (never a missing-module message).
     """
-    import trimesh
+    trimesh = import_extra("trimesh", "reading meshes")
 
     try:
         mesh = trimesh.load(
@@ -128,7 +129,7 @@ def sample_meshes(paths: list[Path], num_points: int, cache: Path, seed: int = 0
     fresh = manifest_path.is_file() and json.loads(manifest_path.read_text()) == manifest
     if fresh and array_path.is_file():
         return np.load(array_path)
-    import trimesh
+    trimesh = import_extra("trimesh", "reading meshes")
     from tqdm import tqdm
 
     clouds = np.empty((len(paths), num_points, 3), dtype=np.float32)

@@ -15,6 +15,7 @@ import numpy as np
 
 from rotlearn.data.shapenet import AIRPLANE_SYNSET
 from rotlearn.data.synth import airplane_mesh, staged
+from rotlearn.extras import import_extra
 
 __all__ = ["write_demo", "write_shapenet_demo"]
 
@@ -28,7 +29,7 @@ def write_shapenet_demo(
 
     The `.pts` files hold 2 * `points` points: the paper's point_fraction 0.5 keeps `points`.
     """
-    import trimesh
+    trimesh = import_extra("trimesh", "the ShapeNet demo writer")
 
     out = Path(out)
     names = {"mesh": "shapenet", "pts": "shapenet"}

@@ -19,11 +19,13 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 
+from rotlearn.extras import import_extra
 from rotlearn.geometry import quat_multiply, quat_to_rotmat, so3_exp, so3_exp_quat
+
+cv2 = import_extra("cv2", "the demo-data renderer")
 
 __all__ = [
     "HFOV_DEG",
@@ -79,7 +81,7 @@ def airplane_mesh(rng: np.random.Generator):
     """A random airplane (fuselage, wings, tail and fin of random sizes: no rotational symmetry)
     as a trimesh.Trimesh, x along the fuselage, centred, bounding-box diagonal 1 (ShapeNet's
     "normalized")."""
-    import trimesh
+    trimesh = import_extra("trimesh", "the demo airplane meshes")
 
     length, radius = rng.uniform(1.6, 2.2), rng.uniform(0.12, 0.2)
     fuselage = trimesh.creation.cylinder(radius=radius, height=length, sections=24)

@@ -384,7 +384,7 @@ def sym4_eigh_min(
         eigenvalues: (..., 4), ascending, in A's dtype (float32 under autocast).
         q: (..., 4), the unit eigenvector of the smallest eigenvalue as a quaternion (x, y, z, w),
             sign exactly as `quat_canonical` (w > 0; ties by the first nonzero of w, x, y, z).
-        Both are (strided) views of one buffer that the backward keeps.
+            Both are (strided) views of one buffer that the backward keeps.
 
     Accuracy (against float64 torch.linalg.eigh; guaranteed by tests/test_eigen4.py, measured
     values in the module docstring): float32: rotation angle of q <= 1e-3 degrees where

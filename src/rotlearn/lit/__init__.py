@@ -1,5 +1,9 @@
 """Floor 3: training glue (LightningModules and callbacks)."""
 
+from rotlearn.extras import require
+
+require("train", "rotlearn.lit")
+
 from rotlearn.lit.autoencoder import AutoEncoderModule, load_autoencoder
 from rotlearn.lit.callbacks import EpochLosses, EpochTimer, InterruptRecorder
 from rotlearn.lit.records import RunRecords, barely_learned, divergence

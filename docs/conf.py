@@ -1,0 +1,99 @@
+"""Sphinx configuration of rotlearn's documentation site (`make docs`; docs/_build/html)."""
+
+import importlib.util
+import re
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "src"))  # document these sources, whatever is installed
+
+import rotlearn  # noqa: E402
+
+project = "rotlearn"
+author = "rotlearn developers"
+copyright = "the rotlearn developers"
+version = release = rotlearn.__version__
+
+extensions = [
+    "sphinx.ext.autodoc",
+    "sphinx.ext.napoleon",  # the docstrings are Google style (Args:, Returns:, Raises:)
+    "sphinx.ext.viewcode",
+    "myst_parser",  # the Markdown pages (architecture, results, conventions)
+]
+source_suffix = {".rst": "restructuredtext", ".md": "markdown"}
+exclude_patterns = ["_build"]
+if importlib.util.find_spec("rotlearn.nn") is None:  # the drop-in layers are not in this tree yet
+    exclude_patterns.append("api/nn.rst")
+
+# `name` in a docstring is a cross-reference when it names something documented, else code.
+default_role = "py:obj"
+autodoc_default_options = {"members": True, "show-inheritance": True}
+autodoc_member_order = "bysource"
+autodoc_inherit_docstrings = False  # not Lightning's docstrings of the hooks rotlearn overrides
+autodoc_typehints = "description"
+autodoc_class_signature = "separated"
+napoleon_google_docstring = True
+napoleon_numpy_docstring = False
+napoleon_use_rtype = False
+napoleon_custom_sections = [("Return values", "params_style")]  # see _named_returns
+napoleon_use_ivar = True  # "Attributes:" as fields, not a second description of each member
+
+myst_enable_extensions = ["dollarmath"]
+myst_heading_anchors = 3
+
+html_theme = "furo"
+html_title = f"rotlearn {release}"
+
+# The docstrings are plain text with `code` spans (they read well in a terminal and in `help()`),
+# and their formulas use | and * as in |q| and a * b. reStructuredText would read those as
+# substitutions and emphasis, so outside code spans they are escaped before napoleon runs.
+_CODE = re.compile(r"(``.+?``|`[^`]+`)", re.S)
+_NAMED = re.compile(r"\s*[A-Za-z_]\w*: ")
+_SECTION = re.compile(r"(Args|Arguments|Returns|Raises|Yields|Attributes|Examples?|Notes?):$")
+
+
+def _escape(text: str) -> str:
+    text = re.sub(r"(?<!\\)([|*])", r"\\\1", text)
+    text = re.sub(r"(?m)^(\s*)\\\* ", r"\1* ", text)  # keep "* " bullets
+    return re.sub(r"(?<=\w)_(?!\w)", r"\\_", text)  # err_ is text, not a link target
+
+
+def _named_returns(lines: list[str]) -> None:
+    """A Returns: section that names several results ("q: (..., 4) ...") reads as a list of
+    them, as Args: does (napoleon would take the first name for a type)."""
+    for start, line in enumerate(lines):
+        if line.strip() != "Returns:":
+            continue
+        indent = len(line) - len(line.lstrip())
+        body = []
+        for entry in lines[start + 1 :]:
+            if entry.strip() and len(entry) - len(entry.lstrip()) <= indent:
+                break
+            body.append(entry)
+        items = [e for e in body if e.strip()]
+        if not items:
+            continue
+        step = min(len(e) - len(e.lstrip()) for e in items)
+        named = [e for e in items if len(e) - len(e.lstrip()) == step and _NAMED.match(e)]
+        if len(named) >= 2:
+            lines[start] = line.replace("Returns:", "Return values:")
+
+
+def _plain_text_docstring(app, what, name, obj, options, lines) -> None:
+    # `"""Args:` on the docstring's first line leaves its entries unindented: indent them.
+    if len(lines) > 1 and _SECTION.match(lines[0].strip()) and lines[1][:1].strip():
+        lines[1:] = [f"    {line}" if line else line for line in lines[1:]]
+    _named_returns(lines)
+    parts = _CODE.split("\n".join(lines))
+    for i in range(1, len(parts), 2):  # `x`(lam), `nn.Module`s: a code span glued to a word
+        if parts[i - 1][-1:].isalnum():
+            parts[i - 1] += "\\ "
+        if parts[i + 1][:1].isalnum() or parts[i + 1][:1] == "(":
+            parts[i + 1] = "\\ " + parts[i + 1]
+    text = "".join(part if i % 2 else _escape(part) for i, part in enumerate(parts))
+    lines[:] = text.split("\n")
+
+
+def setup(app) -> None:
+    app.connect("autodoc-process-docstring", _plain_text_docstring, priority=400)  # before napoleon
