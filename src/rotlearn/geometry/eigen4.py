@@ -154,10 +154,11 @@ def _jacobi(S: Tensor, W: Tensor, rounds: int) -> None:
             d2.addcmul_(t1, apq2_1)
         else:
             aqq.addcmul_(t, apq)
-        apq.zero_()
-        # The coupling block: rows by the first rotation, columns by the second.
-        _rotate(xp1, xq1, c0, t0)
-        _rotate(xp2, xq2, c1, t1)
+        if k < rounds - 1:  # the off-diagonal entries are not read after the last round
+            apq.zero_()
+            # The coupling block: rows by the first rotation, columns by the second.
+            _rotate(xp1, xq1, c0, t0)
+            _rotate(xp2, xq2, c1, t1)
         # Eigenvector columns.
         if k == 0:  # V = I: V becomes the rotation itself, written entry by entry
             ct = c * t
