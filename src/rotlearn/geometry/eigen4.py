@@ -41,9 +41,11 @@ l2 - l1 >= 0.01 (l4 - l1)):
 With l2 - l1 = 1e-6 (l4 - l1) the residual bound still holds; q itself is then determined only
 up to ~eps / 1e-6 (float32: 10 deg for this solver, 27 deg for eigh).
 
-Speed: see `make bench` (bench/rep_layers.py; results in bench/results). The cost is ~24
-elementwise kernels per round on (2..8, B) rows, bound by memory traffic and per-kernel overhead;
-torch.compile of the loop (inductor, CPU) was slower than eager, so it is not used.
+Speed: see `make bench` (bench/a_layer.py, bench/rep_layers.py; results in bench/results and
+docs/results.md). The cost is ~20 elementwise kernels per round on (2..8, B) rows, about 70 row
+passes per round and 850 per matrix, bound by memory traffic and per-kernel overhead (the
+eigenvector rotations are half of it); torch.compile of the loop (inductor, CPU) was slower than
+eager, so it is not used.
 """
 
 from __future__ import annotations
@@ -107,8 +109,9 @@ def _jacobi(S: Tensor, W: Tensor, rounds: int) -> None:
     """Diagonalise in place.
 
     S: (10, B) the entries of A (rows as `_UPPER`); on return its first 4 rows are the eigenvalues
-    and the rest is ~0. W: (4 columns, 5 rows, B), zero on entry; on return W[:, :4] holds the
-    eigenvectors as columns (W[j, :4] is the eigenvector of eigenvalue S[j]).
+    and the rest is small but stale (the last round does not update the off-diagonal entries,
+    which nothing reads after it). W: (4 columns, 5 rows, B), zero on entry; on return W[:, :4]
+    holds the eigenvectors as columns (W[j, :4] is the eigenvector of eigenvalue S[j]).
     """
     B = S.shape[1]
     D, off = S[:4], S[4:]
