@@ -74,9 +74,20 @@ METHODS = ("auto", "jacobi", "eigh")  # sym4_eigh_min's forward (also the A head
 # Measured by `bench/rep_layers.py --crossover` (the batch size from which Jacobi's forward +
 # backward is faster than eigh's; bench/results/solver_crossover.json).
 EIGH_BELOW = 1024
-# Matrices per pass on CPU, per thread: the working set (~2 MB per 16384 in float32) stays in
-# cache (measured: 16384 best with 1 thread, 32768 with 2). On CUDA the batch is not split.
+# Matrices per pass on CPU (`_chunk_size`): 16384 per thread, at least 32768; the working set
+# (~2 MB per 16384 in float32) then stays in the last-level cache. Measured: 32768 best with 2
+# threads (an earlier, quiet session) and, with 1 thread, 32768 took 0.90-0.94x the time of 16384
+# (three interleaved runs, issue 16; 65536: 1.10x). On CUDA the batch is not split.
 _CHUNK_PER_THREAD = 16384
+_CHUNK_MIN = 32768
+
+
+def _chunk_size(batch: int, device: torch.device) -> int:
+    """Matrices per Jacobi pass: the whole batch on CUDA, cache-sized chunks on CPU (>= 1)."""
+    if device.type != "cpu":
+        return max(batch, 1)
+    return max(_CHUNK_MIN, _CHUNK_PER_THREAD * torch.get_num_threads())
+
 
 # Rows of the working tensor S (10, B): the diagonal d0..d3, then the off-diagonal entries in
 # row-major upper-triangle order o01 o02 o03 o12 o13 o23 (positions 4..9).
@@ -292,8 +303,8 @@ class _Sym4EighMin(torch.autograd.Function):
             W[0, :4].mul_(_canonical_sign(W[0, :4]))
         else:
             W = torch.zeros(4, 5, B, dtype=A.dtype, device=A.device)  # columns (v_i, l_i)
-            chunk = _CHUNK_PER_THREAD * torch.get_num_threads() if A.device.type == "cpu" else B
-            for start in range(0, B, max(chunk, 1)):
+            chunk = _chunk_size(B, A.device)
+            for start in range(0, B, chunk):
                 _solve(A[start : start + chunk], W[..., start : start + chunk], rounds)
         ctx.save_for_backward(W)
         ctx.gap_eps = gap_eps
