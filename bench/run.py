@@ -3,6 +3,8 @@
 - epoch: seconds per epoch of the paper's synthetic setting (5 x 100 training samples, 100 matches,
   validation on 100), per representation, through the real Lightning pipeline.
 - heads: microseconds per sample of each head's forward and forward+backward at a large batch.
+- a_layer: the A layer (10 numbers -> q, forward+backward) against torch.linalg.eigh, roma, 6D and
+  SVD-9D at B = 100 ... 1M, with the eigh/rotlearn ratio (bench/a_layer.py; issue 16).
 - bingham: log N(Lambda) and its gradient per sample (bench/bingham.py).
 - kitti_loader: first-time KITTI preprocessing rate and cached pairs/s with 2 workers
   (bench/kitti_loader.py).
@@ -22,7 +24,6 @@ import argparse
 import importlib.util
 import json
 import logging
-import platform
 import statistics
 import sys
 import tempfile
@@ -36,7 +37,7 @@ from rotlearn.cli.train import train
 from rotlearn.heads import HEADS, make_head
 from rotlearn.io import write_json_atomic
 from rotlearn.paths import config_dir
-from timing import median_seconds
+from timing import machine, median_seconds
 
 RESULTS = Path(__file__).resolve().parent / "results"
 QUIET = ["trainer.enable_progress_bar=false", "trainer.enable_model_summary=false"]
@@ -45,12 +46,7 @@ AUTHORS = {"a": ("1.1-1.4", "0.735"), "sixd": ("1.6", "0.71"), "quat": ("6.6-16"
 
 
 def _machine() -> dict:
-    return {
-        "python": platform.python_version(),
-        "torch": torch.__version__,
-        "threads": torch.get_num_threads(),
-        "cpu": platform.processor() or platform.machine(),
-    }
+    return machine("cpu")
 
 
 def _run(overrides: list[str], out: Path) -> dict:
@@ -198,18 +194,20 @@ def parse_seeds(text: str) -> list[int]:
 
 
 SCRIPTS = {
+    "a_layer": "a_layer.py",
     "bingham": "bingham.py",
     "rep_layers": "rep_layers.py",
     "kitti_loader": "kitti_loader.py",
 }  # benchmarks with their own CLI
+DEVICE_SCRIPTS = ("a_layer", "rep_layers")  # those that take --device (the others run on CPU)
 
 
-def _run_script(name: str) -> None:
+def _run_script(name: str, device: str) -> None:
     path = Path(__file__).resolve().parent / SCRIPTS[name]
     spec = importlib.util.spec_from_file_location(f"bench_{name}", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
-    module.main([])
+    module.main(["--device", device] if name in DEVICE_SCRIPTS else [])
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -221,6 +219,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("names", nargs="*", default=default, help="epoch heads bingham paper ...")
     parser.add_argument("--reps", default="a,sixd,quat")
     parser.add_argument("--seeds", default="1,2,3", help='"1,2,3" or "1-9"')
+    parser.add_argument(
+        "--device", default="cpu", help=f"cpu or cuda, for {', '.join(DEVICE_SCRIPTS)}"
+    )
     args = parser.parse_args(argv)
     warnings.filterwarnings("ignore")
     logging.getLogger("lightning").setLevel(logging.ERROR)
@@ -240,7 +241,7 @@ def main(argv: list[str] | None = None) -> None:
         )
     for name in args.names:
         if name in SCRIPTS:
-            _run_script(name)
+            _run_script(name, args.device)
             continue
         result = {"machine": _machine(), "result": benches[name]()}
         path = write_json_atomic(RESULTS / f"{name}.json", result)

@@ -29,10 +29,10 @@ from rotlearn.geometry import (
     so3_exp_quat,
 )
 from rotlearn.geometry.eigen4 import (
-    _CHUNK_PER_THREAD,
     DEFAULT_ROUNDS,
     EIGH_BELOW,
     _canonical_sign,
+    _chunk_size,
     sym4_eigh_min,
     validate_sym4,
 )
@@ -236,12 +236,21 @@ def test_batch_shapes(shape, dtype):
 
 def test_chunked_batch_matches_small_batches():
     """Batches above the chunk size are solved chunk by chunk: same numbers as one by one."""
-    chunk = _CHUNK_PER_THREAD * torch.get_num_threads()
+    chunk = _chunk_size(10**9, torch.device("cpu"))
     A = sym_randn(2 * chunk + 100, 15).to(F32)
     eigenvalues, q = sym4_eigh_min(A, check=False)
     for part in (slice(0, 7), slice(chunk - 4, chunk + 6), slice(2 * chunk + 90, 2 * chunk + 100)):
         l_part, q_part = sym4_eigh_min(A[part], method="jacobi")
         assert torch.equal(l_part, eigenvalues[part]) and torch.equal(q_part, q[part])
+
+
+def test_chunk_size_by_device():
+    """CPU batches go through the Jacobi loop in cache-sized chunks (at least 32768, 16384 per
+    thread); on other devices the whole batch is one pass."""
+    cpu = _chunk_size(10, torch.device("cpu"))
+    assert cpu >= 32768 and cpu >= 16384 * torch.get_num_threads()
+    assert _chunk_size(5, torch.device("cuda")) == 5
+    assert _chunk_size(0, torch.device("cuda")) == 1
 
 
 @pytest.mark.parametrize("dtype", DTYPES)

@@ -41,9 +41,11 @@ l2 - l1 >= 0.01 (l4 - l1)):
 With l2 - l1 = 1e-6 (l4 - l1) the residual bound still holds; q itself is then determined only
 up to ~eps / 1e-6 (float32: 10 deg for this solver, 27 deg for eigh).
 
-Speed: see `make bench` (bench/rep_layers.py; results in bench/results). The cost is ~24
-elementwise kernels per round on (2..8, B) rows, bound by memory traffic and per-kernel overhead;
-torch.compile of the loop (inductor, CPU) was slower than eager, so it is not used.
+Speed: see `make bench` (bench/a_layer.py, bench/rep_layers.py; results in bench/results and
+docs/results.md). The cost is ~20 elementwise kernels per round on (2..8, B) rows, about 70 row
+passes per round and 850 per matrix, bound by memory traffic and per-kernel overhead (the
+eigenvector rotations are half of it); torch.compile of the loop (inductor, CPU) was slower than
+eager, so it is not used.
 """
 
 from __future__ import annotations
@@ -73,9 +75,20 @@ METHODS = ("auto", "jacobi", "eigh")  # sym4_eigh_min's forward (also the A head
 # Measured by `bench/rep_layers.py --crossover` (the batch size from which Jacobi's forward +
 # backward is faster than eigh's; bench/results/solver_crossover.json).
 EIGH_BELOW = 1024
-# Matrices per pass on CPU, per thread: the working set (~2 MB per 16384 in float32) stays in
-# cache (measured: 16384 best with 1 thread, 32768 with 2). On CUDA the batch is not split.
+# Matrices per pass on CPU (`_chunk_size`): 16384 per thread, at least 32768; the working set
+# (~2 MB per 16384 in float32) then stays in the last-level cache. Measured: 32768 best with 2
+# threads (an earlier, quiet session) and, with 1 thread, 32768 took 0.90-0.94x the time of 16384
+# (three interleaved runs, issue 16; 65536: 1.10x). On CUDA the batch is not split.
 _CHUNK_PER_THREAD = 16384
+_CHUNK_MIN = 32768
+
+
+def _chunk_size(batch: int, device: torch.device) -> int:
+    """Matrices per Jacobi pass: the whole batch on CUDA, cache-sized chunks on CPU (>= 1)."""
+    if device.type != "cpu":
+        return max(batch, 1)
+    return max(_CHUNK_MIN, _CHUNK_PER_THREAD * torch.get_num_threads())
+
 
 # Rows of the working tensor S (10, B): the diagonal d0..d3, then the off-diagonal entries in
 # row-major upper-triangle order o01 o02 o03 o12 o13 o23 (positions 4..9).
@@ -108,8 +121,9 @@ def _jacobi(S: Tensor, W: Tensor, rounds: int) -> None:
     """Diagonalise in place.
 
     S: (10, B) the entries of A (rows as `_UPPER`); on return its first 4 rows are the eigenvalues
-    and the rest is ~0. W: (4 columns, 5 rows, B), zero on entry; on return W[:, :4] holds the
-    eigenvectors as columns (W[j, :4] is the eigenvector of eigenvalue S[j]).
+    and the rest is small but stale (the last round does not update the off-diagonal entries,
+    which nothing reads after it). W: (4 columns, 5 rows, B), zero on entry; on return W[:, :4]
+    holds the eigenvectors as columns (W[j, :4] is the eigenvector of eigenvalue S[j]).
     """
     B = S.shape[1]
     D, off = S[:4], S[4:]
@@ -155,10 +169,11 @@ def _jacobi(S: Tensor, W: Tensor, rounds: int) -> None:
             d2.addcmul_(t1, apq2_1)
         else:
             aqq.addcmul_(t, apq)
-        apq.zero_()
-        # The coupling block: rows by the first rotation, columns by the second.
-        _rotate(xp1, xq1, c0, t0)
-        _rotate(xp2, xq2, c1, t1)
+        if k < rounds - 1:  # the off-diagonal entries are not read after the last round
+            apq.zero_()
+            # The coupling block: rows by the first rotation, columns by the second.
+            _rotate(xp1, xq1, c0, t0)
+            _rotate(xp2, xq2, c1, t1)
         # Eigenvector columns.
         if k == 0:  # V = I: V becomes the rotation itself, written entry by entry
             ct = c * t
@@ -290,8 +305,8 @@ class _Sym4EighMin(torch.autograd.Function):
             W[0, :4].mul_(_canonical_sign(W[0, :4]))
         else:
             W = torch.zeros(4, 5, B, dtype=A.dtype, device=A.device)  # columns (v_i, l_i)
-            chunk = _CHUNK_PER_THREAD * torch.get_num_threads() if A.device.type == "cpu" else B
-            for start in range(0, B, max(chunk, 1)):
+            chunk = _chunk_size(B, A.device)
+            for start in range(0, B, chunk):
                 _solve(A[start : start + chunk], W[..., start : start + chunk], rounds)
         # (B, 4) views of W's rows: no copy, and q.unbind(-1) gives contiguous components. W
         # itself is the third output (not differentiable), for setup_context to save.

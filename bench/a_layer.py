@@ -1,0 +1,231 @@
+"""The A layer against torch.linalg.eigh, roma, 6D and SVD-9D: microseconds per sample (issue 16).
+
+Every layer maps its raw network output to a rotation, forward and backward, float32:
+- rotlearn: 10 numbers -> a_from_vec -> sym4_eigh_min(check=False) -> q (the A layer as the A head
+  runs it: `method="auto"`, i.e. eigh's forward below EIGH_BELOW matrices, Jacobi from there on);
+- jacobi / eigh_fwd: the same with method="jacobi" / "eigh" (both with rotlearn's finite backward);
+- eigh: 10 numbers -> a_from_vec -> torch.linalg.eigh -> V[..., 0], plain autograd (NaN gradients
+  at repeated eigenvalues; no canonical sign, the cheapest eigh can be);
+- roma: roma.symmatrixvec_to_unitquat (eigh inside; skipped with a note when `import roma` fails);
+- sixd: rotlearn.heads.sixd_to_rotmat on 6 numbers; svd9d: special_orthogonalize on 9 numbers.
+The backward is that of a fixed random linear function of the output (autograd.grad to the raw
+input). The ratio columns are eigh / rotlearn and roma / rotlearn (> 1: rotlearn is faster).
+
+Timing: the layers are timed in turn within each repeat (interleaved), so a change of machine load
+hits all of them alike; the table shows medians, the JSON also min and max over the repeats.
+`--clock cpu` times the CPU seconds of this process (time.process_time) instead of wall-clock
+seconds: on a shared machine, with --threads 1, it leaves out the time other processes hold the
+core (on CUDA the clock is always wall-clock with synchronisation).
+
+    .venv/bin/python bench/a_layer.py                                  # CPU, B = 100 ... 1M
+    .venv/bin/python bench/a_layer.py --threads 1 --clock cpu          # per-core, shared machine
+    .venv/bin/python bench/a_layer.py --device cuda                    # GPU, also bf16 autocast
+    .venv/bin/python bench/a_layer.py --batches 100,16384 --repeats 9
+
+Written to bench/results/a_layer_<device>_<threads>t.json with the CPU model (/proc/cpuinfo), the
+thread count, the GPU name and the load average before and after.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from rotlearn.geometry.eigen4 import EIGH_BELOW, sym4_eigh_min
+from rotlearn.heads import a_from_vec, sixd_to_rotmat, special_orthogonalize
+from rotlearn.io import write_json_atomic
+from timing import machine
+
+RESULTS = Path(__file__).resolve().parent / "results"
+BATCHES = "100,1024,16384,131072,1048576"
+
+try:
+    import roma
+except ImportError:  # optional: the table notes its absence
+    roma = None
+
+
+def _rotlearn(method: str) -> Callable[[Tensor], Tensor]:
+    def layer(x: Tensor) -> Tensor:
+        return sym4_eigh_min(a_from_vec(x), check=False, method=method)[1]
+
+    return layer
+
+
+def _eigh(x: Tensor) -> Tensor:
+    return torch.linalg.eigh(a_from_vec(x)).eigenvectors[..., 0]
+
+
+LAYERS: dict[str, tuple[int, Callable[[Tensor], Tensor]]] = {
+    "rotlearn": (10, _rotlearn("auto")),
+    "jacobi": (10, _rotlearn("jacobi")),
+    "eigh_fwd": (10, _rotlearn("eigh")),
+    "eigh": (10, _eigh),
+    "sixd": (6, sixd_to_rotmat),
+    "svd9d": (9, lambda x: special_orthogonalize(x.unflatten(-1, (3, 3)))),
+}
+if roma is not None:
+    LAYERS["roma"] = (10, roma.symmatrixvec_to_unitquat)
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _clock(kind: str, device: torch.device) -> Callable[[], float]:
+    return time.process_time if kind == "cpu" and device.type == "cpu" else time.perf_counter
+
+
+def bench_batch(
+    batch: int, device: torch.device, args: argparse.Namespace, autocast: bool
+) -> dict[str, dict]:
+    """Forward+backward seconds per call of every layer at one batch size, interleaved."""
+    gen = torch.Generator(device=device).manual_seed(0)
+    clock = _clock(args.clock, device)
+    calls = {}
+    for name, (dim, layer) in LAYERS.items():
+        leaf = torch.randn(batch, dim, generator=gen, device=device).requires_grad_(True)
+        with torch.no_grad():
+            weight = torch.randn_like(layer(leaf), dtype=torch.float32)
+
+        def call(layer=layer, leaf=leaf, weight=weight):
+            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=autocast):
+                out = layer(leaf)
+            return torch.autograd.grad((out.float() * weight).sum(), leaf)
+
+        calls[name] = call
+    times: dict[str, list[float]] = {name: [] for name in calls}
+    errors: dict[str, str] = {}
+    inner = {}
+    for name, call in calls.items():  # warm-up, and how many calls fill the budget
+        try:
+            call()
+            _sync(device)
+            start = clock()
+            call()
+            _sync(device)
+            inner[name] = max(1, int(args.budget / max(clock() - start, 1e-7)))
+        except Exception as error:  # e.g. a dtype that a layer refuses under autocast
+            errors[name] = f"{type(error).__name__}: {error}"[:200]
+    for _ in range(args.repeats):
+        for name, call in calls.items():
+            if name in errors:
+                continue
+            _sync(device)
+            start = clock()
+            for _ in range(inner[name]):
+                call()
+            _sync(device)
+            times[name].append((clock() - start) / inner[name])
+    rows = {}
+    for name in calls:
+        if name in errors:
+            rows[name] = {"error": errors[name]}
+            continue
+        us = [1e6 * t / batch for t in times[name]]
+        rows[name] = {
+            "median_us": statistics.median(us),
+            "min_us": min(us),
+            "max_us": max(us),
+            "calls_per_repeat": inner[name],
+        }
+    return rows
+
+
+def _ratio(rows: dict[str, dict], over: str) -> float | None:
+    if "median_us" not in rows.get(over, {}) or "median_us" not in rows["rotlearn"]:
+        return None
+    return rows[over]["median_us"] / rows["rotlearn"]["median_us"]
+
+
+def _print_table(results: list[dict]) -> None:
+    names = list(LAYERS)
+    print("\nforward+backward, microseconds per sample (median over interleaved repeats)")
+    header = f"{'mode':9s} {'B':>8s} " + " ".join(f"{n:>9s}" for n in names)
+    print(f"{header} {'eigh/rl':>8s} {'roma/rl':>8s}")
+    for res in results:
+        medians = [res["rows"][n].get("median_us") for n in names]
+        cells = " ".join(f"{m:9.4f}" if m is not None else f"{'err':>9s}" for m in medians)
+        ratios = [res["eigh_over_rotlearn"], res["roma_over_rotlearn"]]
+        text = " ".join(f"{r:8.2f}" if r is not None else f"{'-':>8s}" for r in ratios)
+        print(f"{res['mode']:9s} {res['batch']:8d} {cells} {text}")
+    for res in results:
+        for name, row in res["rows"].items():
+            if "error" in row:
+                print(f"  {res['mode']} B={res['batch']} {name}: {row['error']}")
+    if roma is None:
+        print("roma: not installed (`import roma` failed); its column is left out")
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--device", default="cpu", help="cpu or cuda")
+    parser.add_argument("--batches", default=BATCHES)
+    parser.add_argument("--threads", type=int, default=None, help="torch.set_num_threads")
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--budget", type=float, default=0.3, help="seconds per timed repeat")
+    parser.add_argument("--clock", choices=("wall", "cpu"), default="wall")
+    parser.add_argument(
+        "--autocast", action="store_true", help="also bf16 autocast (default on CUDA)"
+    )
+    parser.add_argument("--out", type=Path, default=None)
+    args = parser.parse_args(argv)
+    device = torch.device(args.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise SystemExit("--device cuda: torch.cuda.is_available() is False on this machine")
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
+    modes = [("float32", False)]
+    if args.autocast or device.type == "cuda":
+        modes.append(("bf16-amp", True))
+    load_before = os.getloadavg()
+    print(
+        f"device {device}, threads {torch.get_num_threads()}, clock {args.clock}, "
+        f"EIGH_BELOW {EIGH_BELOW}, load average {load_before}"
+    )
+    results = []
+    for mode, autocast in modes:
+        for batch in [int(b) for b in args.batches.split(",")]:
+            rows = bench_batch(batch, device, args, autocast)
+            res = {
+                "mode": mode,
+                "batch": batch,
+                "rows": rows,
+                "eigh_over_rotlearn": _ratio(rows, "eigh"),
+                "roma_over_rotlearn": _ratio(rows, "roma"),
+            }
+            results.append(res)
+            print(
+                f"  {mode} B={batch}: "
+                + ", ".join(
+                    f"{n} {r['median_us']:.4f}" for n, r in rows.items() if "median_us" in r
+                ),
+                flush=True,
+            )
+    _print_table(results)
+    info = machine(device) | {
+        "load_average_before": load_before,
+        "load_average_after": os.getloadavg(),
+        "clock": args.clock if device.type == "cpu" else "wall",
+        "EIGH_BELOW": EIGH_BELOW,
+        "roma": getattr(roma, "__version__", None),
+    }
+    tag = f"{device.type}_{torch.get_num_threads()}t" if device.type == "cpu" else device.type
+    path = write_json_atomic(
+        args.out or RESULTS / f"a_layer_{tag}.json", {"machine": info, "results": results}
+    )
+    print(f"-> {path}")
+
+
+if __name__ == "__main__":
+    main()
