@@ -30,7 +30,7 @@ from rotlearn.cli.callbacks import record_job
 from rotlearn.cli.resume import checkpoint_to_resume
 from rotlearn.cli.schemas import validate
 from rotlearn.errors import ConfigError
-from rotlearn.lit import EpochLosses, InterruptRecorder, RunRecords
+from rotlearn.lit import EpochLosses, InterruptRecorder, ModelSummary, RunRecords
 
 __all__ = ["ConfigError", "RunInterrupted", "build", "report", "train"]
 
@@ -40,6 +40,27 @@ log = logging.getLogger("rotlearn")
 # and scalars are logged once per epoch on purpose.
 for _pattern in (".*does not have many workers.*", ".*smaller than the logging interval.*"):
     warnings.filterwarnings("ignore", _pattern)
+# Lightning's own use of a torch API that torch deprecates (its loops flatten every batch), which
+# nobody but Lightning can act on.
+warnings.filterwarnings(
+    "ignore",
+    message=r"`isinstance\(treespec, LeafSpec\)` is deprecated",
+    category=FutureWarning,
+    module=r"lightning\.pytorch\.utilities\._pytree",
+)
+
+
+class _WithoutCloudTips(logging.Filter):
+    """Drops Lightning's tips to install its cloud services' packages (litlogger, litmodels),
+    printed on every run; Lightning has no switch (Lightning-AI/pytorch-lightning#21294)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = record.getMessage()
+        advert = "litlogger" in message or "litmodels" in message
+        return not (message.startswith("💡 Tip:") and advert)
+
+
+logging.getLogger("lightning.pytorch.utilities.rank_zero").addFilter(_WithoutCloudTips())
 
 
 def _instantiate(cfg: DictConfig, key: str, **kwargs: Any) -> Any:
@@ -84,7 +105,8 @@ def build(cfg: DictConfig) -> tuple[pl.LightningModule, pl.LightningDataModule, 
     `instantiate(cfg.model)` is the whole model (`model=regressor`: net, head, loss, optimizer
     and scheduler from their groups; `model=autoencoder`: the OOD baseline). The trainer gets
     the configured callbacks plus the run's record keeping (`RunRecords`, `InterruptRecorder`,
-    `EpochLosses`), whatever `callbacks=` says."""
+    `EpochLosses`), whatever `callbacks=` says, and `trainer.enable_model_summary` gives rotlearn's
+    `ModelSummary`."""
     validate(cfg)
     pl.seed_everything(cfg.seed, workers=True, verbose=False)
     datamodule = _instantiate(cfg, "data")
@@ -92,11 +114,14 @@ def build(cfg: DictConfig) -> tuple[pl.LightningModule, pl.LightningDataModule, 
     model.run_config = OmegaConf.to_container(cfg, resolve=True)
     callbacks = _instantiate_all(cfg, "callbacks")
     callbacks += [RunRecords(cfg.paths.output_dir), InterruptRecorder(), EpochLosses()]
+    if OmegaConf.select(cfg, "trainer.enable_model_summary", default=True):
+        callbacks.append(ModelSummary())  # Lightning's, without its column of zero FLOPs
     trainer = _instantiate(
         cfg,
         "trainer",
         callbacks=callbacks,
         logger=_instantiate_all(cfg, "logger") or False,
+        enable_model_summary=False,  # the summary is the callback above
     )
     return model, datamodule, trainer
 

@@ -1,7 +1,7 @@
 """Floor 3: training glue (LightningModules and callbacks)."""
 
 from rotlearn.lit.autoencoder import AutoEncoderModule, load_autoencoder
-from rotlearn.lit.callbacks import EpochLosses, EpochTimer, InterruptRecorder
+from rotlearn.lit.callbacks import EpochLosses, EpochTimer, InterruptRecorder, ModelSummary
 from rotlearn.lit.records import RunRecords, barely_learned, divergence
 from rotlearn.lit.regressor import RotationRegressor
 
@@ -10,6 +10,7 @@ __all__ = [
     "EpochLosses",
     "EpochTimer",
     "InterruptRecorder",
+    "ModelSummary",
     "RotationRegressor",
     "RunRecords",
     "barely_learned",

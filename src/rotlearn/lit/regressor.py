@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -90,7 +91,9 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
         # the "predict identity" baseline: does the model beat the targets' own angles?
         self.test_identity_err = AngularError()
         # heads with a belief: does the DT score (paper eq. 26) rank the test errors?
-        self.test_dt_spearman = SpearmanCorrCoef()
+        with warnings.catch_warnings():  # it keeps every test sample: so does test_err
+            warnings.filterwarnings("ignore", message=r"Metric `SpearmanCorrcoef` will save all")
+            self.test_dt_spearman = SpearmanCorrCoef()
         self.run_config: dict[str, Any] | None = None  # stored in checkpoints when set
         self.test_errors: Tensor | None = None  # per-sample test errors (degrees) of the last test
 
@@ -99,8 +102,13 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
 
     def configure_callbacks(self) -> list[pl.Callback]:
         """A net with a data-dependent initialisation (`initialize_from`, e.g. `PointNet`) gets
-        `DataDependentInit`, whatever `callbacks=` says (it keeps that callback's timing)."""
-        return [DataDependentInit()] if hasattr(self.net, "initialize_from") else []
+        `DataDependentInit`, whatever `callbacks=` says (it keeps that callback's timing); once
+        (testing after fitting finds it there already)."""
+        if not hasattr(self.net, "initialize_from"):
+            return []
+        if any(isinstance(cb, DataDependentInit) for cb in self.trainer.callbacks):
+            return []
+        return [DataDependentInit()]
 
     def _step(self, batch: dict[str, Tensor], stage: str, batch_idx: int) -> RotationPrediction:
         prediction, _ = self._observed_step(batch, stage, batch_idx)
