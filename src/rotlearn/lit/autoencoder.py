@@ -3,7 +3,9 @@ first image of each pair; `fit_autoencoder` trains one with a Lightning Trainer.
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import logging
 import os
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -171,7 +173,32 @@ def fit_autoencoder(
     )
     module.run_config = {"task": "autoencoder", "net": dict(net_config)}
     accelerator = {"cuda": "gpu"}.get(device.type, device.type)
-    trainer = pl.Trainer(
+    with _lightning_info_quiet():  # the run's own trainer has said it: GPU available, ...
+        trainer = _nested_trainer(accelerator, device, epochs, root_dir)
+        outer = datamodule.trainer  # fit attaches the datamodule to its own trainer: give it back
+        try:
+            trainer.fit(module, datamodule=datamodule)
+        finally:
+            datamodule.trainer = outer
+    return module.eval()
+
+
+@contextlib.contextmanager
+def _lightning_info_quiet():
+    """Lightning's INFO lines (devices found, why fitting stopped) at WARNING meanwhile."""
+    logger = logging.getLogger("lightning.pytorch.utilities.rank_zero")
+    level = logger.level
+    logger.setLevel(max(level, logging.WARNING))
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
+
+
+def _nested_trainer(
+    accelerator: str, device: torch.device, epochs: int, root_dir: str | os.PathLike
+) -> pl.Trainer:
+    return pl.Trainer(
         accelerator=accelerator,
         devices=[device.index or 0] if device.type == "cuda" else 1,
         max_epochs=int(epochs),
@@ -183,12 +210,6 @@ def fit_autoencoder(
         enable_model_summary=False,
         default_root_dir=str(Path(root_dir)),
     )
-    outer = datamodule.trainer  # fit attaches the datamodule to its own trainer: give it back
-    try:
-        trainer.fit(module, datamodule=datamodule)
-    finally:
-        datamodule.trainer = outer
-    return module.eval()
 
 
 def save_autoencoder(module: AutoEncoderModule, path: str | os.PathLike) -> Path:
