@@ -36,9 +36,10 @@ RESULTS = Path(__file__).resolve().parent / "results"
 MODES = ("none", "sync", "device/1", f"device/{FINITE_CHECK_EVERY}")
 
 
-def _model_and_batch(rep: str, device: torch.device, tmp: Path):
+def _model_and_batch(rep: str, device: torch.device, tmp: Path, overrides: list[str]):
     with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
-        cfg = compose("train", [f"rep={rep}", "logger=none", f"paths.output_dir={tmp}"])
+        args = [f"rep={rep}", "logger=none", f"paths.output_dir={tmp}", *overrides]
+        cfg = compose("train", args)
     model, datamodule, _ = build(cfg)
     model = model.to(device)
     batch = datamodule.draw(0, 0, datamodule.batch_size, device)
@@ -75,12 +76,13 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=2 * FINITE_CHECK_EVERY)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("overrides", nargs="*", help="config overrides, e.g. net.hidden=...")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     device = torch.device(args.device)
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     with tempfile.TemporaryDirectory() as tmp:
-        model, batch = _model_and_batch(args.rep, device, Path(tmp))
+        model, batch = _model_and_batch(args.rep, device, Path(tmp), args.overrides)
     optimizer = torch.optim.Adam(model.parameters(), lr=1e-4)
     times: dict[str, list[float]] = {mode: [] for mode in MODES}
     for mode in MODES:
@@ -94,7 +96,9 @@ def main() -> None:
             times[mode].append((time.perf_counter() - start) / args.steps * 1e3)
     rows = {m: {"ms_per_step": statistics.median(t), "all_ms": t} for m, t in times.items()}
     floor = rows["none"]["ms_per_step"]
-    print(f"{'mode':<12} {'ms/step':>9} {'vs none':>8}   ({device}, rep={args.rep})")
+    print(
+        f"{'mode':<12} {'ms/step':>9} {'vs none':>8}   ({device}, rep={args.rep}, {args.overrides})"
+    )
     for mode, row in rows.items():
         print(f"{mode:<12} {row['ms_per_step']:9.3f} {row['ms_per_step'] / floor:8.3f}")
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor()
@@ -106,6 +110,7 @@ def main() -> None:
             "torch": torch.__version__,
             "threads": args.threads,
             "rep": args.rep,
+            "overrides": args.overrides,
             "steps": args.steps,
             "repeats": args.repeats,
             "results": rows,

@@ -1,14 +1,14 @@
 """The NaN/inf check of a LightningModule's steps, without a host sync per step.
 
-Each step's tensors are *observed*: a few device ops update a small device record of the first
-non-finite one (its NaN and inf counts, whether the step's input batch was itself non-finite);
-nothing waits for the device. The record is *read* (one host sync) every `finite_check_every`
-training steps, at the last batch of every epoch (before validation and checkpoints), at the end
-of every validation/test/predict loop and when fitting ends; a failure then raises
-`NonFiniteError` naming the stage, step, epoch and batch that failed FIRST, the tensor, its counts
-and the likely cause. Between a failure and its read no update is applied: the gradients are
-zeroed on the device before every optimizer step once the record holds a failure, so the weights
-stay what they were (`finite_check_every=1` reads every step, as a debugging aid).
+Each step's tensors are *observed*: a few device ops record their NaN and inf counts (and whether
+the step's input batch was itself non-finite) on the device; nothing waits for the device. The
+record is *read* (one host sync) every `finite_check_every` training steps, at the last batch of
+every epoch (before validation and checkpoints), at the end of every validation/test/predict loop
+and when fitting ends; a failure then raises `NonFiniteError` naming the stage, step, epoch and
+batch that failed FIRST, the tensor, its counts and the likely cause. Between a failure and its
+read no update is applied: the gradients are zeroed on the device before every optimizer step once
+the record holds a failure, so the weights stay what they were (`finite_check_every=1` reads every
+step, as a debugging aid).
 """
 
 from __future__ import annotations
@@ -24,25 +24,23 @@ __all__ = ["FINITE_CHECK_EVERY", "FiniteChecks", "FiniteRecord"]
 
 FINITE_CHECK_EVERY = 50  # training steps between two reads of the record (model.finite_check_every)
 
-_NONE = -1  # the record's observation index while no failure is recorded
-
 
 class FiniteRecord:
-    """Device-side record of the first non-finite tensor among those observed since the last read.
+    """Device-side record of the tensors observed since the last read: per observation, its NaN
+    and inf counts and whether its step's input batch was non-finite (3 int64 on the device).
 
-    `observe` queues a handful of device ops (no sync); `read` copies the record to the host once
-    and starts a new one. The facts known on the host (name, stage, step, shape) are kept per
-    observation in a list that a read clears.
+    `observe` queues a handful of device ops (no sync); `read` copies the rows to the host once,
+    returns the first failure and starts a new record. The facts known on the host (name, stage,
+    step, shape) are kept per observation beside the rows.
     """
 
     def __init__(self) -> None:
         self._observed: list[tuple[Any, ...]] = []
-        # int64 (4,): [index of the first non-finite observation or -1, its NaN count, its inf
-        # count, 1 if its input batch was non-finite]
-        self._record: Tensor | None = None
+        self._rows: list[Tensor] = []  # (3,) int64 per observation: NaN, inf, input non-finite
+        self._failed: Tensor | None = None  # 0-d bool: some observation was non-finite
 
     def observe(self, value: Tensor, facts: tuple[Any, ...], inputs_bad: Tensor | None) -> None:
-        """Record `value` (any shape) if it is the first non-finite tensor since the last read.
+        """Record the NaN and inf counts of `value` (any shape).
 
         Args:
             value: the tensor checked (detached here).
@@ -50,30 +48,29 @@ class FiniteRecord:
             inputs_bad: 0-d bool tensor, True when the step's input batch holds NaN/inf; or None.
         """
         value = value.detach()
-        index = len(self._observed)
         self._observed.append((*facts, tuple(value.shape)))
-        n_bad = value.numel() - torch.isfinite(value).sum()
-        n_nan = torch.isnan(value).sum()
-        bad_in = torch.zeros_like(n_bad) if inputs_bad is None else inputs_bad.to(n_bad.dtype)
-        if self._record is None or self._record.device != n_bad.device:
-            self._record = torch.full((4,), _NONE, dtype=n_bad.dtype, device=n_bad.device)
-        candidate = torch.stack([torch.full_like(n_bad, index), n_nan, n_bad - n_nan, bad_in])
-        first = (n_bad > 0) & (self._record[0] < 0)
-        self._record = torch.where(first, candidate, self._record)
+        n_nan, n_inf = torch.isnan(value).sum(), torch.isinf(value).sum()
+        bad_in = torch.zeros_like(n_nan) if inputs_bad is None else inputs_bad.to(n_nan.dtype)
+        self._rows.append(torch.stack([n_nan, n_inf, bad_in]))
+        bad = (n_nan + n_inf) > 0
+        self._failed = bad if self._failed is None else self._failed | bad
 
     def failed(self) -> Tensor | None:
         """0-d bool device tensor: a failure is recorded (None before the first observation)."""
-        return None if self._record is None else self._record[0] >= 0
+        return self._failed
 
     def read(self) -> dict[str, Any] | None:
         """The first failure since the last read (host sync), or None; starts a new record."""
-        if self._record is None or not self._observed:
+        if not self._rows:
             return None
-        index, n_nan, n_inf, bad_in = self._record.tolist()
-        observed, self._observed, self._record = self._observed, [], None
-        if index < 0:
+        rows = torch.stack(self._rows).tolist()
+        observed = self._observed
+        self._observed, self._rows, self._failed = [], [], None
+        index = next((i for i, (nan, inf, _) in enumerate(rows) if nan + inf), None)
+        if index is None:
             return None
         *facts, shape = observed[index]
+        n_nan, n_inf, bad_in = rows[index]
         return {"facts": tuple(facts), "shape": shape, "nan": n_nan, "inf": n_inf,
                 "inputs_bad": bool(bad_in)}  # fmt: skip
 
