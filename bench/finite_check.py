@@ -96,9 +96,8 @@ def main() -> None:
             times[mode].append((time.perf_counter() - start) / args.steps * 1e3)
     rows = {m: {"ms_per_step": statistics.median(t), "all_ms": t} for m, t in times.items()}
     floor = rows["none"]["ms_per_step"]
-    print(
-        f"{'mode':<12} {'ms/step':>9} {'vs none':>8}   ({device}, rep={args.rep}, {args.overrides})"
-    )
+    setting = f"{device}, rep={args.rep}, {' '.join(args.overrides) or 'paper setting'}"
+    print(f"{'mode':<12} {'ms/step':>9} {'vs none':>8}   ({setting})")
     for mode, row in rows.items():
         print(f"{mode:<12} {row['ms_per_step']:9.3f} {row['ms_per_step'] / floor:8.3f}")
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor()
