@@ -2,8 +2,8 @@
 
 Milliseconds per training step (forward, loss, backward, Adam step) of the paper's synthetic
 setting (PointNet, batch 100, 100 matches; `--rep`, A by default), the step driven by hand (no
-Lightning loop, so that only the check differs), median over --repeats runs of --steps steps, the
-modes interleaved:
+Lightning loop, so that only the check differs; `training_step` with its metric updates), median
+over --repeats runs of --steps steps, the modes interleaved:
 - none:          no check at all (the floor);
 - sync:          the former check, `bool(torch.isfinite(t).all())` on the network output and the
                  loss: two host syncs per step;
@@ -46,27 +46,38 @@ def _model_and_batch(rep: str, device: torch.device, tmp: Path, overrides: list[
     return model, batch
 
 
+def _sync_check(name, value, stage, batch_idx, inputs_bad) -> None:
+    if not bool(torch.isfinite(value).all()):  # the former check: a host sync
+        raise FloatingPointError(name)
+
+
+def _set_mode(model, mode: str) -> int:
+    """Install `mode`'s check on `model`; returns its read interval (0: no deferred reads)."""
+    for name in ("_observe", "_inputs_bad"):
+        model.__dict__.pop(name, None)  # back to the class's (device) check
+    if mode == "none":
+        model._observe, model._inputs_bad = (lambda *args: None), (lambda batch: None)
+    elif mode == "sync":
+        model._observe, model._inputs_bad = _sync_check, (lambda batch: None)
+    return int(mode.split("/")[1]) if mode.startswith("device") else 0
+
+
 def _steps(model, batch, optimizer, mode: str, steps: int) -> None:
-    every = int(mode.split("/")[1]) if mode.startswith("device") else 0
+    """`steps` training steps as Lightning runs them (training_step with its metric updates,
+    backward, the hook before the optimizer step, the step), with `mode`'s check."""
+    every = _set_mode(model, mode)
     for i in range(steps):
         optimizer.zero_grad(set_to_none=True)
-        if every:
-            loss = model.training_step(batch, i)
-        else:
-            raw = model.net(batch["input"])
-            if mode == "sync" and not bool(torch.isfinite(raw).all()):
-                raise FloatingPointError("raw")
-            loss = model.loss(model.head(raw), batch)
-            if mode == "sync" and not bool(torch.isfinite(loss).all()):
-                raise FloatingPointError("loss")
+        loss = model.training_step(batch, i)
         loss.backward()
-        if every:
-            model.on_before_optimizer_step(optimizer)
+        model.on_before_optimizer_step(optimizer)
         optimizer.step()
         if every and (i + 1) % every == 0:
             model._read_finite()
     if every:
         model._read_finite()
+    model.train_err.reset()  # the epoch's metrics, so that runs do not grow them
+    model.train_loss.reset()
 
 
 def main() -> None:
