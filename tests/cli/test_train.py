@@ -3,7 +3,11 @@
 from __future__ import annotations
 
 import json
+import logging
 import math
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pandas as pd
@@ -220,3 +224,73 @@ def test_a_head_learns_the_wahba_problem(make_cfg):
     )
     metrics = train(cfg)
     assert metrics["test/err_median"] < 5.0, metrics
+
+
+# --- quiet, readable runs --------------------------------------------------------------------
+
+# What a normal run must not print: library warnings and tips nobody running rotlearn can act on.
+LIBRARY_NOISE = (
+    "Metric `SpearmanCorrcoef` will save all targets",  # torchmetrics, at the model's construction
+    "try installing [litlogger]",  # Lightning's cloud adverts
+    "try installing [litmodels]",
+    "`isinstance(treespec, LeafSpec)` is deprecated",  # Lightning's use of torch's _pytree
+    "FLOPs",  # the model summary's column of zeros
+    "Total Flops",
+    "will override existing callbacks",  # DataDependentInit seen again by trainer.test
+)
+
+
+def _run_with_warnings_shown(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
+    """`rotlearn-train <args>` with Python's default warning filters (no PYTHONWARNINGS)."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONWARNINGS"}
+    command = [sys.executable, "-m", "rotlearn.train", *args]
+    return subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True, timeout=600)
+
+
+def test_a_normal_run_prints_no_library_noise_and_fills_the_hparams_view(tmp_path):
+    run = tmp_path / "run"
+    args = [*FAST, "trainer.max_epochs=2", "optim.lr=2e-3", "logger=tensorboard"]
+    args.append(f"hydra.run.dir={run}")
+    result = _run_with_warnings_shown(args, tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    printed = result.stdout + result.stderr
+    for noise in LIBRARY_NOISE:
+        assert noise not in printed, noise
+    assert "Trainable params" in printed and "test error (a head" in printed
+
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    from tensorboard.plugins.hparams import metadata
+
+    events = EventAccumulator(str(run / "tensorboard")).Reload()
+    scalars = set(events.Tags()["scalars"])
+    assert not any(tag.startswith("hp") for tag in scalars)  # no one-point cards of the hparams
+    assert len(events.Scalars("test/err_mean")) == 1 and len(events.Scalars("val/err_mean")) == 2
+    content = events.PluginTagToContent(metadata.PLUGIN_NAME)
+    experiment = metadata.parse_experiment_plugin_data(content[metadata.EXPERIMENT_TAG])
+    names = {info.name.tag for info in experiment.metric_infos}
+    assert {"test/err_mean", "test/err_median", "val/err_mean", "test/err_vs_identity"} <= names
+    assert names <= scalars  # each metric of the HPARAMS view is a scalar series it reads
+    start = metadata.parse_session_start_info_plugin_data(content[metadata.SESSION_START_INFO_TAG])
+    assert start.hparams["optim.lr"].number_value == pytest.approx(2e-3)
+    assert start.hparams["rep.name"].string_value == "a"
+    metrics = json.loads((run / "metrics.json").read_text())
+    err_vs_identity = events.Scalars("test/err_vs_identity")[-1].value
+    assert err_vs_identity == pytest.approx(metrics["test/err_vs_identity"], rel=1e-6)
+
+
+def test_the_sweep_report_reads_event_files_without_tensorboards_info_lines(tmp_path, caplog):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    from torch.utils.tensorboard import SummaryWriter
+
+    from rotlearn.cli.callbacks import _tensorboard_reader_quiet
+
+    for step in range(2):  # two event files, as fitting then testing leave them
+        with SummaryWriter(tmp_path, filename_suffix=f".{step}") as writer:
+            writer.add_scalar("val/err_mean", float(step), step)
+    with caplog.at_level(logging.INFO), _tensorboard_reader_quiet():
+        events = EventAccumulator(str(tmp_path)).Reload()
+    assert len(events.Scalars("val/err_mean")) == 2
+    assert not [r for r in caplog.records if r.name.startswith("tensorboard")]
+    with caplog.at_level(logging.INFO):  # outside, TensorBoard's own level again
+        EventAccumulator(str(tmp_path)).Reload()
+    assert any("Directory watcher" in r.getMessage() for r in caplog.records)

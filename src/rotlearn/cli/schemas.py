@@ -1,15 +1,15 @@
 """Config validation: every node of a composed config is checked before anything is built.
 
-rotlearn's own components (`rep`, `data`, `net`, `loss`, `callbacks.ood`) have dataclass schemas
-DERIVED here from their constructors' signatures (`COMPONENTS`; fields, annotations and defaults
-via `rotlearn.cli.signatures.constructor_parameters`, following `**kwargs` to base classes), so a
-schema cannot disagree with the code. Each schema's defaults are registered with Hydra's
-ConfigStore as `<group>/<option>_schema` (e.g. `data/kitti_schema`); a YAML under conf/ starts
-from it in its defaults list and holds only what differs. The library classes (`optim`,
+rotlearn's own components (`model`, `rep`, `data`, `net`, `loss`, `callbacks.ood`) have dataclass
+schemas DERIVED here from their constructors' signatures (`COMPONENTS`; fields, annotations and
+defaults via `rotlearn.cli.signatures.constructor_parameters`, following `**kwargs` to base
+classes), so a schema cannot disagree with the code. Each schema's defaults are registered with
+Hydra's ConfigStore as `<group>/<option>_schema` (e.g. `data/kitti_schema`); a YAML under conf/
+starts from it in its defaults list and holds only what differs. The library classes (`optim`,
 `scheduler`, `trainer`, `logger.*`, `callbacks.*`) and the nets are checked from their signatures
-(`rotlearn.cli.signatures.targets`); the top-level keys are in `TOP_LEVEL`. `validate(cfg)` stops
-a misspelt key or a bad value at once with the full key, what was expected and the allowed keys.
-A node whose `_target_` is not known here (a user's own class) is left to its constructor.
+(`rotlearn.cli.signatures.targets`); the top-level keys are in `TOP_LEVEL`. `validate(cfg)` stops a
+misspelt key or a bad value at once with the full key, what was expected and the allowed keys. A
+node whose `_target_` is not known here (a user's own class) is left to its constructor.
 """
 
 from __future__ import annotations
@@ -61,6 +61,10 @@ COMPONENTS: dict[str, dict[str, str]] = {
         "bingham": "rotlearn.losses.BinghamNLLLoss",
     },
     "callbacks.ood": {"ood": "rotlearn.ood.OODEvaluation"},
+    "model": {
+        "regressor": "rotlearn.lit.RotationRegressor",
+        "autoencoder": "rotlearn.lit.AutoEncoderModule",
+    },
 }
 VALIDATED_BY_SIGNATURE = ("net",)  # checked with the library classes (`targets()["net"]`)
 

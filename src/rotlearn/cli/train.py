@@ -1,214 +1,85 @@
 """`rotlearn-train` (also `python -m rotlearn.train`): train and test one run (or a sweep, -m).
 
-Every component comes from the Hydra config with `hydra.utils.instantiate` (`build`); every file
-goes below `paths.output_dir` (Hydra's run directory), the records written by
-`rotlearn.lit.RunRecords`. Resuming is `rotlearn.cli.resume`. See conf/train.yaml.
+The entry point only. `rotlearn-train --help` is answered from the config directory alone, without
+importing torch, Lightning or the config schemas (a second instead of several); everything else
+registers the schemas and starts the Hydra app, which builds and trains with
+`rotlearn.cli.training` (`build`, `train`, `RunInterrupted`, `ConfigError`: importable from here
+too, loaded on first use). See conf/train.yaml.
 """
 
 from __future__ import annotations
 
-import contextlib
-import logging
 import math
 import re
-import signal
 import sys
-import warnings
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import hydra
-import lightning.pytorch as pl
-import torch
-from hydra.errors import InstantiationException
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-from rotlearn.checkpoint import load_checkpoint
-from rotlearn.cli.callbacks import record_job
-from rotlearn.cli.resume import checkpoint_to_resume, keep_earlier_records, resume_arguments
-from rotlearn.cli.schemas import validate, validate_command_line
-from rotlearn.errors import ConfigError
-from rotlearn.lit import EpochLosses, InterruptRecorder, RunRecords
 from rotlearn.paths import config_dir
 
-__all__ = ["ConfigError", "RunInterrupted", "build", "main", "train"]
+if TYPE_CHECKING:
+    from rotlearn.cli.training import ConfigError, RunInterrupted, build, train
 
-log = logging.getLogger("rotlearn")
+__all__ = ["ConfigError", "RunInterrupted", "build", "main", "train", "usage"]
 
-# Lightning's advice that does not apply: batches are drawn on the device (no loader workers),
-# and scalars are logged once per epoch on purpose.
-for _pattern in (".*does not have many workers.*", ".*smaller than the logging interval.*"):
-    warnings.filterwarnings("ignore", _pattern)
-
-
-def _instantiate(cfg: DictConfig, key: str, **kwargs: Any) -> Any:
-    """Instantiate the config node `key`; a component's `ConfigError` (its key relative to the
-    node) is re-raised with the full key."""
-    node = OmegaConf.select(cfg, key)
-    if node is None:
-        raise ConfigError(key, "is missing")
-    try:
-        return hydra.utils.instantiate(node, **kwargs)
-    except InstantiationException as exc:  # Hydra wraps what the constructor raised
-        if isinstance(exc.__cause__, ConfigError):
-            raise exc.__cause__.within(_component_key(cfg, key, exc)) from None
-        raise
+_FROM_TRAINING = ("ConfigError", "RunInterrupted", "build", "train")
+HELP_FLAGS = ("-h", "--help")
 
 
-def _component_key(cfg: DictConfig, key: str, exc: InstantiationException) -> str:
-    """The config key of the component that failed while `key` was built: `key` itself, or, for
-    the model, the group its failing part comes from (model.head is `${rep}`: rep)."""
-    match = re.search(r"full_key: ([\w.]+)", str(exc))
-    if key != "model" or match is None:
-        return key
-    parts = match.group(1).split(".")
-    parts = parts[1:] if parts[0] == key else parts  # relative to the model node
-    if not parts:  # the model's own constructor
-        return key
-    part = parts[0]
-    raw = OmegaConf.to_container(OmegaConf.select(cfg, key), resolve=False).get(part)
-    if isinstance(raw, str) and raw.startswith("${") and raw.endswith("}"):
-        return raw[2:-1]
-    return f"{key}.{part}"
+def __getattr__(name: str) -> Any:  # PEP 562: the training stack is imported on first use
+    if name in _FROM_TRAINING:
+        from rotlearn.cli import training
+
+        return getattr(training, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-def _instantiate_all(cfg: DictConfig, key: str) -> list[Any]:
-    node = OmegaConf.select(cfg, key) or {}
-    return [_instantiate(cfg, f"{key}.{name}") for name in node]
+def _options(group_dir: Path) -> str:
+    return ", ".join(sorted(p.stem for p in group_dir.glob("*.yaml")))
 
 
-def build(cfg: DictConfig) -> tuple[pl.LightningModule, pl.LightningDataModule, pl.Trainer]:
-    """Model, datamodule and trainer for a composed config (validated, seeds set first).
-
-    `instantiate(cfg.model)` is the whole model (`model=regressor`: net, head, loss, optimizer
-    and scheduler from their groups; `model=autoencoder`: the OOD baseline). The trainer gets
-    the configured callbacks plus the run's record keeping (`RunRecords`, `InterruptRecorder`,
-    `EpochLosses`), whatever `callbacks=` says."""
-    validate(cfg)
-    pl.seed_everything(cfg.seed, workers=True, verbose=False)
-    datamodule = _instantiate(cfg, "data")
-    model = _instantiate(cfg, "model")
-    model.run_config = OmegaConf.to_container(cfg, resolve=True)
-    callbacks = _instantiate_all(cfg, "callbacks")
-    callbacks += [RunRecords(cfg.paths.output_dir), InterruptRecorder(), EpochLosses()]
-    trainer = _instantiate(
-        cfg,
-        "trainer",
-        callbacks=callbacks,
-        logger=_instantiate_all(cfg, "logger") or False,
+def usage(root: Path | None = None) -> str:
+    """The `--help` text: the config groups and their options (conf/<group>/*.yaml), the top-level
+    keys of conf/train.yaml with their comments, and where to see more. Reads files only."""
+    root = Path(root or config_dir())
+    groups = sorted(
+        d for d in root.rglob("*") if d.is_dir() and d.relative_to(root).parts[0] != "hydra"
     )
-    return model, datamodule, trainer
-
-
-class RunInterrupted(SystemExit):
-    """A signal stopped the run; the exit code is the shell's 128 + signal number (SIGTERM 143,
-    SIGINT 130). `status` is what `train` wrote into the run's status.json."""
-
-    def __init__(self, run_dir: Path, signal_name: str, last_epoch: int | None) -> None:
-        self.run_dir, self.signal_name, self.last_epoch = run_dir, signal_name, last_epoch
-        self.resume_command = f"rotlearn-train ckpt_path={run_dir.resolve()}"
-        after = f"after epoch {last_epoch}" if last_epoch is not None else "before its first epoch"
-        self.message = f"stopped by {signal_name} {after}; resume: {self.resume_command}"
-        super().__init__(128 + int(signal.Signals[signal_name]))
-
-    @property
-    def status(self) -> dict[str, Any]:
-        return {
-            "signal": self.signal_name,
-            "last_finished_epoch": self.last_epoch,
-            "resume_command": self.resume_command,
-            "error": self.message,
-        }
-
-
-def _last_finished_epoch(run_dir: Path, trainer: pl.Trainer) -> int | None:
-    """The epoch (0-based, as Lightning counts) that `<run_dir>/checkpoints/last.ckpt` ends."""
-    try:
-        return int(load_checkpoint(run_dir)["epoch"])
-    except (OSError, RuntimeError, KeyError, ValueError):
-        done = trainer.fit_loop.epoch_progress.current.completed
-        return done - 1 if done else None
-
-
-@contextlib.contextmanager
-def _interruptions_recorded(trainer: pl.Trainer, run_dir: Path):
-    """Turn a stop by SIGTERM or SIGINT (seen by the trainer's `InterruptRecorder`) into a
-    status.json with status INTERRUPTED in `run_dir` and a `RunInterrupted` exit; anything else
-    propagates unchanged."""
-    try:
-        yield
-    except (SystemExit, KeyboardInterrupt):
-        recorders = [cb for cb in trainer.callbacks if isinstance(cb, InterruptRecorder)]
-        name = recorders[0].signal_name if recorders else None
-        if name is None:
-            raise
-        stop = RunInterrupted(run_dir, name, _last_finished_epoch(run_dir, trainer))
-        if trainer.is_global_zero:
-            record_job(run_dir, "INTERRUPTED", **stop.status)
-        log.warning("%s: %s", run_dir, stop.message)
-        raise stop from None
-
-
-def train(cfg: DictConfig) -> dict[str, Any]:
-    """Fit and test the run of `cfg` in `cfg.paths.output_dir`; returns its metrics.
-
-    The config is validated by `build`, before anything is trained; the records (metrics.json,
-    timing.json, test_errors.json) are written by `RunRecords` when testing ends. A SIGTERM or
-    SIGINT during `fit` or `test` stops the run at a batch boundary: `checkpoints/last.ckpt` stays
-    the end of the last finished epoch, `status.json` says INTERRUPTED (signal, that epoch, the
-    resume command) and `RunInterrupted` exits 143 (SIGTERM) or 130 (SIGINT)."""
-    run_dir = Path(cfg.paths.output_dir)
-    resume = checkpoint_to_resume(cfg, run_dir)
-    torch.set_float32_matmul_precision(cfg.float32_matmul_precision)
-    model, datamodule, trainer = build(cfg)
-    with _interruptions_recorded(trainer, run_dir):
-        trainer.fit(model, datamodule=datamodule, ckpt_path=resume, weights_only=True)
-        best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
-        ckpt_path = best if cfg.test_ckpt == "best" and best else None
-        trainer.test(
-            model, datamodule=datamodule, ckpt_path=ckpt_path, verbose=False, weights_only=True
-        )
-    return next(cb for cb in trainer.callbacks if isinstance(cb, RunRecords)).metrics
-
-
-def _report(cfg: DictConfig, metrics: dict[str, Any]) -> None:
-    run_dir = Path(cfg.paths.output_dir)
-    try:
-        shown = run_dir.resolve().relative_to(Path.cwd())
-    except ValueError:
-        shown = run_dir
-    tensorboard = Path(sys.executable).parent / "tensorboard"
-    tb = str(tensorboard) if tensorboard.exists() else "tensorboard"
-    with contextlib.suppress(ValueError):
-        tb = str(Path(tb).relative_to(Path.cwd()))
-    if metrics.get("task") == "autoencoder":
-        log.info(
-            "test reconstruction error (auto-encoder, %s weights): mean L1 %.4f",
-            metrics.get("tested_weights"),
-            metrics.get("test/recon_mean", math.nan),
-        )
-    else:
-        log.info(
-            "test error (%s head, %s weights): mean %.3f deg, median %.3f deg, p90 %.3f deg",
-            metrics.get("rep"),
-            metrics.get("tested_weights"),
-            metrics.get("test/err_mean", math.nan),
-            metrics.get("test/err_median", math.nan),
-            metrics.get("test/err_p90", math.nan),
-        )
-        log.info(
-            'baseline "predict identity": mean %.3f deg, median %.3f deg',
-            metrics.get("test/identity_err_mean", math.nan),
-            metrics.get("test/identity_err_median", math.nan),
-        )
-    log.info("run directory: %s (metrics.json, checkpoints/, tensorboard/)", shown)
-    log.info("open TensorBoard: %s --logdir %s", tb, shown)
+    width = max(len(str(d.relative_to(root))) for d in groups)
+    lines = [
+        "rotlearn-train: train and test one run, or a sweep with -m (a Hydra app).",
+        "",
+        "usage: rotlearn-train [group=option ...] [key=value ...] [-m]",
+        "  e.g. rotlearn-train rep=sixd data=synthetic optim.lr=1e-3 trainer.max_epochs=10",
+        "",
+        f"config groups (group=option; files in {root}):",
+    ]
+    lines += [f"  {d.relative_to(root)!s:<{width}}  {_options(d)}" for d in groups]
+    lines += ["", "top-level keys (conf/train.yaml):"]
+    text = (root / "train.yaml").read_text()
+    for line in text.splitlines():
+        match = re.match(r"^(\w+):\s*(\S.*)$", line)
+        if match and match.group(1) not in ("defaults", "hydra", "paths"):
+            lines.append(f"  {line}")
+    lines += [
+        "",
+        "more:",
+        "  rotlearn-train [overrides] --cfg job  the composed config: every key and its value",
+        "  rotlearn-train ckpt_path=last         resume the newest interrupted run",
+        "  rotlearn-train --hydra-help           Hydra's own flags (--multirun, --cfg, --info)",
+    ]
+    return "\n".join(lines) + "\n"
 
 
 @hydra.main(version_base="1.3", config_path=str(config_dir()), config_name="train")
 def _hydra_main(cfg: DictConfig) -> float:
+    from rotlearn.cli.training import report, train
+
     metrics = train(cfg)
-    _report(cfg, metrics)
+    report(cfg, metrics)
     # what sweepers (Optuna) minimise: the validation median error, never a test number
     return metrics.get("val/err_median", metrics.get("val/loss", math.nan))
 
@@ -221,6 +92,9 @@ def _refuse_an_invalid_new_run(argv: list[str]) -> None:
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
+    from rotlearn.cli.schemas import validate_command_line
+    from rotlearn.errors import ConfigError
+
     if any(a.startswith("-") or a.startswith("ckpt_path=") for a in argv):
         return
     try:
@@ -231,9 +105,16 @@ def _refuse_an_invalid_new_run(argv: list[str]) -> None:
         raise SystemExit(f"rotlearn-train: {exc} (nothing was written)") from None
 
 
-def main() -> float:
-    """Entry point of `rotlearn-train`; returns the validation median error (for sweepers)."""
+def main() -> float | None:
+    """Entry point of `rotlearn-train`; returns the validation median error (for sweepers), or
+    None after `--help`."""
     argv = sys.argv[1:]
+    if any(a in HELP_FLAGS for a in argv):
+        print(usage(), end="")
+        return None
+    import rotlearn.cli.schemas  # noqa: F401  (registers the schemas the config composes from)
+    from rotlearn.cli.resume import keep_earlier_records, resume_arguments
+
     _refuse_an_invalid_new_run(argv)
     args = resume_arguments(argv)
     if args != argv:  # a resume that will train: its last argument is hydra.run.dir=<run dir>

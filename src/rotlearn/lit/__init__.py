@@ -5,7 +5,7 @@ from rotlearn.extras import require
 require("train", "rotlearn.lit")
 
 from rotlearn.lit.autoencoder import AutoEncoderModule, load_autoencoder
-from rotlearn.lit.callbacks import EpochLosses, EpochTimer, InterruptRecorder
+from rotlearn.lit.callbacks import EpochLosses, EpochTimer, InterruptRecorder, ModelSummary
 from rotlearn.lit.records import RunRecords, barely_learned, divergence
 from rotlearn.lit.regressor import RotationRegressor
 
@@ -14,6 +14,7 @@ __all__ = [
     "EpochLosses",
     "EpochTimer",
     "InterruptRecorder",
+    "ModelSummary",
     "RotationRegressor",
     "RunRecords",
     "barely_learned",

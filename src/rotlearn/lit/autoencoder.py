@@ -3,7 +3,9 @@ first image of each pair; `fit_autoencoder` trains one with a Lightning Trainer.
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import logging
 import os
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -15,7 +17,8 @@ from torch import Tensor, nn
 from torchmetrics import MeanMetric
 
 from rotlearn.checkpoint import load_run
-from rotlearn.errors import ConfigValueError, NonFiniteError
+from rotlearn.errors import ConfigValueError
+from rotlearn.lit.finite import FINITE_CHECK_EVERY, FiniteChecks
 from rotlearn.lit.state import RunStateHooks
 from rotlearn.nets.autoencoder import ConvAutoEncoder
 from rotlearn.trust import config_target
@@ -26,7 +29,7 @@ OptimizerFactory = Callable[[Iterable[nn.Parameter]], torch.optim.Optimizer]
 
 
 @config_target
-class AutoEncoderModule(RunStateHooks, pl.LightningModule):
+class AutoEncoderModule(FiniteChecks, RunStateHooks, pl.LightningModule):
     """Reconstruct the FIRST image of each stacked pair; its mean L1 error is the OOD score.
 
     Trained with the mean L1 pixel loss (paper: Adam, lr 5e-4, batch 32, 20 epochs); a pair is
@@ -37,19 +40,30 @@ class AutoEncoderModule(RunStateHooks, pl.LightningModule):
     Args:
         net: the auto-encoder, (B, C, S, S) -> (B, C, S, S).
         optimizer: partial optimizer taking the parameters (`optim=`); None for inference only.
+        finite_check_every: training steps between two reads of the NaN/inf check of the
+            reconstruction errors (`rotlearn.lit.finite`; 1 reads every step).
     """
 
     task = "autoencoder"
 
-    def __init__(self, net: ConvAutoEncoder, optimizer: OptimizerFactory | None = None) -> None:
+    def __init__(
+        self,
+        net: ConvAutoEncoder,
+        optimizer: OptimizerFactory | None = None,
+        finite_check_every: int = FINITE_CHECK_EVERY,
+    ) -> None:
         super().__init__()
+        self._init_finite_checks(finite_check_every)
         if not isinstance(net, ConvAutoEncoder):
             raise ConfigValueError(
                 "net", f"model=autoencoder trains net=autoencoder, not {type(net).__name__}"
             )
         self.net = net
         self.optimizer_factory = optimizer
-        self.train_loss, self.val_loss, self.test_score = MeanMetric(), MeanMetric(), MeanMetric()
+        # NaN is the finite check's to report (MeanMetric's own check syncs with the device)
+        self.train_loss, self.val_loss, self.test_score = (
+            MeanMetric(nan_strategy="disable") for _ in range(3)
+        )
         self.run_config: dict[str, Any] | None = None  # stored in checkpoints when set
 
     def forward(self, images: Tensor) -> Tensor:
@@ -70,11 +84,7 @@ class AutoEncoderModule(RunStateHooks, pl.LightningModule):
 
     def _loss(self, batch: dict[str, Tensor], stage: str, batch_idx: int) -> Tensor:
         errors = self.errors(batch["input"])
-        if not bool(torch.isfinite(errors).all()):
-            raise NonFiniteError(
-                f"non-finite reconstruction error at {stage} step {self.global_step} "
-                f"(epoch {self.current_epoch}, batch {batch_idx}); try a lower optim.lr"
-            )
+        self._observe("reconstruction error", errors, stage, batch_idx, self._inputs_bad(batch))
         return errors
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
@@ -93,12 +103,15 @@ class AutoEncoderModule(RunStateHooks, pl.LightningModule):
         metric.reset()
 
     def on_train_epoch_end(self) -> None:
+        self._read_finite()
         self._log_mean("train/loss", self.train_loss)
 
     def on_validation_epoch_end(self) -> None:
+        self._read_finite()
         self._log_mean("val/loss", self.val_loss)
 
     def on_test_epoch_end(self) -> None:
+        self._read_finite()
         self._log_mean("test/recon_mean", self.test_score)
 
     def configure_optimizers(self) -> torch.optim.Optimizer:
@@ -160,7 +173,32 @@ def fit_autoencoder(
     )
     module.run_config = {"task": "autoencoder", "net": dict(net_config)}
     accelerator = {"cuda": "gpu"}.get(device.type, device.type)
-    trainer = pl.Trainer(
+    with _lightning_info_quiet():  # the run's own trainer has said it: GPU available, ...
+        trainer = _nested_trainer(accelerator, device, epochs, root_dir)
+        outer = datamodule.trainer  # fit attaches the datamodule to its own trainer: give it back
+        try:
+            trainer.fit(module, datamodule=datamodule)
+        finally:
+            datamodule.trainer = outer
+    return module.eval()
+
+
+@contextlib.contextmanager
+def _lightning_info_quiet():
+    """Lightning's INFO lines (devices found, why fitting stopped) at WARNING meanwhile."""
+    logger = logging.getLogger("lightning.pytorch.utilities.rank_zero")
+    level = logger.level
+    logger.setLevel(max(level, logging.WARNING))
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
+
+
+def _nested_trainer(
+    accelerator: str, device: torch.device, epochs: int, root_dir: str | os.PathLike
+) -> pl.Trainer:
+    return pl.Trainer(
         accelerator=accelerator,
         devices=[device.index or 0] if device.type == "cuda" else 1,
         max_epochs=int(epochs),
@@ -172,12 +210,6 @@ def fit_autoencoder(
         enable_model_summary=False,
         default_root_dir=str(Path(root_dir)),
     )
-    outer = datamodule.trainer  # fit attaches the datamodule to its own trainer: give it back
-    try:
-        trainer.fit(module, datamodule=datamodule)
-    finally:
-        datamodule.trainer = outer
-    return module.eval()
 
 
 def save_autoencoder(module: AutoEncoderModule, path: str | os.PathLike) -> Path:

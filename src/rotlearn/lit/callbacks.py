@@ -1,19 +1,24 @@
-"""Small training callbacks: epoch timing, per-epoch training loss, the record of a signal, and the
-data-dependent initialisation of a net."""
+"""Small training callbacks: epoch timing, per-epoch training loss, the record of a signal, the
+data-dependent initialisation of a net, and a model summary without empty columns."""
 
 from __future__ import annotations
 
+import logging
 import signal
 import time
 from typing import Any
 
 import lightning.pytorch as pl
 import torch
+from lightning.pytorch.callbacks import ModelSummary as LightningModelSummary
 from lightning.pytorch.utilities.exceptions import SIGTERMException
+from lightning.pytorch.utilities.model_summary.model_summary import _format_summary_table
 
 from rotlearn.trust import config_target
 
-__all__ = ["DataDependentInit", "EpochLosses", "EpochTimer", "InterruptRecorder"]
+__all__ = ["DataDependentInit", "EpochLosses", "EpochTimer", "InterruptRecorder", "ModelSummary"]
+
+log = logging.getLogger("rotlearn")
 
 
 @config_target
@@ -160,3 +165,41 @@ class DataDependentInit(pl.Callback):
         if parameter is not None:
             points = points.to(parameter.device)
         net.initialize_from(points)
+
+
+class ModelSummary(LightningModelSummary):
+    """Lightning's model summary (layers, parameters, mode; printed when fitting starts), without
+    the FLOPs column and total where nothing was counted: Lightning counts FLOPs only for a
+    module with an `example_input_array` and prints a column of zeros otherwise.
+
+    `rotlearn.cli.training.build` puts it in place of Lightning's own summary when
+    `trainer.enable_model_summary` is true.
+    """
+
+    @staticmethod
+    def summarize(
+        summary_data: list[tuple[str, list[str]]],
+        total_parameters: int,
+        trainable_parameters: int,
+        model_size: float,
+        total_training_modes: dict[str, int],
+        total_flops: int,
+        **summarize_kwargs: Any,
+    ) -> None:
+        if total_flops:
+            LightningModelSummary.summarize(
+                summary_data,
+                total_parameters,
+                trainable_parameters,
+                model_size,
+                total_training_modes,
+                total_flops,
+                **summarize_kwargs,
+            )
+            return
+        columns = [(name, values) for name, values in summary_data if name != "FLOPs"]
+        table = _format_summary_table(
+            total_parameters, trainable_parameters, model_size, total_training_modes, 0, *columns
+        )
+        lines = [line for line in table.splitlines() if not line.rstrip().endswith("Total Flops")]
+        log.info("model summary:\n%s", "\n".join(lines))

@@ -9,7 +9,8 @@
 - `timing.json`: wall-clock seconds per epoch (from `EpochTimer`);
 - `test_errors.json`: the per-sample test errors in degrees, where the model keeps them (box plots
   of paper Fig. 4);
-- the hyper-parameters with the final errors, for TensorBoard's HPARAMS view.
+- the hyper-parameters with the final errors, for TensorBoard's HPARAMS view (the errors are the
+  last values of their scalar series, not scalars written again).
 """
 
 from __future__ import annotations
@@ -161,15 +162,29 @@ class RunRecords(pl.Callback):
         if test_errors is not None:
             write_json_atomic(self.dirpath / "test_errors.json", test_errors.tolist())
         write_json_atomic(self.dirpath / "metrics.json", metrics)
-        hp_metrics = {
-            f"hp/{k.replace('/', '_')}": v
-            for k, v in metrics.items()
-            if "/err_" in k or "/recon_" in k
-        }
+        names = [k for k in metrics if "/err_" in k or "/recon_" in k]  # train/, val/, test/
+        logged = set(self._fit_metrics) | set(_scalars(trainer.callback_metrics))
+        unlogged = {k: metrics[k] for k in names if k not in logged}  # test/err_vs_identity
         params = _flatten(getattr(pl_module, "run_config", None) or {})
         for logger in trainer.loggers:
-            if isinstance(logger, TensorBoardLogger):  # its hparams tab shows these metrics
-                logger.log_hyperparams(params, hp_metrics)
+            if isinstance(logger, TensorBoardLogger):
+                if unlogged:
+                    logger.log_metrics(unlogged, step=trainer.global_step)
+                _hparams_view(logger, params, names)
             else:
                 logger.log_hyperparams(params)
             logger.finalize("success")
+
+
+def _hparams_view(logger: TensorBoardLogger, params: dict[str, Any], names: list[str]) -> None:
+    """The run in TensorBoard's HPARAMS view: its hyper-parameters and, as its metrics, the
+    scalar series `names` (TensorBoard shows each series' last value: the final errors). Unlike
+    `log_hyperparams(params, metrics)`, no scalar is written again (that would add a one-point
+    card per metric above the training curves)."""
+    from torch.utils.tensorboard.summary import hparams
+
+    logger.hparams.update(params)  # also kept in <logger dir>/hparams.yaml
+    experiment, start, end = hparams(logger._sanitize_params(params), dict.fromkeys(names, 0.0))
+    writer = logger.experiment._get_file_writer()
+    for summary in (experiment, start, end):
+        writer.add_summary(summary)

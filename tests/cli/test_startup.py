@@ -1,0 +1,51 @@
+"""The command lines start without the training stack when they do not need it: `rotlearn-train
+--help` and `rotlearn-report` never import Lightning (checked in a fresh interpreter)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+from rotlearn.cli.train import usage
+from rotlearn.paths import config_dir
+
+
+def _modules_after(code: str) -> tuple[str, set[str]]:
+    """Run `code` in a fresh interpreter; its stdout and the top-level modules it imported."""
+    listing = "print('MODULES', *sorted({m.split('.')[0] for m in sys.modules}))"
+    script = f"{code}\nimport sys\n{listing}"
+    result = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=300, check=True
+    )
+    out, _, modules = result.stdout.rpartition("MODULES ")
+    return out, set(modules.split())
+
+
+def test_train_help_lists_the_config_without_importing_lightning():
+    out, modules = _modules_after(
+        "import sys\nsys.argv = ['rotlearn-train', '--help']\n"
+        "from rotlearn.cli.train import main\nmain()"
+    )
+    assert "lightning" not in modules and "hydra" in modules
+    assert "  rep         a, quat, sixd, svd9d" in out
+    assert "  seed: 0" in out and "--cfg job" in out
+
+
+def test_the_help_lists_every_config_group_and_option():
+    text = usage()
+    for group in ("model", "rep", "net", "data", "loss", "optim", "trainer", "logger"):
+        options = sorted(p.stem for p in (config_dir() / group).glob("*.yaml"))
+        assert f"  {group:<10}  {', '.join(options)}" in text
+    assert "_schema" not in text and "hydra/" not in text  # internal nodes stay out
+
+
+def test_report_imports_without_lightning():
+    _, modules = _modules_after("import rotlearn.cli.report")
+    assert "lightning" not in modules and "pandas" in modules
+
+
+def test_the_ood_callback_still_imports_from_its_package():
+    from rotlearn.ood import OODEvaluation
+    from rotlearn.ood.callback import OODEvaluation as direct
+
+    assert OODEvaluation is direct
