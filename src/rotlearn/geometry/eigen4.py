@@ -425,8 +425,8 @@ def sym4_eigh_min(
 ) -> tuple[Tensor, Tensor]:
     """Eigenvalues and minimum eigenvector of symmetric 4x4 matrices (a fast `eigh` for the A head).
 
-    Differentiable: the analytic backward of `_Sym4EighMin` (paper eq. 9 for q, v_i^T dA v_i for
-    the eigenvalues), finite for repeated eigenvalues. Device-agnostic; no host synchronisation
+    Differentiable: the analytic backward of `_Sym4EighMin` (`_Sym4EighMinLapack` on the eigh
+    path; paper eq. 9 for q, v_i^T dA v_i for the eigenvalues), finite for repeated eigenvalues. Device-agnostic; no host synchronisation
     when `check=False`. Every output element depends on its own matrix only. Works under
     torch.func.vmap/grad and torch.compile (with `check=False`). Under autocast (CPU or CUDA)
     float16/bfloat16 input is cast to float32 and the solver runs in float32 with autocast off.
@@ -455,7 +455,7 @@ def sym4_eigh_min(
         eigenvalues: (..., 4), ascending, in A's dtype (float32 under autocast).
         q: (..., 4), the unit eigenvector of the smallest eigenvalue as a quaternion (x, y, z, w),
             sign exactly as `quat_canonical` (w > 0; ties by the first nonzero of w, x, y, z).
-            Both are (strided) views of one buffer that the backward keeps.
+            Both are kept by the backward (q is a strided view of the saved eigenvectors).
 
     Accuracy (against float64 torch.linalg.eigh; guaranteed by tests/test_eigen4.py, measured
     values in the module docstring): float32: rotation angle of q <= 1e-3 degrees where
