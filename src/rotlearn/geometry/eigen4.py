@@ -426,8 +426,9 @@ def sym4_eigh_min(
     """Eigenvalues and minimum eigenvector of symmetric 4x4 matrices (a fast `eigh` for the A head).
 
     Differentiable: the analytic backward of `_Sym4EighMin` (`_Sym4EighMinLapack` on the eigh
-    path; paper eq. 9 for q, v_i^T dA v_i for the eigenvalues), finite for repeated eigenvalues. Device-agnostic; no host synchronisation
-    when `check=False`. Every output element depends on its own matrix only. Works under
+    path; paper eq. 9 for q, v_i^T dA v_i for the eigenvalues), finite for repeated eigenvalues.
+    Device-agnostic; no host synchronisation when `check=False`. Every output element depends on
+    its own matrix only. Works under
     torch.func.vmap/grad and torch.compile (with `check=False`). Under autocast (CPU or CUDA)
     float16/bfloat16 input is cast to float32 and the solver runs in float32 with autocast off.
 
