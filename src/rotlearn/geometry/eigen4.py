@@ -1,6 +1,6 @@
 """Batched eigensolver for symmetric 4x4 matrices: cyclic Jacobi, vectorised over the batch.
 
-(One module of about 390 lines on purpose: the Jacobi forward, the sorting network, the input
+(One module of about 480 lines on purpose: the Jacobi forward, the sorting network, the input
 checks and the analytic backward share one memory layout, rows of a (k, B) tensor, which splitting
 them would spread over several modules.)
 
@@ -28,7 +28,8 @@ tests/test_eigen4.py): float32 needs 12 rounds (11 leave residuals |A q - l1 q| 
 Below EIGH_BELOW matrices (`method="auto"`) the forward is torch.linalg.eigh instead: the Jacobi
 loop launches ~450 elementwise kernels per call whatever the batch size, a fixed cost that only
 pays off for large batches (the crossover is measured by `bench/rep_layers.py --crossover`).
-The backward is the same either way.
+That path (`_Sym4EighMinLapack`) keeps eigh's (B, 4, 4) layout and has its own short backward of
+batched products; the formula and the gap clamp are those of the Jacobi path's backward.
 
 Measured accuracy (max over 20000 matrices per case: Gaussian, I - q q^T with and without 1e-3
 noise, Wahba data matrices (paper eq. 5), clustered -sum q_k q_k^T, Gaussian scaled by 1e-6 and
@@ -281,7 +282,8 @@ def _solve(A: Tensor, W: Tensor, rounds: int) -> None:
 
 
 class _Sym4EighMin(torch.autograd.Function):
-    """(B, 4, 4) -> eigenvalues (B, 4) ascending, minimum eigenvector q (B, 4), w >= 0.
+    """(B, 4, 4) -> eigenvalues (B, 4) ascending, minimum eigenvector q (B, 4), w >= 0, by the
+    Jacobi solver (the third output, the (4, 5, B) buffer W, is for the backward only).
 
     Backward, with l1 <= ... <= l4 and orthonormal eigenvectors v1 = q, v2, v3, v4:
         grad_A = sym(-u q^T + sum_i g_li v_i v_i^T),   u = sum_{i>=2} v_i (v_i . g_q) / gap_i,
@@ -297,17 +299,12 @@ class _Sym4EighMin(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(A: Tensor, gap_eps: float, rounds: int, use_eigh: bool) -> tuple[Tensor, ...]:
+    def forward(A: Tensor, gap_eps: float, rounds: int) -> tuple[Tensor, ...]:
         B = A.shape[0]
-        if use_eigh:
-            eigenvalues, vectors = torch.linalg.eigh(A, UPLO="U")
-            W = torch.cat((vectors.permute(2, 1, 0), eigenvalues.t().unsqueeze(1)), 1)
-            W[0, :4].mul_(_canonical_sign(W[0, :4]))
-        else:
-            W = torch.zeros(4, 5, B, dtype=A.dtype, device=A.device)  # columns (v_i, l_i)
-            chunk = _chunk_size(B, A.device)
-            for start in range(0, B, chunk):
-                _solve(A[start : start + chunk], W[..., start : start + chunk], rounds)
+        W = torch.zeros(4, 5, B, dtype=A.dtype, device=A.device)  # columns (v_i, l_i)
+        chunk = _chunk_size(B, A.device)
+        for start in range(0, B, chunk):
+            _solve(A[start : start + chunk], W[..., start : start + chunk], rounds)
         # (B, 4) views of W's rows: no copy, and q.unbind(-1) gives contiguous components. W
         # itself is the third output (not differentiable), for setup_context to save.
         return W[:, 4].t(), W[0, :4].t(), W
@@ -321,12 +318,11 @@ class _Sym4EighMin(torch.autograd.Function):
         ctx.set_materialize_grads(False)
 
     @staticmethod
-    def vmap(info, in_dims: tuple, A: Tensor, gap_eps: float, rounds: int, use_eigh: bool):
+    def vmap(info, in_dims: tuple, A: Tensor, gap_eps: float, rounds: int):
         """torch.func.vmap rule: the vmapped dimension joins the batch of matrices (one call)."""
-        A = A.expand(info.batch_size, *A.shape) if in_dims[0] is None else A.movedim(in_dims[0], 0)
-        n = A.shape[0]
-        eigenvalues, q, W = _Sym4EighMin.apply(A.reshape(-1, 4, 4), gap_eps, rounds, use_eigh)
-        split = (n, -1)
+        A = _vmap_batch_first(info, in_dims, A)
+        eigenvalues, q, W = _Sym4EighMin.apply(A.reshape(-1, 4, 4), gap_eps, rounds)
+        split = (A.shape[0], -1)
         outputs = (eigenvalues.unflatten(0, split), q.unflatten(0, split), W.unflatten(-1, split))
         return outputs, (0, 0, 2)
 
@@ -347,15 +343,75 @@ class _Sym4EighMin(torch.autograd.Function):
             G = u.unsqueeze(1) * V[0].neg().unsqueeze(0)  # -u q^T
         if grad_l is not None:
             Vg = V * grad_l.t().unsqueeze(1)  # g_i v_i
+            # Out of place: addcmul_ has no torch.func.vmap batching rule (per-sample fallback).
             if G is None:
                 G = Vg[0].unsqueeze(1) * V[0].unsqueeze(0)
             else:
-                G.addcmul_(Vg[0].unsqueeze(1), V[0].unsqueeze(0))
+                G = torch.addcmul(G, Vg[0].unsqueeze(1), V[0].unsqueeze(0))
             for i in range(1, 4):
-                G.addcmul_(Vg[i].unsqueeze(1), V[i].unsqueeze(0))  # + g_i v_i v_i^T
+                G = torch.addcmul(G, Vg[i].unsqueeze(1), V[i].unsqueeze(0))  # + g_i v_i v_i^T
         # (G + G^T) / 2: exactly symmetric.
         G = torch.add(G, G.transpose(0, 1)).mul_(0.5)
-        return G.permute(2, 0, 1), None, None, None
+        return G.permute(2, 0, 1), None, None
+
+
+def _vmap_batch_first(info, in_dims: tuple, A: Tensor) -> Tensor:
+    """A with the vmapped dimension first (expanded when A is not vmapped), for a vmap rule."""
+    if in_dims[0] is None:
+        return A.expand(info.batch_size, *A.shape)
+    return A.movedim(in_dims[0], 0)
+
+
+class _Sym4EighMinLapack(torch.autograd.Function):
+    """As `_Sym4EighMin` (same outputs, same backward formula and gap clamp), forward by
+    torch.linalg.eigh: the path of small batches (`method="eigh"`, or "auto" below EIGH_BELOW).
+
+    Everything stays in eigh's (B, 4, 4) layout (columns of V are the eigenvectors): the forward
+    only fixes the sign of q, the backward is a handful of batched products, so the fixed cost
+    per call stays close to that of eigh with plain autograd (issue 16: never slower at any B).
+    """
+
+    @staticmethod
+    def forward(A: Tensor, gap_eps: float) -> tuple[Tensor, ...]:
+        eigenvalues, V = torch.linalg.eigh(A, UPLO="U")
+        q = V[..., 0]  # (B, 4) view: canonical sign in place, so V stays the saved basis
+        q.mul_(_canonical_sign(q.t()).t())
+        return eigenvalues, q, V
+
+    @staticmethod
+    def setup_context(ctx, inputs: tuple, output: tuple[Tensor, ...]) -> None:
+        ctx.mark_non_differentiable(output[2])
+        ctx.save_for_backward(output[0], output[2])
+        ctx.gap_eps = inputs[1]
+        ctx.set_materialize_grads(False)
+
+    @staticmethod
+    def vmap(info, in_dims: tuple, A: Tensor, gap_eps: float):
+        """torch.func.vmap rule: the vmapped dimension joins the batch of matrices (one call)."""
+        A = _vmap_batch_first(info, in_dims, A)
+        outputs = _Sym4EighMinLapack.apply(A.reshape(-1, 4, 4), gap_eps)
+        split = (A.shape[0], -1)
+        return tuple(x.unflatten(0, split) for x in outputs), (0, 0, 0)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_l: Tensor | None, grad_q: Tensor | None, _grad_V: None = None):
+        lam, V = ctx.saved_tensors  # (B, 4), (B, 4, 4)
+        if grad_q is None and grad_l is None:
+            return None, None
+        G = None  # the gradient before symmetrisation, (B, 4, 4); all out of place (vmap)
+        if grad_q is not None:
+            norm = lam.abs().amax(-1, keepdim=True)  # ||A||_2, (B, 1)
+            floor = torch.add(torch.eq(norm, 0).to(V.dtype), norm, alpha=ctx.gap_eps)
+            gaps = torch.maximum(lam[:, 1:] - lam[:, :1], floor)  # (B, 3)
+            upper = V[..., 1:]  # v2, v3, v4 as columns, (B, 4, 3)
+            coef = torch.matmul(grad_q.unsqueeze(-2), upper).div(gaps.unsqueeze(-2))  # (B, 1, 3)
+            u = torch.matmul(upper, coef.mT)  # (A - l1 I)^+ g_q, (B, 4, 1)
+            G = u * V[..., 0].neg().unsqueeze(-2)  # -u q^T
+        if grad_l is not None:
+            Vg = V * grad_l.unsqueeze(-2)  # columns g_i v_i
+            G = torch.matmul(Vg, V.mT) if G is None else torch.baddbmm(G, Vg, V.mT)
+        return torch.add(G, G.mT).mul(0.5), None  # exactly symmetric
 
 
 @float32_under_autocast
@@ -369,9 +425,10 @@ def sym4_eigh_min(
 ) -> tuple[Tensor, Tensor]:
     """Eigenvalues and minimum eigenvector of symmetric 4x4 matrices (a fast `eigh` for the A head).
 
-    Differentiable: the analytic backward of `_Sym4EighMin` (paper eq. 9 for q, v_i^T dA v_i for
-    the eigenvalues), finite for repeated eigenvalues. Device-agnostic; no host synchronisation
-    when `check=False`. Every output element depends on its own matrix only. Works under
+    Differentiable: the analytic backward of `_Sym4EighMin` (`_Sym4EighMinLapack` on the eigh
+    path; paper eq. 9 for q, v_i^T dA v_i for the eigenvalues), finite for repeated eigenvalues.
+    Device-agnostic; no host synchronisation when `check=False`. Every output element depends on
+    its own matrix only. Works under
     torch.func.vmap/grad and torch.compile (with `check=False`). Under autocast (CPU or CUDA)
     float16/bfloat16 input is cast to float32 and the solver runs in float32 with autocast off.
 
@@ -399,7 +456,7 @@ def sym4_eigh_min(
         eigenvalues: (..., 4), ascending, in A's dtype (float32 under autocast).
         q: (..., 4), the unit eigenvector of the smallest eigenvalue as a quaternion (x, y, z, w),
             sign exactly as `quat_canonical` (w > 0; ties by the first nonzero of w, x, y, z).
-            Both are (strided) views of one buffer that the backward keeps.
+            Both are kept by the backward (q is a strided view of the saved eigenvectors).
 
     Accuracy (against float64 torch.linalg.eigh; guaranteed by tests/test_eigen4.py, measured
     values in the module docstring): float32: rotation angle of q <= 1e-3 degrees where
@@ -425,5 +482,8 @@ def sym4_eigh_min(
     A = A.reshape(-1, 4, 4)
     use_eigh = method == "eigh" or (method == "auto" and A.shape[0] < EIGH_BELOW)
     n_rounds = DEFAULT_ROUNDS[A.dtype] if rounds is None else int(rounds)
-    eigenvalues, q, _ = _Sym4EighMin.apply(A, float(gap_eps), n_rounds, use_eigh)
+    if use_eigh:
+        eigenvalues, q, _ = _Sym4EighMinLapack.apply(A, float(gap_eps))
+    else:
+        eigenvalues, q, _ = _Sym4EighMin.apply(A, float(gap_eps), n_rounds)
     return eigenvalues.reshape(*batch, 4), q.reshape(*batch, 4)
