@@ -36,8 +36,8 @@ def correlation(first: Tensor, second: Tensor, radius: int) -> Tensor:
         radius: r >= 0, the largest displacement in feature pixels along each axis.
 
     Returns:
-        (..., (2r + 1)^2, H, W). One shifted product per displacement (2r + 1)^2 of them, each
-        over the whole batch: no copy of `second` per displacement.
+        (..., (2r + 1)^2, H, W): one shifted product per displacement, each over the whole
+        batch (a view of the padded `second`, not a copy).
     """
     if first.shape != second.shape or first.ndim < 3:
         raise ValueError(
@@ -88,10 +88,14 @@ class PairCorrelationNet(nn.Module):
             even, each frame has half.
         image_size: S of the S x S input (`${data.image_size}`).
         channels: widths of the frame encoder's stages (each halves the resolution).
-        radius: largest displacement of the cost volume, in feature pixels (S = 64 with one stage:
-            32 x 32 features, radius 4 covers shifts of up to 8 input pixels).
+        radius: largest displacement of the cost volume, in feature pixels (S = 64 with two
+            stages: 16 x 16 features, radius 2 covers shifts of up to 8 input pixels, about
+            12 degrees of yaw on the 80-degree KITTI-format demo frames).
         head_channels: widths of the stride-2 convolutions on the cost volume.
         hidden: width of the hidden linear layer.
+
+    The defaults are the demo recipe (`experiment=kitti_ood_demo`, `mav_ood_demo`; measured in
+    docs/results.md, issue 15): about 1.6x the step time of the demo-sized `PairCNN` on a CPU.
 
     Input (B, in_channels, S, S); output (B, out_dim).
     """
@@ -103,9 +107,9 @@ class PairCorrelationNet(nn.Module):
         out_dim: int,
         in_channels: int = 6,
         image_size: int = 224,
-        channels: Sequence[int] = (32,),
-        radius: int = 4,
-        head_channels: Sequence[int] = (64, 128, 128, 128),
+        channels: Sequence[int] = (16, 32),
+        radius: int = 2,
+        head_channels: Sequence[int] = (64, 128, 128),
         hidden: int = 256,
     ) -> None:
         super().__init__()
