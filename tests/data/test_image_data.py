@@ -310,9 +310,11 @@ def test_corrupted_test_batches_are_erased_and_flagged(tmp_path):
 
 
 @pytest.mark.slow
-def test_the_kitti_demo_carries_the_rotation_signal(tmp_path, make_cfg):
-    """The pair CNN trained on the KITTI-format demo (experiment=kitti_ood_demo, A head) beats
-    "predict identity" on the held-out sequence: the rendered frames carry the rotation."""
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_kitti_demo_learner_beats_half_the_identity_error(tmp_path, make_cfg, seed):
+    """The demo recipe (experiment=kitti_ood_demo: the correlation pair network, A head) trained on
+    the KITTI-format demo written here reaches under half the error of "predict identity" on the
+    held-out sequence, for the model and data seeds 0 and 1 (issue 15; docs/results.md)."""
     from rotlearn.cli.train import train
     from rotlearn.data.kitti_demo import write_kitti_demo
 
@@ -322,10 +324,12 @@ def test_the_kitti_demo_carries_the_rotation_signal(tmp_path, make_cfg):
         "rep=a",
         "~callbacks.ood",  # the rotation error only
         f"data.root={root}",
+        f"seed={seed}",
+        f"data.seed={seed}",
         "trainer.enable_progress_bar=false",
     ]
     metrics = train(make_cfg(overrides))
-    assert metrics["test/err_mean"] < 0.85 * metrics["test/identity_err_mean"]
+    assert metrics["test/err_mean"] < 0.5 * metrics["test/identity_err_mean"]
 
 
 def test_the_ood_source_protocol_serves_chosen_pairs_flags_and_noise(tmp_path):

@@ -53,6 +53,7 @@ COMPONENTS: dict[str, dict[str, str]] = {
     "net": {
         "pointnet": "rotlearn.nets.PointNet",
         "pair_cnn": "rotlearn.nets.PairCNN",
+        "pair_corr": "rotlearn.nets.PairCorrelationNet",
         "autoencoder": "rotlearn.nets.ConvAutoEncoder",
     },
     "loss": {

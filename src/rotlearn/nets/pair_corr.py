@@ -1,0 +1,131 @@
+"""A siamese pair network with a correlation (cost-volume) layer, for small relative rotations.
+
+Beyond the paper (issue 15): a rotation of about a degree moves a 64-pixel image by about a pixel,
+which the stacked-pair CNN (`PairCNN`) must discover from scratch. Here each frame goes through one
+shared encoder, and the correlation of frame 1's features with frame 2's features shifted by every
+displacement in a small window (the cost volume of optical-flow networks, e.g. FlowNetC, PWC-Net)
+makes the image motion explicit: at each feature pixel, which shift matches best. A small CNN and
+MLP regress the head's numbers from the cost volume; its spatial layout is kept to the end, so
+yaw / pitch (a shift) and roll (a rotation about the image centre) are told apart.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from rotlearn.nets.pair_cnn import conv_encoder, encoded_size
+from rotlearn.nets.pointnet import mlp
+from rotlearn.trust import config_target
+
+__all__ = ["PairCorrelationNet", "correlation", "frame_encoder"]
+
+
+def correlation(first: Tensor, second: Tensor, radius: int) -> Tensor:
+    """The cost volume of two feature maps over a (2 radius + 1)^2 displacement window.
+
+    out[..., k, y, x] = mean_c first[..., c, y, x] * second[..., c, y + dy, x + dx] for the
+    displacement (dy, dx) = (k // (2r + 1) - r, k % (2r + 1) - r); `second` is zero outside.
+
+    Args:
+        first, second: (..., C, H, W) feature maps of the same shape (any batch shape).
+        radius: r >= 0, the largest displacement in feature pixels along each axis.
+
+    Returns:
+        (..., (2r + 1)^2, H, W): one shifted product per displacement, each over the whole
+        batch (a view of the padded `second`, not a copy).
+    """
+    if first.shape != second.shape or first.ndim < 3:
+        raise ValueError(
+            f"need two (..., C, H, W) maps of one shape, got {tuple(first.shape)} and "
+            f"{tuple(second.shape)}"
+        )
+    if radius < 0:
+        raise ValueError(f"radius must be >= 0, got {radius}")
+    height, width = first.shape[-2:]
+    padded = F.pad(second, (radius, radius, radius, radius))
+    side = range(2 * radius + 1)
+    costs = [
+        (first * padded[..., dy : dy + height, dx : dx + width]).mean(-3)
+        for dy, dx in itertools.product(side, side)
+    ]
+    return torch.stack(costs, dim=-3)
+
+
+def frame_encoder(in_channels: int, channels: Sequence[int]) -> nn.Sequential:
+    """Per width in `channels`: [Conv2d(k3, s2, p1), BatchNorm2d, PReLU, Conv2d(k3, s1, p1),
+    BatchNorm2d, PReLU]: each stage halves H and W (rounding up).
+    Input (B, in_channels, H, W); output (B, channels[-1], H', W')."""
+    layers: list[nn.Module] = []
+    for n_in, n_out in itertools.pairwise([in_channels, *channels]):
+        layers += [
+            nn.Conv2d(n_in, n_out, 3, stride=2, padding=1),
+            nn.BatchNorm2d(n_out),
+            nn.PReLU(),
+            nn.Conv2d(n_out, n_out, 3, stride=1, padding=1),
+            nn.BatchNorm2d(n_out),
+            nn.PReLU(),
+        ]
+    return nn.Sequential(*layers)
+
+
+@config_target
+class PairCorrelationNet(nn.Module):
+    """Stacked image pair -> `out_dim` numbers through a siamese encoder and a cost volume.
+
+    frame 1, frame 2 (the two halves of the stacked channels) -> the same `frame_encoder`
+    (`channels`: stride 2^len(channels)) -> `correlation` over displacements of up to `radius`
+    feature pixels -> LeakyReLU(0.1) -> `conv_encoder` (`head_channels`, stride-2 convolutions)
+    -> flatten -> Linear `hidden` -> PReLU -> Linear `out_dim`.
+
+    Args:
+        out_dim: size of the representation (`${rep.out_dim}`).
+        in_channels: channels of the stacked pair (`${data.pair_channels}`: 6 KITTI, 2 MAV);
+            even, each frame has half.
+        image_size: S of the S x S input (`${data.image_size}`).
+        channels: widths of the frame encoder's stages (each halves the resolution).
+        radius: largest displacement of the cost volume, in feature pixels (S = 64 with two
+            stages: 16 x 16 features, radius 2 covers shifts of up to 8 input pixels, about
+            12 degrees of yaw on the 80-degree KITTI-format demo frames).
+        head_channels: widths of the stride-2 convolutions on the cost volume.
+        hidden: width of the hidden linear layer.
+
+    The defaults are the demo recipe (`experiment=kitti_ood_demo`, `mav_ood_demo`; measured in
+    docs/results.md, issue 15): about 1.6x the step time of the demo-sized `PairCNN` on a CPU.
+
+    Input (B, in_channels, S, S); output (B, out_dim).
+    """
+
+    channel_axis = 1  # inputs are (B, C, S, S) images (the inference API checks this)
+
+    def __init__(
+        self,
+        out_dim: int,
+        in_channels: int = 6,
+        image_size: int = 224,
+        channels: Sequence[int] = (16, 32),
+        radius: int = 2,
+        head_channels: Sequence[int] = (64, 128, 128),
+        hidden: int = 256,
+    ) -> None:
+        super().__init__()
+        if in_channels % 2 or in_channels < 2:
+            raise ValueError(f"in_channels must be even (two stacked frames), got {in_channels}")
+        if isinstance(radius, bool) or not isinstance(radius, int) or radius < 0:
+            raise ValueError(f"radius must be an integer >= 0, got {radius!r}")
+        self.in_channels, self.image_size, self.radius = in_channels, image_size, radius
+        self.encoder = frame_encoder(in_channels // 2, channels)
+        self.mixer = conv_encoder((2 * radius + 1) ** 2, head_channels)
+        side = encoded_size(encoded_size(image_size, len(channels)), len(head_channels))
+        self.regressor = mlp([head_channels[-1] * side**2, hidden, out_dim])
+
+    def forward(self, pairs: Tensor) -> Tensor:
+        batch, frame = pairs.shape[0], self.in_channels // 2
+        frames = pairs.reshape(batch * 2, frame, *pairs.shape[-2:])  # both frames, one pass
+        features = self.encoder(frames).unflatten(0, (batch, 2))
+        cost = correlation(features[:, 0], features[:, 1], self.radius)
+        return self.regressor(self.mixer(F.leaky_relu(cost, 0.1)).flatten(1))
