@@ -14,6 +14,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
+from scipy.spatial.transform import Rotation
 
 from rotlearn.geometry import so3_exp
 from rotlearn.paths import config_dir
@@ -66,6 +67,25 @@ def checkpoint_epoch(path: Path) -> int:
 def gen(seed: int) -> torch.Generator:
     """A CPU random generator seeded with `seed` (each test draws from its own stream)."""
     return torch.Generator().manual_seed(seed)
+
+
+def randn(seed: int, shape: tuple[int, ...], dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    """Standard normal draws from `gen(seed)`."""
+    return torch.randn(shape, generator=gen(seed), dtype=dtype)
+
+
+def scipy_rotmats(seed: int, n: int) -> torch.Tensor:
+    """Haar-random rotations from scipy (independent of rotlearn), float64."""
+    return torch.from_numpy(Rotation.random(n, random_state=seed).as_matrix())
+
+
+def assert_rotation(R: torch.Tensor, atol: float) -> None:
+    """R (..., 3, 3) is orthonormal with determinant 1, to `atol`."""
+    eye = torch.eye(3, dtype=R.dtype).expand_as(R)
+    torch.testing.assert_close(R.transpose(-1, -2) @ R, eye, atol=atol, rtol=0)
+    torch.testing.assert_close(
+        torch.linalg.det(R), torch.ones(R.shape[:-2], dtype=R.dtype), atol=atol, rtol=0
+    )
 
 
 def config_options(group: str) -> list[str]:

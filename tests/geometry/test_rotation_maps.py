@@ -8,7 +8,6 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from scipy.spatial.transform import Rotation
 
 from rotlearn.geometry import (
     a_from_quat,
@@ -23,30 +22,13 @@ from rotlearn.geometry import (
     vec_from_a,
 )
 from rotlearn.geometry.eigen4 import METHODS
-from tests.conftest import gen
+from tests.conftest import assert_rotation, gen, randn, scipy_rotmats
 
 DTYPES = [torch.float32, torch.float64]
 ATOL = {torch.float32: 1e-5, torch.float64: 1e-12}
 F64 = torch.float64
 # theta of the identity matrix: adding c * EYE_VEC to theta adds c I to A (eq. 8)
 EYE_VEC = torch.tensor([1.0, 0, 0, 0, 1, 0, 0, 1, 0, 1], dtype=F64)
-
-
-def randn(seed: int, shape: tuple[int, ...], dtype: torch.dtype = F64) -> torch.Tensor:
-    return torch.randn(shape, generator=gen(seed), dtype=dtype)
-
-
-def scipy_rotmats(seed: int, n: int) -> torch.Tensor:
-    """Haar-random rotations from scipy (independent of rotlearn), float64."""
-    return torch.from_numpy(Rotation.random(n, random_state=seed).as_matrix())
-
-
-def assert_rotation(R: torch.Tensor, atol: float) -> None:
-    eye = torch.eye(3, dtype=R.dtype).expand_as(R)
-    torch.testing.assert_close(R.transpose(-1, -2) @ R, eye, atol=atol, rtol=0)
-    torch.testing.assert_close(
-        torch.linalg.det(R), torch.ones(R.shape[:-2], dtype=R.dtype), atol=atol, rtol=0
-    )
 
 
 # ---------------------------------------------------------------------------------------------

@@ -7,7 +7,6 @@ import re
 
 import pytest
 import torch
-from scipy.spatial.transform import Rotation
 
 from rotlearn.geometry import (
     a_from_quat,
@@ -29,29 +28,12 @@ from rotlearn.heads import (
     a_min_eigvec,
     make_head,
 )
-from tests.conftest import gen
+from tests.conftest import assert_rotation, randn, scipy_rotmats
 
 DTYPES = [torch.float32, torch.float64]
 ATOL = {torch.float32: 1e-5, torch.float64: 1e-12}
 F64 = torch.float64
 HEAD_NAMES = sorted(HEADS)
-
-
-def randn(seed: int, shape: tuple[int, ...], dtype: torch.dtype = F64) -> torch.Tensor:
-    return torch.randn(shape, generator=gen(seed), dtype=dtype)
-
-
-def scipy_rotmats(seed: int, n: int) -> torch.Tensor:
-    """Haar-random rotations from scipy (independent of rotlearn), float64."""
-    return torch.from_numpy(Rotation.random(n, random_state=seed).as_matrix())
-
-
-def assert_rotation(R: torch.Tensor, atol: float) -> None:
-    eye = torch.eye(3, dtype=R.dtype).expand_as(R)
-    torch.testing.assert_close(R.transpose(-1, -2) @ R, eye, atol=atol, rtol=0)
-    torch.testing.assert_close(
-        torch.linalg.det(R), torch.ones(R.shape[:-2], dtype=R.dtype), atol=atol, rtol=0
-    )
 
 
 def test_registry_holds_the_four_heads():
