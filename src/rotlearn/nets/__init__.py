@@ -2,7 +2,7 @@
 
 from rotlearn.nets.autoencoder import ConvAutoEncoder
 from rotlearn.nets.pair_cnn import PairCNN, conv_encoder, encoded_size
-from rotlearn.nets.pair_corr import PairCorrelationNet, correlation, frame_encoder
+from rotlearn.nets.pair_corr import PairCorrelationNet, correlation
 from rotlearn.nets.pointnet import PointNet, mlp
 from rotlearn.nets.pooling import LinearMaxPool, linear_max
 
@@ -15,7 +15,6 @@ __all__ = [
     "conv_encoder",
     "correlation",
     "encoded_size",
-    "frame_encoder",
     "linear_max",
     "mlp",
 ]

@@ -13,16 +13,19 @@ from rotlearn.trust import config_target
 __all__ = ["PairCNN", "conv_encoder", "encoded_size"]
 
 
-def conv_encoder(in_channels: int, channels: Sequence[int]) -> nn.Sequential:
+def conv_encoder(in_channels: int, channels: Sequence[int], refine: bool = False) -> nn.Sequential:
     """[Conv2d(k3, s2, p1), BatchNorm2d, PReLU] per width in `channels`: each halves H and W
-    (rounding up). Input (B, in_channels, H, W); output (B, channels[-1], H', W')."""
+    (rounding up); with `refine`, each stage adds [Conv2d(k3, s1, p1), BatchNorm2d, PReLU] at its
+    width. Input (B, in_channels, H, W); output (B, channels[-1], H', W')."""
     layers: list[nn.Module] = []
     for n_in, n_out in itertools.pairwise([in_channels, *channels]):
-        layers += [
-            nn.Conv2d(n_in, n_out, 3, stride=2, padding=1),
-            nn.BatchNorm2d(n_out),
-            nn.PReLU(),
-        ]
+        strides = (2, 1) if refine else (2,)
+        for n, stride in zip((n_in, n_out), strides, strict=False):
+            layers += [
+                nn.Conv2d(n, n_out, 3, stride=stride, padding=1),
+                nn.BatchNorm2d(n_out),
+                nn.PReLU(),
+            ]
     return nn.Sequential(*layers)
 
 

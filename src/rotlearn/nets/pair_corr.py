@@ -22,7 +22,7 @@ from rotlearn.nets.pair_cnn import conv_encoder, encoded_size
 from rotlearn.nets.pointnet import mlp
 from rotlearn.trust import config_target
 
-__all__ = ["PairCorrelationNet", "correlation", "frame_encoder"]
+__all__ = ["PairCorrelationNet", "correlation"]
 
 
 def correlation(first: Tensor, second: Tensor, radius: int) -> Tensor:
@@ -56,31 +56,15 @@ def correlation(first: Tensor, second: Tensor, radius: int) -> Tensor:
     return torch.stack(costs, dim=-3)
 
 
-def frame_encoder(in_channels: int, channels: Sequence[int]) -> nn.Sequential:
-    """Per width in `channels`: [Conv2d(k3, s2, p1), BatchNorm2d, PReLU, Conv2d(k3, s1, p1),
-    BatchNorm2d, PReLU]: each stage halves H and W (rounding up).
-    Input (B, in_channels, H, W); output (B, channels[-1], H', W')."""
-    layers: list[nn.Module] = []
-    for n_in, n_out in itertools.pairwise([in_channels, *channels]):
-        layers += [
-            nn.Conv2d(n_in, n_out, 3, stride=2, padding=1),
-            nn.BatchNorm2d(n_out),
-            nn.PReLU(),
-            nn.Conv2d(n_out, n_out, 3, stride=1, padding=1),
-            nn.BatchNorm2d(n_out),
-            nn.PReLU(),
-        ]
-    return nn.Sequential(*layers)
-
-
 @config_target
 class PairCorrelationNet(nn.Module):
     """Stacked image pair -> `out_dim` numbers through a siamese encoder and a cost volume.
 
-    frame 1, frame 2 (the two halves of the stacked channels) -> the same `frame_encoder`
-    (`channels`: stride 2^len(channels)) -> `correlation` over displacements of up to `radius`
-    feature pixels -> LeakyReLU(0.1) -> `conv_encoder` (`head_channels`, stride-2 convolutions)
-    -> flatten -> Linear `hidden` -> PReLU -> Linear `out_dim`.
+    frame 1, frame 2 (the two halves of the stacked channels) -> the same frame encoder
+    (`conv_encoder(..., refine=True)`: per width in `channels` a stride-2 and a stride-1
+    convolution, stride 2^len(channels) in all) -> `correlation` over displacements of up to
+    `radius` feature pixels -> LeakyReLU(0.1) -> `conv_encoder` (`head_channels`, stride-2
+    convolutions) -> flatten -> Linear `hidden` -> PReLU -> Linear `out_dim`.
 
     Args:
         out_dim: size of the representation (`${rep.out_dim}`).
@@ -118,7 +102,7 @@ class PairCorrelationNet(nn.Module):
         if isinstance(radius, bool) or not isinstance(radius, int) or radius < 0:
             raise ValueError(f"radius must be an integer >= 0, got {radius!r}")
         self.in_channels, self.image_size, self.radius = in_channels, image_size, radius
-        self.encoder = frame_encoder(in_channels // 2, channels)
+        self.encoder = conv_encoder(in_channels // 2, channels, refine=True)
         self.mixer = conv_encoder((2 * radius + 1) ** 2, head_channels)
         side = encoded_size(encoded_size(image_size, len(channels)), len(head_channels))
         self.regressor = mlp([head_channels[-1] * side**2, hidden, out_dim])
