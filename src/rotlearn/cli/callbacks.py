@@ -21,6 +21,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
 from rotlearn.io import read_json, write_json_atomic
+from rotlearn.logs import logger_at_least
 
 __all__ = [
     "JobStatusCallback",
@@ -174,22 +175,9 @@ class ReportCallback(Callback):
         from rotlearn.cli.report import make_report
 
         try:
-            with _tensorboard_reader_quiet():
+            with logger_at_least("tensorboard"):
                 files = make_report(config.hydra.sweep.dir)
         except FileNotFoundError as exc:
             log.warning("no report: %s", exc)
             return
         log.info("report: %s", files["report"])
-
-
-@contextlib.contextmanager
-def _tensorboard_reader_quiet():
-    """TensorBoard's event reader logs, at INFO, every event file it moves on from ("Directory
-    watcher advancing ...", "No path found after ..."): at WARNING while the report reads."""
-    logger = logging.getLogger("tensorboard")
-    level = logger.level
-    logger.setLevel(max(level, logging.WARNING))
-    try:
-        yield
-    finally:
-        logger.setLevel(level)

@@ -3,9 +3,7 @@ first image of each pair; `fit_autoencoder` trains one with a Lightning Trainer.
 
 from __future__ import annotations
 
-import contextlib
 import functools
-import logging
 import os
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -20,6 +18,7 @@ from rotlearn.checkpoint import load_run
 from rotlearn.errors import ConfigValueError
 from rotlearn.lit.finite import FINITE_CHECK_EVERY, FiniteChecks
 from rotlearn.lit.state import RunStateHooks
+from rotlearn.logs import logger_at_least
 from rotlearn.nets.autoencoder import ConvAutoEncoder
 from rotlearn.trust import config_target
 
@@ -173,7 +172,8 @@ def fit_autoencoder(
     )
     module.run_config = {"task": "autoencoder", "net": dict(net_config)}
     accelerator = {"cuda": "gpu"}.get(device.type, device.type)
-    with _lightning_info_quiet():  # the run's own trainer has said it: GPU available, ...
+    # the run's own trainer has said it: GPU available, ...
+    with logger_at_least("lightning.pytorch.utilities.rank_zero"):
         trainer = _nested_trainer(accelerator, device, epochs, root_dir)
         outer = datamodule.trainer  # fit attaches the datamodule to its own trainer: give it back
         try:
@@ -181,18 +181,6 @@ def fit_autoencoder(
         finally:
             datamodule.trainer = outer
     return module.eval()
-
-
-@contextlib.contextmanager
-def _lightning_info_quiet():
-    """Lightning's INFO lines (devices found, why fitting stopped) at WARNING meanwhile."""
-    logger = logging.getLogger("lightning.pytorch.utilities.rank_zero")
-    level = logger.level
-    logger.setLevel(max(level, logging.WARNING))
-    try:
-        yield
-    finally:
-        logger.setLevel(level)
 
 
 def _nested_trainer(
