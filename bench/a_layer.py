@@ -7,7 +7,7 @@ Every layer maps its raw network output to a rotation, forward and backward, flo
 - eigh: 10 numbers -> a_from_vec -> torch.linalg.eigh -> V[..., 0], plain autograd (NaN gradients
   at repeated eigenvalues; no canonical sign, the cheapest eigh can be);
 - roma: roma.symmatrixvec_to_unitquat (eigh inside; skipped with a note when `import roma` fails);
-- sixd: rotlearn.heads.sixd_to_rotmat on 6 numbers; svd9d: special_orthogonalize on 9 numbers.
+- sixd: rotlearn.geometry.sixd_to_rotmat on 6 numbers; svd9d: special_orthogonalize on 9 numbers.
 The backward is that of a fixed random linear function of the output (autograd.grad to the raw
 input). The ratio columns are eigh / rotlearn and roma / rotlearn (> 1: rotlearn is faster).
 
@@ -38,8 +38,8 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from rotlearn.geometry import a_from_vec, sixd_to_rotmat, special_orthogonalize
 from rotlearn.geometry.eigen4 import EIGH_BELOW, sym4_eigh_min
-from rotlearn.heads import a_from_vec, sixd_to_rotmat, special_orthogonalize
 from rotlearn.io import write_json_atomic
 from timing import machine
 

@@ -4,9 +4,9 @@ Layers (each on random inputs of its own shape):
 - eigen4: rotlearn.geometry.eigen4.sym4_eigh_min on (B, 4, 4) symmetric A (check=False), outputs
   the 4 eigenvalues and the canonical minimum eigenvector q;
 - eigh: the same outputs from torch.linalg.eigh (eigenvalues, quat_canonical(V[..., 0]));
-- sixd: rotlearn.heads.sixd_to_rotmat on (B, 6);
+- sixd: rotlearn.geometry.sixd_to_rotmat on (B, 6);
 - quat: rotlearn.geometry.quat_normalize on (B, 4);
-- svd9d: rotlearn.heads.special_orthogonalize on (B, 3, 3).
+- svd9d: rotlearn.geometry.special_orthogonalize on (B, 3, 3).
 The backward pass is that of a random linear function of every output (autograd.grad).
 
 Then a head-only training step (nn.Linear(64, out_dim), batch 4096, Adam, chordal loss
@@ -41,9 +41,16 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-from rotlearn.geometry import chordal_distance_sq, quat_canonical, quat_normalize, quat_to_rotmat
+from rotlearn.geometry import (
+    a_from_vec,
+    chordal_distance_sq,
+    quat_canonical,
+    quat_normalize,
+    quat_to_rotmat,
+    sixd_to_rotmat,
+    special_orthogonalize,
+)
 from rotlearn.geometry.eigen4 import sym4_eigh_min
-from rotlearn.heads import a_from_vec, sixd_to_rotmat, special_orthogonalize
 from rotlearn.io import write_json_atomic
 
 RESULTS = Path(__file__).resolve().parent / "results"

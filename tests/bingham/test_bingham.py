@@ -19,8 +19,8 @@ from scipy import integrate, special
 
 from rotlearn import bingham as bh
 from rotlearn.errors import ConfigValueError
-from rotlearn.geometry import quat_to_rotmat
-from rotlearn.heads import a_from_quat, a_min_eigvec, make_head
+from rotlearn.geometry import a_from_quat, quat_to_rotmat
+from rotlearn.heads import a_min_eigvec, make_head
 from rotlearn.losses import BinghamNLLLoss
 from tests.conftest import gen
 

@@ -7,15 +7,6 @@ subclass decorated with `@register_head`) and one `conf/rep/<name>.yaml`; nothin
 import importlib
 import pkgutil
 
-# The maps the heads use live in rotlearn.geometry (their one home); they are re-exported here so
-# that code written against earlier versions (`from rotlearn.heads import a_from_vec`) still runs.
-from rotlearn.geometry import (
-    a_from_quat,
-    a_from_vec,
-    sixd_to_rotmat,
-    special_orthogonalize,
-    vec_from_a,
-)
 from rotlearn.heads.base import (
     HEADS,
     RotationHead,
@@ -36,14 +27,9 @@ __all__ = [
     "RotationPrediction",
     "SVD9DHead",
     "SixDHead",
-    "a_from_quat",
-    "a_from_vec",
     "a_min_eigvec",
     "make_head",
     "register_head",
-    "sixd_to_rotmat",
-    "special_orthogonalize",
-    "vec_from_a",
 ]
 
 for _module in pkgutil.iter_modules(__path__):  # registers every head defined in this package
