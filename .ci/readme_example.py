@@ -1,7 +1,7 @@
 """Print the Python code block under a README heading (CI runs it in a bare install).
 
 Usage: python .ci/readme_example.py README.md "Use the A layer in your own model"
-Exits 3, printing why on stderr, when the heading or its code block is absent.
+Exits 3, printing why on stderr, when the heading or its code block is absent (CI then fails).
 """
 
 import re
