@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import logging
 import math
 import os
 import subprocess
@@ -276,21 +275,3 @@ def test_a_normal_run_prints_no_library_noise_and_fills_the_hparams_view(tmp_pat
     metrics = json.loads((run / "metrics.json").read_text())
     err_vs_identity = events.Scalars("test/err_vs_identity")[-1].value
     assert err_vs_identity == pytest.approx(metrics["test/err_vs_identity"], rel=1e-6)
-
-
-def test_the_sweep_report_reads_event_files_without_tensorboards_info_lines(tmp_path, caplog):
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
-    from torch.utils.tensorboard import SummaryWriter
-
-    from rotlearn.cli.callbacks import _tensorboard_reader_quiet
-
-    for step in range(2):  # two event files, as fitting then testing leave them
-        with SummaryWriter(tmp_path, filename_suffix=f".{step}") as writer:
-            writer.add_scalar("val/err_mean", float(step), step)
-    with caplog.at_level(logging.INFO), _tensorboard_reader_quiet():
-        events = EventAccumulator(str(tmp_path)).Reload()
-    assert len(events.Scalars("val/err_mean")) == 2
-    assert not [r for r in caplog.records if r.name.startswith("tensorboard")]
-    with caplog.at_level(logging.INFO):  # outside, TensorBoard's own level again
-        EventAccumulator(str(tmp_path)).Reload()
-    assert any("Directory watcher" in r.getMessage() for r in caplog.records)

@@ -1,0 +1,22 @@
+"""rotlearn.logs."""
+
+import logging
+
+from rotlearn.logs import logger_at_least
+
+
+def test_logger_at_least_quiets_tensorboards_reader_and_restores_its_level(tmp_path, caplog):
+    """The sweep report reads event files under logger_at_least("tensorboard"): no INFO lines."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    from torch.utils.tensorboard import SummaryWriter
+
+    for step in range(2):  # two event files, as fitting then testing leave them
+        with SummaryWriter(tmp_path, filename_suffix=f".{step}") as writer:
+            writer.add_scalar("val/err_mean", float(step), step)
+    with caplog.at_level(logging.INFO), logger_at_least("tensorboard"):
+        events = EventAccumulator(str(tmp_path)).Reload()
+    assert len(events.Scalars("val/err_mean")) == 2
+    assert not [r for r in caplog.records if r.name.startswith("tensorboard")]
+    with caplog.at_level(logging.INFO):  # outside, TensorBoard's own level again
+        EventAccumulator(str(tmp_path)).Reload()
+    assert any("Directory watcher" in r.getMessage() for r in caplog.records)
