@@ -128,19 +128,25 @@ def test_kitti_intrinsics_are_80_degrees_across_centred(kitti):
     assert (K[0, 2], K[1, 2]) == pytest.approx(((width - 1) / 2, (height - 1) / 2))
 
 
-def test_kitti_consecutive_frames_differ_by_the_written_rotation(kitti):
-    """Warping frame i by K C_21 K^-1, C_21 = R_{i+1}^T R_i from the pose file, reproduces frame
-    i + 1 far better than frame i itself does: the images and the poses agree."""
-    K = _calib(kitti, "00")["P2"].reshape(3, 4)[:, :3]
+def _kitti_consecutive_pairs(kitti):
+    """(sequence, i, frame i, frame i + 1, C_21 = R_{i+1}^T R_i from the pose file) of every
+    consecutive pair of every demo sequence."""
     for sequence in KITTI["sequences"]:
         R = _kitti_poses(kitti, sequence)[:, :, :3]
         folder = kitti / "sequences" / sequence / "image_2"
         frames = [cv2.imread(str(folder / f"{i:06d}.png")) for i in range(KITTI["frames"])]
         for i in range(KITTI["frames"] - 1):
-            C_21 = R[i + 1].T @ R[i]
-            if _angle_deg(C_21) > 0.5:
-                assert _warp_gain(frames[i], frames[i + 1], K, C_21) > 3.0, (sequence, i)
-                assert _warp_gain(frames[i], frames[i + 1], K, C_21.T) < 1.0  # the wrong way
+            yield sequence, i, frames[i], frames[i + 1], R[i + 1].T @ R[i]
+
+
+def test_kitti_consecutive_frames_differ_by_the_written_rotation(kitti):
+    """Warping frame i by K C_21 K^-1, C_21 = R_{i+1}^T R_i from the pose file, reproduces frame
+    i + 1 far better than frame i itself does: the images and the poses agree."""
+    K = _calib(kitti, "00")["P2"].reshape(3, 4)[:, :3]
+    for sequence, i, first, second, C_21 in _kitti_consecutive_pairs(kitti):
+        if _angle_deg(C_21) > 0.5:
+            assert _warp_gain(first, second, K, C_21) > 3.0, (sequence, i)
+            assert _warp_gain(first, second, K, C_21.T) < 1.0  # the wrong way
 
 
 def _perturbed(C: np.ndarray, degrees: float) -> list[np.ndarray]:
@@ -154,15 +160,10 @@ def test_kitti_frames_pin_the_rotation_to_a_quarter_degree(kitti):
     by 0.25 degrees (0.6 pixels here) about any axis: the poses are exact, not just roughly
     right."""
     K = _calib(kitti, "00")["P2"].reshape(3, 4)[:, :3]
-    for sequence in KITTI["sequences"]:
-        R = _kitti_poses(kitti, sequence)[:, :, :3]
-        folder = kitti / "sequences" / sequence / "image_2"
-        frames = [cv2.imread(str(folder / f"{i:06d}.png")) for i in range(KITTI["frames"])]
-        for i in range(KITTI["frames"] - 1):
-            C_21 = R[i + 1].T @ R[i]
-            gain = _warp_gain(frames[i], frames[i + 1], K, C_21)
-            for wrong in _perturbed(C_21, 0.25):
-                assert gain > 1.2 * _warp_gain(frames[i], frames[i + 1], K, wrong), (sequence, i)
+    for sequence, i, first, second, C_21 in _kitti_consecutive_pairs(kitti):
+        gain = _warp_gain(first, second, K, C_21)
+        for wrong in _perturbed(C_21, 0.25):
+            assert gain > 1.2 * _warp_gain(first, second, K, wrong), (sequence, i)
 
 
 def test_kitti_test_sequence_views_a_street_unseen_in_training_and_11_revisits_02(

@@ -142,18 +142,11 @@ def test_a_tiny_mav_run_scores_its_extra_sets(tmp_path, make_cfg):
     """Train on outdoor, test on outdoor; the extra set adds the indoor test pairs as OOD."""
     from rotlearn.cli.train import train
     from tests.conftest import write_mav
-    from tests.ood.test_ood import TINY_PAIRS
+    from tests.ood.test_ood import tiny_mav_overrides
 
-    root = write_mav(tmp_path / "mav", frames=30)
     run_dir = tmp_path / "run"
     overrides = [
-        "data=mav",
-        f"data.root={root}",
-        "data.resize=18",
-        "data.image_size=16",
-        "data.test_fraction=0.3",
-        *[o for o in TINY_PAIRS if not o.startswith("data")],
-        "data.num_workers=0",
+        *tiny_mav_overrides(write_mav(tmp_path / "mav", frames=30)),
         "trainer.max_epochs=1",
         "callbacks.ood.extra_sets={indoor: {test_scenes: [indoor]}}",
         "callbacks.ood.examples=2",

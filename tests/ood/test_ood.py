@@ -284,19 +284,26 @@ def test_the_report_collects_table_one(trained_run, make_cfg, tmp_path):
     assert (table["clean kept %"] <= 100).all()
 
 
-def test_unseen_scenes_count_as_ood(tmp_path, make_cfg):
-
-    root = write_mav(tmp_path / "mav", frames=30)
-    run_dir = tmp_path / "run"
-    overrides = [
+def tiny_mav_overrides(root) -> list[str]:
+    """A tiny MAV-format run (18 -> 16 pixel frames, 30 % test pairs) with TINY_PAIRS' net,
+    trainer and OOD settings, on the MAV data at `root`."""
+    return [
         "data=mav",
         f"data.root={root}",
         "data.resize=18",
         "data.image_size=16",
         "data.test_fraction=0.3",
-        "data.test_scenes=[outdoor,indoor]",
         *[o for o in TINY_PAIRS if not o.startswith("data")],
         "data.num_workers=0",
+    ]
+
+
+def test_unseen_scenes_count_as_ood(tmp_path, make_cfg):
+
+    run_dir = tmp_path / "run"
+    overrides = [
+        *tiny_mav_overrides(write_mav(tmp_path / "mav", frames=30)),
+        "data.test_scenes=[outdoor,indoor]",
         "callbacks.ood.unseen_scenes_ood=true",
     ]
     train(make_cfg(overrides, run_dir=run_dir))
