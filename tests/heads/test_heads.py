@@ -232,3 +232,18 @@ def test_a_head_is_the_one_call_map():
     pred = AHead(solver="jacobi")(raw)
     q, eigenvalues = symmatrixvec_to_quat(raw, solver="jacobi", return_eigenvalues=True)
     assert torch.equal(pred.q, q) and torch.equal(pred.eigenvalues, eigenvalues)
+
+
+def test_with_temperature_scales_the_belief_and_keeps_the_mode():
+    """A / T tempers the Bingham belief: every eigenvalue (so DT, the eigen-gap) scales by 1 / T,
+    the rotation does not move; T = 1 and heads without a belief are returned unchanged."""
+    raw = torch.randn(7, 10, dtype=torch.float64)
+    prediction = make_head("a")(raw)
+    tempered = prediction.with_temperature(2.5)
+    torch.testing.assert_close(tempered.A * 2.5, prediction.A)
+    torch.testing.assert_close(tempered.dt * 2.5, prediction.dt)
+    torch.testing.assert_close(tempered.eigengap * 2.5, prediction.eigengap)
+    assert tempered.R is prediction.R and tempered.raw is prediction.raw
+    assert prediction.with_temperature(1) is prediction
+    sixd = make_head("sixd")(torch.randn(3, 6))
+    assert sixd.with_temperature(2.0) is sixd

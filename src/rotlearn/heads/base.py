@@ -22,14 +22,18 @@ class RotationPrediction:
     Attributes:
         R: (..., 3, 3) rotation matrices.
         raw: (..., out_dim) the network output the head was given.
-        A: (..., 4, 4) symmetric matrices (A head only, paper eq. 8), else None.
-        eigenvalues: (..., 4) ascending eigenvalues of A (A head only), else None.
+        A: (..., 4, 4) symmetric matrices of the Bingham belief p(q) ~ exp(-q^T A q) (paper
+            eqs. 8, 14) for heads that define a belief, else None. The Fisher head gives the
+            Bingham matrix of its matrix Fisher belief (the same density on SO(3)).
+        eigenvalues: (..., 4) ascending eigenvalues of A (belief heads only), else None.
+        F: (..., 3, 3) matrix Fisher parameter, p(R) ~ exp(tr(F^T R)) (Fisher head only), else
+            None.
 
     Heads with a belief also give its uncertainty (`dispersion`, `dt`, `eigengap`; None for the
     others), each from the one definition in `rotlearn.bingham.descriptors`.
     """
 
-    __slots__ = ("A", "R", "_q", "eigenvalues", "raw")
+    __slots__ = ("A", "F", "R", "_q", "eigenvalues", "raw")
 
     def __init__(
         self,
@@ -38,8 +42,10 @@ class RotationPrediction:
         q: Tensor | None = None,
         A: Tensor | None = None,
         eigenvalues: Tensor | None = None,
+        F: Tensor | None = None,
     ) -> None:
         self.R, self.raw, self._q, self.A, self.eigenvalues = R, raw, q, A, eigenvalues
+        self.F = F
 
     @property
     def q(self) -> Tensor:
@@ -73,7 +79,29 @@ class RotationPrediction:
             return None if t is None else t.detach()
 
         return RotationPrediction(
-            self.R.detach(), self.raw.detach(), cut(self._q), cut(self.A), cut(self.eigenvalues)
+            self.R.detach(),
+            self.raw.detach(),
+            cut(self._q),
+            cut(self.A),
+            cut(self.eigenvalues),
+            cut(self.F),
+        )
+
+    def with_temperature(self, temperature: float | Tensor) -> RotationPrediction:
+        """The same rotations with the belief tempered: A / T, eigenvalues / T, F / T.
+
+        T > 1 widens the belief, T < 1 sharpens it (post-hoc calibration, `calibrate=true`);
+        the mode (R, q) and the network output are unchanged. Without a belief, or with T = 1
+        given as a Python number, the prediction itself is returned.
+        """
+
+        def scale(t: Tensor | None) -> Tensor | None:
+            return None if t is None else t / temperature
+
+        if self.A is None or (not isinstance(temperature, Tensor) and temperature == 1):
+            return self
+        return RotationPrediction(
+            self.R, self.raw, self._q, scale(self.A), scale(self.eigenvalues), scale(self.F)
         )
 
 
