@@ -399,7 +399,9 @@ def test_loss_on_the_a_head():
 @pytest.mark.parametrize("rep", ["quat", "sixd", "svd9d"])
 def test_loss_refuses_heads_without_a_belief(rep):
     pred = make_head(rep)(torch.randn(3, make_head(rep).out_dim, generator=gen(13)))
-    message = f"loss=bingham needs a head that defines a belief (rep=a); rep={rep} does not"
+    message = (
+        f"loss=bingham needs a head that defines a belief (rep=a or rep=fisher); rep={rep} does not"
+    )
     with pytest.raises(ValueError) as info:
         BinghamNLLLoss()(pred, {"q": pred.q})
     assert str(info.value) == message

@@ -8,6 +8,7 @@ import re
 import pytest
 import torch
 
+from rotlearn import bingham, fisher
 from rotlearn.geometry import (
     a_from_quat,
     a_from_vec,
@@ -21,6 +22,7 @@ from rotlearn.geometry import (
 from rotlearn.heads import (
     HEADS,
     AHead,
+    FisherHead,
     QuatHead,
     RotationHead,
     SixDHead,
@@ -36,13 +38,14 @@ F64 = torch.float64
 HEAD_NAMES = sorted(HEADS)
 
 
-def test_registry_holds_the_four_heads():
-    assert set(HEADS) == {"quat", "sixd", "a", "svd9d"}
-    dims = {"quat": 4, "sixd": 6, "a": 10, "svd9d": 9}
+def test_registry_holds_the_five_heads():
+    assert set(HEADS) == {"quat", "sixd", "a", "svd9d", "fisher"}
+    dims = {"quat": 4, "sixd": 6, "a": 10, "svd9d": 9, "fisher": 9}
     for name, cls in HEADS.items():
         assert issubclass(cls, RotationHead)
         assert cls.name == name and cls.out_dim == dims[name]
-    assert HEADS["a"].defines_belief and not HEADS["quat"].defines_belief
+    assert {name for name, cls in HEADS.items() if cls.defines_belief} == {"a", "fisher"}
+    assert {name for name, cls in HEADS.items() if cls.defines_fisher} == {"fisher"}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -187,6 +190,39 @@ def test_gradcheck_special_orthogonalize():
 
 
 # ---------------------------------------------------------------------------------------------
+# the matrix Fisher head
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_fisher_head_is_svd9d_with_its_belief(dtype):
+    """R is the SVD-9D rotation of the same 9 numbers; the belief is F itself, A = -K(F) and A's
+    eigenvalues, so the Bingham descriptors read F's proper singular values."""
+    raw = randn(25, (2, 6, 9), dtype)
+    pred = FisherHead()(raw)
+    F = raw.unflatten(-1, (3, 3))
+    assert torch.equal(pred.F, F) and torch.equal(pred.R, SVD9DHead()(raw).R)
+    torch.testing.assert_close(pred.A, fisher.bingham_from_fisher(F), atol=0, rtol=0)
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    torch.testing.assert_close(pred.eigenvalues, torch.linalg.eigvalsh(pred.A), atol=tol, rtol=0)
+    s = fisher.proper_svd(F)[1]
+    torch.testing.assert_close(pred.dt, -4 * s.sum(-1), atol=tol, rtol=0)
+    torch.testing.assert_close(pred.eigengap, 2 * (s[..., 1] + s[..., 2]), atol=tol, rtol=0)
+    torch.testing.assert_close(pred.dt, bingham.dt_score(pred.A), atol=10 * tol, rtol=0)
+    # tempering divides F, A and the eigenvalues alike: still one belief
+    tempered = pred.with_temperature(4.0)
+    torch.testing.assert_close(tempered.A, fisher.bingham_from_fisher(tempered.F))
+    assert tempered.R is pred.R
+
+
+def test_fisher_head_gradcheck_through_its_belief():
+    head = FisherHead()
+    raw = randn(26, (3, 9)).requires_grad_()
+    assert torch.autograd.gradcheck(lambda x: head(x).eigenvalues, (raw,))
+    assert torch.autograd.gradcheck(lambda x: head(x).A, (raw,))
+
+
+# ---------------------------------------------------------------------------------------------
 # the quaternion head
 # ---------------------------------------------------------------------------------------------
 
@@ -218,7 +254,7 @@ def test_heads_give_float32_rotations_under_autocast(name):
     raw = randn(22, (16, head.out_dim), torch.float32).to(torch.bfloat16).requires_grad_()
     with torch.autocast("cpu", dtype=torch.bfloat16):
         pred = head(raw)
-    for value in (pred.R, pred.q, pred.A, pred.eigenvalues):
+    for value in (pred.R, pred.q, pred.A, pred.eigenvalues, pred.F):
         assert value is None or value.dtype == torch.float32
     assert_rotation(pred.R.detach(), ATOL[torch.float32])
     reference = head(raw.detach().float())

@@ -60,6 +60,7 @@ COMPONENTS: dict[str, dict[str, str]] = {
         "chordal": "rotlearn.losses.ChordalLoss",
         "angular": "rotlearn.losses.AngularLoss",
         "bingham": "rotlearn.losses.BinghamNLLLoss",
+        "fisher_nll": "rotlearn.losses.FisherNLLLoss",
     },
     "callbacks.ood": {"ood": "rotlearn.ood.OODEvaluation"},
     "model": {

@@ -14,6 +14,7 @@ from rotlearn.heads.base import (
     make_head,
     register_head,
 )
+from rotlearn.heads.fisher import FisherHead
 from rotlearn.heads.quat import QuatHead
 from rotlearn.heads.sixd import SixDHead
 from rotlearn.heads.svd import SVD9DHead
@@ -22,6 +23,7 @@ from rotlearn.heads.symmetric import AHead, a_min_eigvec
 __all__ = [
     "HEADS",
     "AHead",
+    "FisherHead",
     "QuatHead",
     "RotationHead",
     "RotationPrediction",

@@ -111,6 +111,7 @@ class RotationHead(nn.Module):
     name: str = ""
     out_dim: int = 0
     defines_belief: bool = False  # True where the output parameterises a Bingham density
+    defines_fisher: bool = False  # True where it also gives a matrix Fisher parameter (F)
 
     def forward(self, raw: Tensor) -> RotationPrediction:  # pragma: no cover - interface
         raise NotImplementedError
