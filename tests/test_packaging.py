@@ -26,7 +26,14 @@ SRC = Path(rotlearn.__file__).resolve().parents[1]  # the rotlearn under test, f
 
 # Every library of an extra, by import name (lightning's own packages too).
 OPTIONAL = sorted({*EXTRAS["train"], *EXTRAS["data"], "lightning_fabric", "pytorch_lightning"})
-CORE = ["rotlearn", "rotlearn.geometry", "rotlearn.heads", "rotlearn.bingham", "rotlearn.losses"]
+CORE = [
+    "rotlearn",
+    "rotlearn.geometry",
+    "rotlearn.heads",
+    "rotlearn.bingham",
+    "rotlearn.fisher",
+    "rotlearn.losses",
+]
 HAS_NN = importlib.util.find_spec("rotlearn.nn") is not None
 NO_NN = "rotlearn.nn is not in this tree yet (the drop-in layers land separately)"
 

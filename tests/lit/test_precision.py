@@ -90,11 +90,14 @@ def test_gpu_trainer_picks_the_gpus_precision(make_cfg, monkeypatch):
     assert gpu_precision() == "32-true"
 
 
-@pytest.mark.parametrize("loss", ["bingham", "angular"])
-def test_bf16_mixed_trains_the_a_head_with_other_losses(make_cfg, loss):
+@pytest.mark.parametrize(
+    ("rep", "loss"),
+    [("a", "bingham"), ("a", "angular"), ("fisher", "fisher_nll"), ("fisher", "bingham")],
+)
+def test_bf16_mixed_trains_belief_heads_with_other_losses(make_cfg, rep, loss):
     cfg = make_cfg(
         [
-            "rep=a",
+            f"rep={rep}",
             f"loss={loss}",
             *FAST,
             "trainer.precision=bf16-mixed",
