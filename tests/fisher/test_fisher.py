@@ -20,11 +20,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import integrate, special
 from scipy.spatial.transform import Rotation
-from tests.conftest import assert_rotation, gen
 
 from rotlearn import bingham as bh
 from rotlearn import fisher as fs
 from rotlearn.geometry import quat_to_rotmat, special_orthogonalize
+from tests.conftest import assert_rotation, gen
 
 F32, F64 = torch.float32, torch.float64
 PROPS = settings(max_examples=25, deadline=None)

@@ -60,7 +60,7 @@ def _check_range(s: Tensor) -> None:
 
 
 @float32_under_autocast
-def bingham_from_fisher(F: Tensor) -> Tensor:
+def bingham_from_fisher(F: Tensor, *, check: bool = True) -> Tensor:
     """The Bingham matrix A = -K(F) of the matrix Fisher belief F (package docstring).
 
     exp(tr(F^T R(q))) = exp(-q^T A q) for every unit quaternion q, so `rotlearn.bingham` with
@@ -68,12 +68,15 @@ def bingham_from_fisher(F: Tensor) -> Tensor:
 
     Args:
         F: (..., 3, 3) matrices, float32 or float64.
+        check: validate F (shape, dtype, NaN/Inf: one host synchronisation); the head passes
+            False on its hot path, like `rotlearn.geometry.sym4_eigh_min`.
 
     Returns:
         (..., 4, 4) symmetric, traceless matrices in F's dtype, linear in F (exact: sums of
         three entries). Order (x, y, z, w), scalar last.
     """
-    _check_matrix(F, "F", 3)
+    if check:
+        _check_matrix(F, "F", 3)
     f11, f12, f13 = F[..., 0, 0], F[..., 0, 1], F[..., 0, 2]
     f21, f22, f23 = F[..., 1, 0], F[..., 1, 1], F[..., 1, 2]
     f31, f32, f33 = F[..., 2, 0], F[..., 2, 1], F[..., 2, 2]
@@ -157,7 +160,7 @@ def proper_svd(F: Tensor) -> tuple[Tensor, Tensor, Tensor]:
 
 
 @float32_under_autocast
-def eigenvalues_from_fisher(F: Tensor) -> Tensor:
+def eigenvalues_from_fisher(F: Tensor, *, check: bool = True) -> Tensor:
     """The ascending eigenvalues of A = -K(F), in closed form from F's proper singular values.
 
     l1 = -(s1 + s2 + s3), l2 = -s1 + s2 + s3, l3 = s1 - s2 + s3, l4 = s1 + s2 - s3 (package
@@ -166,6 +169,7 @@ def eigenvalues_from_fisher(F: Tensor) -> Tensor:
 
     Args:
         F: (..., 3, 3) matrices, float32 or float64.
+        check: validate F, as in `bingham_from_fisher`.
 
     Returns:
         (..., 4) ascending, in F's dtype (float32 under autocast); within about eps * s1 of
@@ -178,7 +182,8 @@ def eigenvalues_from_fisher(F: Tensor) -> Tensor:
         function with a kink there (e.g. the DT score at s2 = -s3) it is one of the one-sided
         gradients.
     """
-    _check_matrix(F, "F", 3)
+    if check:
+        _check_matrix(F, "F", 3)
     s1, s2, s3 = _proper_svd(F)[1].unbind(-1)
     return torch.stack((-(s1 + s2 + s3), s2 + s3 - s1, s1 - s2 + s3, s1 + s2 - s3), -1)
 

@@ -12,7 +12,8 @@ from __future__ import annotations
 
 from torch import Tensor
 
-from rotlearn.fisher import bingham_from_fisher, eigenvalues_from_fisher, mode
+from rotlearn.fisher import bingham_from_fisher, eigenvalues_from_fisher
+from rotlearn.geometry import special_orthogonalize
 from rotlearn.geometry.autocast import float32_under_autocast
 from rotlearn.heads.base import RotationHead, RotationPrediction, register_head
 
@@ -21,8 +22,8 @@ __all__ = ["FisherHead"]
 
 @register_head
 class FisherHead(RotationHead):
-    """(..., 9) read row-major as F (..., 3, 3) -> R = `rotlearn.fisher.mode(F)`, with the belief:
-    F, A = `bingham_from_fisher(F)` and A's ascending eigenvalues in closed form
+    """(..., 9) read row-major as F (..., 3, 3) -> R = `rotlearn.fisher.mode(F)` (SVD-9D), with
+    the belief: F, A = `bingham_from_fisher(F)` and A's ascending eigenvalues in closed form
     (`eigenvalues_from_fisher`)."""
 
     name = "fisher"
@@ -33,10 +34,10 @@ class FisherHead(RotationHead):
     @float32_under_autocast
     def forward(self, raw: Tensor) -> RotationPrediction:
         F = raw.unflatten(-1, (3, 3))
-        return RotationPrediction(
-            R=mode(F),
+        return RotationPrediction(  # unchecked: no host synchronisation on the hot path
+            R=special_orthogonalize(F),  # = rotlearn.fisher.mode(F)
             raw=raw,
-            A=bingham_from_fisher(F),
-            eigenvalues=eigenvalues_from_fisher(F),
+            A=bingham_from_fisher(F, check=False),
+            eigenvalues=eigenvalues_from_fisher(F, check=False),
             F=F,
         )
