@@ -15,6 +15,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 from rotlearn.bingham import CREDIBLE_LEVELS
 from rotlearn.cli.train import build
 from rotlearn.lit.regressor import noisiest
+from rotlearn.ood.scores import SCORES, Score, register_score
 from tests.conftest import FAST
 
 COVERAGE = [f"test/coverage_{a:g}" for a in CREDIBLE_LEVELS]
@@ -82,6 +83,21 @@ def test_a_head_without_belief_ranks_its_errors_by_the_raw_norm_only(make_cfg):
     assert 0.0 <= metrics["test/raw_norm_auroc_noisiest"] <= 1.0
     assert not any(k.startswith(("test/dt", "test/eigengap", "test/nll", "test/ece",
                                  "test/coverage")) for k in metrics)  # fmt: skip
+
+
+def test_a_score_registered_before_the_model_is_ranked_too(make_cfg):
+    def spread(prediction):
+        return prediction.eigenvalues[..., 3] - prediction.eigenvalues[..., 0]
+
+    register_score(Score("spread", keep_below=False, fn=spread, needs_eigenvalues=True))
+    try:
+        model, datamodule, trainer = build(make_cfg(["rep=a", *FAST, "trainer.fast_dev_run=true",
+                                                     "model.belief_samples=8"]))  # fmt: skip
+    finally:
+        del SCORES["spread"]
+    with_difficulty(model)
+    trainer.test(model, datamodule=datamodule, verbose=False)
+    assert {"test/spread_spearman", "test/spread_auroc_noisiest"} <= set(trainer.callback_metrics)
 
 
 def test_the_noisiest_decile_is_the_top_tenth_of_difficulty_ties_included():

@@ -20,7 +20,7 @@ from rotlearn.lit.state import RunStateHooks
 from rotlearn.metrics import AngularError, BeliefCalibration, SampleValues
 from rotlearn.nets.autoencoder import ConvAutoEncoder
 from rotlearn.ood.evaluation import auroc, spearman
-from rotlearn.ood.scores import SCORES, available_scores
+from rotlearn.ood.scores import SCORES
 from rotlearn.trust import config_target
 
 __all__ = ["NOISIEST_FRACTION", "RotationRegressor", "compile_modules", "noisiest"]
@@ -28,8 +28,6 @@ __all__ = ["NOISIEST_FRACTION", "RotationRegressor", "compile_modules", "noisies
 OptimizerFactory = Callable[[Iterable[nn.Parameter]], torch.optim.Optimizer]
 SchedulerFactory = Callable[[torch.optim.Optimizer], Any]
 NOISIEST_FRACTION = 0.1  # test/<score>_auroc_noisiest: the top decile of difficulty
-# the OOD scores that a prediction gives (the auto-encoder's needs its own model)
-_SCORE_NAMES = tuple(name for name, score in SCORES.items() if score.fn is not None)
 
 
 def noisiest(difficulty: Tensor, fraction: float = NOISIEST_FRACTION) -> Tensor:
@@ -127,7 +125,9 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
         # the "predict identity" baseline: does the model beat the targets' own angles?
         self.test_identity_err = AngularError()
         # do the OOD scores (DT: paper eq. 26) rank the test errors and flag the noisiest samples?
-        self.test_samples = SampleValues(("error", "difficulty", *_SCORE_NAMES))
+        # Those registered now that a prediction gives (the auto-encoder's needs its own model).
+        self._scores = {name: s for name, s in SCORES.items() if s.fn is not None}
+        self.test_samples = SampleValues(("error", "difficulty", *self._scores))
         # heads with a belief: is it calibrated (as used, and untempered when tempered)?
         if belief_samples < 1:
             raise ConfigValueError("belief_samples", f"must be >= 1, got {belief_samples}")
@@ -193,8 +193,9 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
         self.test_err.update(prediction.R, batch["R"])
         identity = torch.eye(3, dtype=batch["R"].dtype, device=batch["R"].device)
         self.test_identity_err.update(identity.expand_as(batch["R"]), batch["R"])
-        scores = available_scores(list(_SCORE_NAMES), prediction.eigenvalues is not None, False)
-        values = {score.name: score.fn(prediction) for score in scores}
+        has_eigenvalues = prediction.eigenvalues is not None
+        values = {name: score.fn(prediction) for name, score in self._scores.items()
+                  if has_eigenvalues or not score.needs_eigenvalues}  # fmt: skip
         values["error"] = angle_deg(prediction.R, batch["R"])
         if "difficulty" in batch:
             values["difficulty"] = batch["difficulty"]
@@ -254,7 +255,7 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
         for name, scores in samples.items():
             logged[f"test/{name}_spearman"] = spearman(scores, errors)
             if flagged is not None:
-                keep_below = SCORES[name].keep_below
+                keep_below = self._scores[name].keep_below
                 logged[f"test/{name}_auroc_noisiest"] = auroc(scores, flagged, keep_below)
         self.log_dict(logged, on_step=False, on_epoch=True)
 
