@@ -283,7 +283,7 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
             return
         from rotlearn.plots import reliability_figure
 
-        temperature, alphas = self.belief_temperature, self.test_belief.alphas
+        temperature, alphas = float(self.belief_temperature), self.test_belief.alphas
         labels = {"belief": f"T = {temperature:g}" if temperature != 1 else "belief",
                   "uncalibrated": "untempered (T = 1)"}  # fmt: skip
         figure = reliability_figure(
