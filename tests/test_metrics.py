@@ -80,3 +80,23 @@ def test_sample_values_stay_aligned_and_name_what_they_do_not_know():
         values.update(eigen=torch.ones(1))
     values.reset()
     assert values.values() == {}
+
+
+def _gather_with_an_idle_process(tensor, group=None):
+    """What DDP's all-gather returns when a second process saw no test data: an empty state."""
+    return [tensor, torch.tensor([], dtype=tensor.dtype)]
+
+
+def test_states_sync_across_processes_where_one_saw_nothing():
+    A = beliefs(12, 6)
+    q = bh.sample(A, 1, gen(13))[:, 0]
+    calibration = BeliefCalibration(num_samples=16)
+    calibration.update(A, q)
+    alone = calibration.values()
+    calibration._sync_dist(_gather_with_an_idle_process)  # torchmetrics' sync, gather faked
+    synced = calibration.values()
+    torch.testing.assert_close(synced["nll"], alone["nll"])
+    samples = SampleValues(("error", "dt"))
+    samples.update(error=torch.tensor([1.0, 2.0]))  # "dt" never given (a head without belief)
+    samples._sync_dist(_gather_with_an_idle_process)
+    assert set(samples.values()) == {"error"}

@@ -107,14 +107,16 @@ class BeliefCalibration(Metric):
         self.add_state("targets", default=[], dist_reduce_fx="cat")
 
     def update(self, A: Tensor, q: Tensor) -> None:
-        self.beliefs.append(A.detach().reshape(-1, 4, 4).to(torch.float64))
-        self.targets.append(q.detach().reshape(-1, 4).to(torch.float64))
+        # kept flat: a process that saw no data syncs an empty 1-D state, which must concatenate
+        self.beliefs.append(A.detach().reshape(-1).to(torch.float64))
+        self.targets.append(q.detach().reshape(-1).to(torch.float64))
 
     def values(self) -> dict[str, Tensor]:
         """{"nll": (n,), "level": (n,)}: every target's NLL (nats) and HPD level (the mass of
         the credible region whose boundary passes through it; inside the level-alpha region
         iff level <= alpha), float64, in the order seen (draws as `compute`)."""
-        A, q = dim_zero_cat(self.beliefs), dim_zero_cat(self.targets)
+        A = dim_zero_cat(self.beliefs).to(torch.float64).reshape(-1, 4, 4)
+        q = dim_zero_cat(self.targets).to(torch.float64).reshape(-1, 4)
         spread = torch.linalg.eigvalsh(A).diff(dim=-1).sum(-1)  # l4 - l1
         supported = spread <= MAX_DISPERSION
         losses = torch.full_like(spread, math.nan)
@@ -171,12 +173,15 @@ class SampleValues(Metric):
             getattr(self, self._state(name)).append(value.detach().flatten().to(torch.float64))
 
     def values(self) -> dict[str, Tensor]:
-        """{name: (n,) float64} of every name given since the last reset."""
+        """{name: (n,) float64} of every name given since the last reset (under DDP: by any
+        process; one never given syncs as an empty state and is left out too)."""
         out = {}
         for name in self.names:
             state = getattr(self, self._state(name))
             if isinstance(state, Tensor) or state:
-                out[name] = dim_zero_cat(state)
+                value = dim_zero_cat(state).to(torch.float64)
+                if value.numel():
+                    out[name] = value
         return out
 
     def compute(self) -> dict[str, Tensor]:
