@@ -67,6 +67,12 @@ spread beyond MAX_DISPERSION) raises ValueError naming the problem and the first
 index.
 """
 
+from rotlearn.bingham.calibration import (
+    CREDIBLE_LEVELS,
+    coverage,
+    expected_calibration_error,
+    hpd_level,
+)
 from rotlearn.bingham.descriptors import (
     LOG_AREA_S3,
     MAX_DISPERSION,
@@ -83,15 +89,19 @@ from rotlearn.bingham.normalizer import log_normalizer, log_prob, moments, nll, 
 from rotlearn.bingham.sampling import sample
 
 __all__ = [
+    "CREDIBLE_LEVELS",
     "LOG_AREA_S3",
     "MAX_DISPERSION",
     "bingham_parameters",
+    "coverage",
     "dispersion",
     "dispersion_from_eigenvalues",
     "dt_from_eigenvalues",
     "dt_score",
     "eigengap",
     "eigengap_from_eigenvalues",
+    "expected_calibration_error",
+    "hpd_level",
     "log_normalizer",
     "log_prob",
     "mode",

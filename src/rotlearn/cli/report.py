@@ -36,7 +36,10 @@ set (paper Fig. 8); the jobs that failed, were interrupted or never ran: those l
 the sweep's jobs.json), a `curves` plot (`curves.png`: per-epoch median over trials with a 10-90 %
 band per setting, one panel per metric), a `box` plot (`<label>_box.png`: box plots of log10
 per-sample test error, `test_errors.json`, per x value and setting) and the `ood` figures
-(`rotlearn.cli.report_plots.draw_ood`).
+(`rotlearn.cli.report_plots.draw_ood`). Runs with belief metrics in their metrics.json (test/nll,
+test/ece, test/coverage_<alpha>, test/<score>_spearman, test/<score>_auroc_noisiest; issue 17) get
+a beliefs table per setting and the reliability diagram `reliability.png`
+(`rotlearn.cli.report_plots.draw_beliefs`), without a plot declaration.
 """
 
 from __future__ import annotations
@@ -52,7 +55,7 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from rotlearn.cli.report_plots import draw_ood, draw_plots, setting_order
+from rotlearn.cli.report_plots import draw_beliefs, draw_ood, draw_plots, setting_order
 from rotlearn.io import read_json, write_text_atomic
 from rotlearn.ood.report import LABELS, TABLE_COLUMNS, markdown_table, table_rows
 
@@ -424,6 +427,9 @@ def make_report(
         plot_files, plot_md = draw_plots(done, layout, out)
         files.update(plot_files)
         md += plot_md
+        belief_files, belief_md = draw_beliefs(done, out)
+        files.update(belief_files)
+        md += belief_md
     frames = _ood_frames(done) if "dir" in done else []
     ood = _ood_table(frames)
     if ood is not None:

@@ -9,6 +9,10 @@ value and setting, with a table of median errors.
 `ood_samples.csv`, `ood_examples.png`, written by `rotlearn.ood.OODEvaluation`): precision-recall
 over q, error against score, score box plots (paper Fig. 6c), the error per test set (paper
 Fig. 8b) and each run's erased example pairs. The figure code per panel is `rotlearn.ood.report`'s.
+
+`draw_beliefs` draws the beliefs section of the runs whose `metrics.json` has belief metrics
+(test/nll, test/ece, test/coverage_<alpha>, test/<score>_spearman, ...): a table per setting and
+the reliability diagram (`rotlearn.plots.reliability_figure`); no plot declaration is needed.
 """
 
 from __future__ import annotations
@@ -24,7 +28,8 @@ import pandas as pd
 
 from rotlearn.io import read_json
 
-__all__ = ["CURVE_METRICS", "draw_ood", "draw_plots", "setting_order"]
+__all__ = ["BELIEF_COLUMNS", "CURVE_METRICS", "draw_beliefs", "draw_ood", "draw_plots",
+           "setting_order"]  # fmt: skip
 
 log = logging.getLogger("rotlearn")
 CURVE_METRICS = ["train/err_mean", "val/err_mean"]
@@ -316,4 +321,125 @@ def draw_ood(
                    f"![examples {run['setting']}]({os.path.relpath(path, out)})", ""]  # fmt: skip
     if md:
         md = ["## OOD figures", "", *md]
+    return files, md
+
+
+# ---------------------------------------------------------------------------------- beliefs
+
+BELIEF_COLUMNS = [("test/err_median", "median err (deg)"), ("test/nll", "NLL (nats)"),
+                  ("test/ece", "ECE"), ("test/temperature", "T"),
+                  ("test/uncalibrated_nll", "NLL at T = 1"),
+                  ("test/uncalibrated_ece", "ECE at T = 1")]  # fmt: skip
+
+
+def _coverage_columns(done: pd.DataFrame, prefix: str) -> list[tuple[float, str]]:
+    """(alpha, column) of the `<prefix>coverage_<alpha>` metrics of the runs, by alpha."""
+    found = []
+    for column in done.columns:
+        name = str(column)
+        if name.startswith(f"{prefix}coverage_"):
+            try:
+                found.append((float(name.rsplit("_", 1)[1]), name))
+            except ValueError:
+                continue
+    return sorted(found)
+
+
+def _score_columns(done: pd.DataFrame) -> list[tuple[str, str]]:
+    """(column, header) of every test/<score>_spearman, then test/<score>_auroc_noisiest, the
+    scores in the order of `rotlearn.ood.scores.SCORES` (others after, by name)."""
+    from rotlearn.ood.scores import SCORES
+
+    order = {name: i for i, name in enumerate(SCORES)}
+    columns = []
+    for suffix, what in (("_spearman", "Spearman"), ("_auroc_noisiest", "AUROC noisiest")):
+        names = [str(c) for c in done.columns
+                 if str(c).startswith("test/") and str(c).endswith(suffix)]  # fmt: skip
+        scores = sorted((n[5 : -len(suffix)] for n in names), key=lambda s: (order.get(s, 99), s))
+        columns += [(f"test/{score}{suffix}", f"{score} {what}") for score in scores]
+    return columns
+
+
+def _beliefs_table(done: pd.DataFrame, rows: list[Any]) -> str:
+    """Per setting: the median over its runs of each belief metric any run has."""
+    columns = [(c, h) for c, h in BELIEF_COLUMNS + _score_columns(done)
+               if c in done and done[c].notna().any()]  # fmt: skip
+    lines = ["| setting | runs | " + " | ".join(h for _, h in columns) + " |",
+             "|---|---|" + "---|" * len(columns)]  # fmt: skip
+    for setting in rows:
+        runs = done[done["setting"] == setting]
+        cells = []
+        for column, _ in columns:
+            values = pd.to_numeric(runs[column], errors="coerce").dropna()
+            cells.append(f"{values.median():.3g}" if column == "test/temperature" and len(values)
+                         else f"{values.median():.3f}" if len(values) else "-")  # fmt: skip
+        lines.append(f"| {setting} | {len(runs)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _reliability(done: pd.DataFrame, path: Path) -> bool:
+    """Coverage against credible level of each setting (mean over its runs); the untempered
+    belief dashed in the same colour where the runs were tempered."""
+    from rotlearn.ood.report import save_figure
+    from rotlearn.plots import reliability_figure
+
+    curves = []
+    for i, setting in enumerate(setting_order(done)):
+        runs = done[done["setting"] == setting]
+        for prefix, dashed in (("test/", False), ("test/uncalibrated_", True)):
+            columns = [(a, c) for a, c in _coverage_columns(runs, prefix) if runs[c].notna().any()]
+            if not columns:
+                continue
+            ece = runs[f"{prefix}ece"] if f"{prefix}ece" in runs else pd.Series(dtype=float)
+            ece = pd.to_numeric(ece, errors="coerce")
+            n = int(runs[columns[0][1]].notna().sum())
+            curves.append({
+                "label": f"{setting}{' at T = 1' if dashed else ''}"
+                         + (f" (mean of {n})" if n > 1 else ""),
+                "alphas": [a for a, _ in columns],
+                "coverage": [float(runs[c].mean()) for _, c in columns],
+                "ece": float(ece.mean()) if ece.notna().any() else None,
+                "color": f"C{i % 10}",
+                "dashed": dashed,
+            })  # fmt: skip
+    if not curves:
+        return False
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(6.0, 5.5))
+    save_figure(reliability_figure(curves, ax=fig.subplots()), path, dpi=100)
+    return True
+
+
+def draw_beliefs(done: pd.DataFrame, out: Path) -> tuple[dict, list[str]]:
+    """The beliefs section of report.md, for runs whose metrics.json has belief or uncertainty
+    metrics (issue 17): a table per setting (the median over its runs) of the median error, the
+    NLL and ECE (tempered, and at T = 1 where a temperature was fitted), each OOD score's
+    Spearman correlation with the error and AUROC at flagging the noisiest decile; and the
+    reliability diagram `reliability.png` (one curve per setting, the mean coverage over its runs;
+    the untempered belief dashed). ({file key: path}, report.md lines); nothing without such runs.
+    """
+    keys = [c for c, _ in BELIEF_COLUMNS[1:] + _score_columns(done) if c in done]
+    keys += [c for _, c in _coverage_columns(done, "test/")]
+    if not keys:
+        return {}, []
+    rows = [s for s in setting_order(done)
+            if done.loc[done["setting"] == s, keys].notna().any().any()]  # fmt: skip
+    if not rows:
+        return {}, []
+    md = ["## Beliefs: likelihood, calibration and uncertainty scores", "",
+          "Per setting, the median over its runs. NLL: mean negative log-likelihood of the test "
+          "targets in nats, w.r.t. the uniform probability measure on SO(3) (lower is better). "
+          "ECE: mean |coverage - alpha| of the highest-density credible regions at alpha = "
+          "0.1 ... 0.9 (0: calibrated). T: the fitted belief temperature (A -> A / T); at T = 1: "
+          "the belief before it. Spearman: rank correlation of each uncertainty score with the "
+          "error (dt: positive is good; eigengap and raw_norm: negative is good). AUROC "
+          "noisiest: how well the score flags the noisiest tenth of the test samples (1 "
+          "perfect, 0.5 chance).", "", _beliefs_table(done, rows), ""]  # fmt: skip
+    files = {}
+    if _reliability(done, out / "reliability.png"):
+        files["reliability"] = out / "reliability.png"
+        md += ["Reliability of the credible regions (coverage against level; on the diagonal: "
+               "calibrated, below it: over-confident):", "",
+               "![reliability diagram](reliability.png)", ""]  # fmt: skip
     return files, md

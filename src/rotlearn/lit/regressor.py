@@ -2,29 +2,39 @@
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Callable, Iterable
 from typing import Any
 
 import lightning.pytorch as pl
 import torch
+from lightning.pytorch.loggers import TensorBoardLogger
 from torch import Tensor, nn
-from torchmetrics import MeanMetric, SpearmanCorrCoef
+from torchmetrics import MeanMetric
 
 from rotlearn.errors import ConfigValueError
-from rotlearn.geometry import angle_deg
+from rotlearn.geometry import angle_deg, rotmat_to_quat
 from rotlearn.heads import RotationHead, RotationPrediction
 from rotlearn.lit.callbacks import DataDependentInit
 from rotlearn.lit.finite import FINITE_CHECK_EVERY, FiniteChecks
 from rotlearn.lit.state import RunStateHooks
-from rotlearn.metrics import AngularError
+from rotlearn.metrics import AngularError, BeliefCalibration, SampleValues
 from rotlearn.nets.autoencoder import ConvAutoEncoder
+from rotlearn.ood.evaluation import auroc, spearman
+from rotlearn.ood.scores import SCORES
 from rotlearn.trust import config_target
 
-__all__ = ["RotationRegressor", "compile_modules"]
+__all__ = ["NOISIEST_FRACTION", "RotationRegressor", "compile_modules", "noisiest"]
 
 OptimizerFactory = Callable[[Iterable[nn.Parameter]], torch.optim.Optimizer]
 SchedulerFactory = Callable[[torch.optim.Optimizer], Any]
+NOISIEST_FRACTION = 0.1  # test/<score>_auroc_noisiest: the top decile of difficulty
+
+
+def noisiest(difficulty: Tensor, fraction: float = NOISIEST_FRACTION) -> Tensor:
+    """(N,) bool: the samples whose difficulty reaches its (1 - fraction)-quantile (linear
+    interpolation), i.e. the top `fraction` of difficulty; samples tied at the threshold are
+    all in (all of them where the difficulty is constant)."""
+    return difficulty >= torch.quantile(difficulty.double(), 1.0 - fraction)
 
 
 def compile_modules(compile: bool | str, *modules: nn.Module) -> None:
@@ -46,6 +56,21 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
 
     Logs, once per epoch: train/loss, train/err_*, val/err_*, test/err_* (degrees; mean, median,
     p10, p90), and at test time the "predict identity" baseline test/identity_err_{mean,median}.
+    At test time also, for every OOD score the head gives (`rotlearn.ood.scores.SCORES`: raw_norm
+    for every head, dt and eigengap with a belief): test/<score>_spearman, its Spearman rank
+    correlation with the error (positive for dt, whose low values are confident; negative for
+    the keep-above eigengap and raw_norm where they work), and, where the test batches carry a
+    per-sample "difficulty" (B,) (growing with the expected error, e.g. the noise level),
+    test/<score>_auroc_noisiest: the AUROC of the score at flagging the noisiest tenth of the
+    samples (`noisiest`; 1 perfect, 0.5 chance). Heads with a belief (`prediction.A`) also log
+    its calibration (`rotlearn.metrics.BeliefCalibration`): test/nll (mean negative
+    log-likelihood of the targets in nats, w.r.t. the uniform probability measure on SO(3)),
+    test/ece and test/coverage_<alpha> (alpha = 0.1 ... 0.9: the fraction of targets inside the
+    highest-density credible region of mass alpha), and, in a TensorBoard logger, the reliability
+    diagram `test/reliability` (coverage against alpha). The belief is the one used,
+    `belief_temperature` applied; where that is not 1, test/temperature and the same numbers of
+    the untempered belief, test/uncalibrated_nll, test/uncalibrated_ece and
+    test/uncalibrated_coverage_<alpha>, are logged too.
     Every step's network output and loss are checked for NaN/inf on the device and the check is
     read every `finite_check_every` training steps and at every loop's end
     (`rotlearn.lit.finite`): a failure stops the run with a `NonFiniteError` naming the stage,
@@ -62,6 +87,14 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
         compile: compile the net and the head with `torch.compile` (in place: `nn.Module.compile`,
             so checkpoints keep their keys): True for its default backend (inductor), or a
             backend's name (e.g. "aot_eager", which needs no C++ compiler); False: eager.
+        belief_samples: draws of each test belief for its credible levels (the coverage's Monte
+            Carlo error per level is <= 1 / (2 sqrt(belief_samples)) per sample).
+
+    Attributes:
+        belief_temperature: the belief's temperature T (A -> A / T, `RotationPrediction.
+            with_temperature`), applied by `forward` and every step; 1 (untempered) until a
+            post-hoc calibration sets it after fitting. A plain float: neither a parameter nor a
+            buffer.
     """
 
     task = "rotation"
@@ -75,6 +108,7 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
         scheduler: SchedulerFactory | None = None,
         finite_check_every: int = FINITE_CHECK_EVERY,
         compile: bool | str = False,
+        belief_samples: int = 1000,
     ) -> None:
         super().__init__()
         self._init_finite_checks(finite_check_every)
@@ -90,15 +124,21 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
         self.train_err, self.val_err, self.test_err = AngularError(), AngularError(), AngularError()
         # the "predict identity" baseline: does the model beat the targets' own angles?
         self.test_identity_err = AngularError()
-        # heads with a belief: does the DT score (paper eq. 26) rank the test errors?
-        with warnings.catch_warnings():  # it keeps every test sample: so does test_err
-            warnings.filterwarnings("ignore", message=r"Metric `SpearmanCorrcoef` will save all")
-            self.test_dt_spearman = SpearmanCorrCoef()
+        # do the OOD scores (DT: paper eq. 26) rank the test errors and flag the noisiest samples?
+        # Those registered now that a prediction gives (the auto-encoder's needs its own model).
+        self._scores = {name: s for name, s in SCORES.items() if s.fn is not None}
+        self.test_samples = SampleValues(("error", "difficulty", *self._scores))
+        # heads with a belief: is it calibrated (as used, and untempered when tempered)?
+        if belief_samples < 1:
+            raise ConfigValueError("belief_samples", f"must be >= 1, got {belief_samples}")
+        self.test_belief = BeliefCalibration(belief_samples)
+        self.test_untempered_belief = BeliefCalibration(belief_samples)
+        self.belief_temperature: float = 1.0
         self.run_config: dict[str, Any] | None = None  # stored in checkpoints when set
         self.test_errors: Tensor | None = None  # per-sample test errors (degrees) of the last test
 
     def forward(self, inputs: Tensor) -> RotationPrediction:
-        return self.head(self.net(inputs))
+        return self.head(self.net(inputs)).with_temperature(self.belief_temperature)
 
     def configure_callbacks(self) -> list[pl.Callback]:
         """A net with a data-dependent initialisation (`initialize_from`, e.g. `PointNet`) gets
@@ -122,7 +162,14 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
 
         The check is read later, so a non-finite output must not stop the step here: it reaches
         the head as zeros (a solver such as `eigh` raises on NaN), the failure already recorded
-        and the update to come zeroed."""
+        and the update to come zeroed. The belief is tempered by `belief_temperature`."""
+        prediction, inputs_bad = self._untempered_step(batch, stage, batch_idx)
+        return prediction.with_temperature(self.belief_temperature), inputs_bad
+
+    def _untempered_step(
+        self, batch: dict[str, Tensor], stage: str, batch_idx: int
+    ) -> tuple[RotationPrediction, Tensor | None]:
+        """`_observed_step` before the temperature is applied."""
         inputs_bad = self._inputs_bad(batch)
         raw = self.net(batch["input"])
         self._observe("network output 'raw'", raw, stage, batch_idx, inputs_bad)
@@ -141,14 +188,23 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
         self.val_err.update(self._step(batch, "val", batch_idx).R, batch["R"])
 
     def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
-        prediction = self._step(batch, "test", batch_idx)
+        untempered, _ = self._untempered_step(batch, "test", batch_idx)
+        prediction = untempered.with_temperature(self.belief_temperature)
         self.test_err.update(prediction.R, batch["R"])
         identity = torch.eye(3, dtype=batch["R"].dtype, device=batch["R"].device)
         self.test_identity_err.update(identity.expand_as(batch["R"]), batch["R"])
-        if prediction.dt is not None:
-            dt = prediction.dt
-            errors = angle_deg(prediction.R, batch["R"])
-            self.test_dt_spearman.update(dt.flatten().double(), errors.flatten().double())
+        has_eigenvalues = prediction.eigenvalues is not None
+        values = {name: score.fn(prediction) for name, score in self._scores.items()
+                  if has_eigenvalues or not score.needs_eigenvalues}  # fmt: skip
+        values["error"] = angle_deg(prediction.R, batch["R"])
+        if "difficulty" in batch:
+            values["difficulty"] = batch["difficulty"]
+        self.test_samples.update(**values)
+        if prediction.A is not None:
+            q = batch["q"] if "q" in batch else rotmat_to_quat(batch["R"])
+            self.test_belief.update(prediction.A, q)
+            if self.belief_temperature != 1:
+                self.test_untempered_belief.update(untempered.A, q)
 
     def predict_step(self, batch: dict[str, Tensor], batch_idx: int) -> RotationPrediction:
         return self._step(batch, "predict", batch_idx).detach()
@@ -182,10 +238,68 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
             on_epoch=True,
         )
         self.test_identity_err.reset()
-        if self.test_dt_spearman.update_count:
-            rho = self.test_dt_spearman.compute()
-            self.log("test/dt_spearman", rho, on_step=False, on_epoch=True)
-            self.test_dt_spearman.reset()
+        self._log_scores()
+        self._log_beliefs()
+
+    def _log_scores(self) -> None:
+        """test/<score>_spearman and test/<score>_auroc_noisiest (class docstring)."""
+        if not self.test_samples.update_count:
+            return
+        samples = self.test_samples.compute()
+        self.test_samples.reset()
+        errors, difficulty = samples.pop("error"), samples.pop("difficulty", None)
+        if difficulty is not None and len(difficulty) != len(errors):
+            difficulty = None  # only some test batches carried one: no decile to rank
+        flagged = noisiest(difficulty) if difficulty is not None else None
+        logged = {}
+        for name, scores in samples.items():
+            logged[f"test/{name}_spearman"] = spearman(scores, errors)
+            if flagged is not None:
+                keep_below = self._scores[name].keep_below
+                logged[f"test/{name}_auroc_noisiest"] = auroc(scores, flagged, keep_below)
+        self.log_dict(logged, on_step=False, on_epoch=True)
+
+    def _log_beliefs(self) -> None:
+        """test/nll, test/ece, test/coverage_<alpha> of the belief as used, the untempered
+        belief's where it differs, and the reliability diagram (class docstring)."""
+        if not self.test_belief.update_count:
+            return
+        curves = {"belief": self.test_belief.compute()}
+        if self.test_untempered_belief.update_count:
+            curves["uncalibrated"] = self.test_untempered_belief.compute()
+        logged = {f"test/{k}": v for k, v in curves["belief"].items()}
+        if "uncalibrated" in curves:
+            logged.update({f"test/uncalibrated_{k}": v for k, v in curves["uncalibrated"].items()})
+            logged["test/temperature"] = float(self.belief_temperature)
+        self.log_dict(logged, on_step=False, on_epoch=True)
+        for metric in (self.test_belief, self.test_untempered_belief):
+            metric.reset()
+        self._reliability_figure(curves)
+
+    def _reliability_figure(self, curves: dict[str, dict[str, Tensor]]) -> None:
+        """The reliability diagram in each TensorBoard logger (global rank 0)."""
+        loggers = [lg for lg in self.loggers if isinstance(lg, TensorBoardLogger)]
+        if not loggers or not self.trainer.is_global_zero:
+            return
+        from rotlearn.plots import reliability_figure
+
+        temperature, alphas = float(self.belief_temperature), self.test_belief.alphas
+        labels = {"belief": f"T = {temperature:g}" if temperature != 1 else "belief",
+                  "uncalibrated": "untempered (T = 1)"}  # fmt: skip
+        figure = reliability_figure(
+            [
+                {
+                    "label": labels[name],
+                    "alphas": alphas,
+                    "coverage": [float(metrics[f"coverage_{a:g}"]) for a in alphas],
+                    "ece": float(metrics["ece"]),
+                    "dashed": name == "uncalibrated",
+                }
+                for name, metrics in curves.items()
+            ]
+        )
+        for logger in loggers:
+            logger.experiment.add_figure("test/reliability", figure, self.global_step)
 
     def configure_optimizers(self) -> Any:
         optimizer = self.optimizer_factory(self.parameters())
