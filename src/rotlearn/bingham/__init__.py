@@ -81,10 +81,12 @@ from rotlearn.bingham.descriptors import (
 )
 from rotlearn.bingham.normalizer import log_normalizer, log_prob, moments, nll, normalizer
 from rotlearn.bingham.sampling import sample
+from rotlearn.bingham.temperature import TemperatureFit, fit_temperature, temperature_fit
 
 __all__ = [
     "LOG_AREA_S3",
     "MAX_DISPERSION",
+    "TemperatureFit",
     "bingham_parameters",
     "dispersion",
     "dispersion_from_eigenvalues",
@@ -92,6 +94,7 @@ __all__ = [
     "dt_score",
     "eigengap",
     "eigengap_from_eigenvalues",
+    "fit_temperature",
     "log_normalizer",
     "log_prob",
     "mode",
@@ -99,4 +102,5 @@ __all__ = [
     "nll",
     "normalizer",
     "sample",
+    "temperature_fit",
 ]
