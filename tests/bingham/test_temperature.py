@@ -1,4 +1,4 @@
-"""Post-hoc temperature scaling (`rotlearn.bingham.temperature`): recovery, convexity, invariances."""
+"""Post-hoc temperature scaling (`rotlearn.bingham.temperature`): recovery, convexity, symmetry."""
 
 from __future__ import annotations
 
@@ -122,7 +122,7 @@ def test_the_bracket_keeps_every_tempered_belief_supported():
     assert math.isfinite(fit.nll_after)
     bh.nll(A / fit.temperature, modes)  # still inside the supported range: no error
     # targets farthest from the modes: the belief is anti-informative, T goes to the flat end
-    ev, V = torch.linalg.eigh(A)
+    _, V = torch.linalg.eigh(A)
     worst = bh.temperature_fit(A, V[..., -1])
     assert worst.at_bound == "upper" and worst.nll_after < 1e-4
 

@@ -82,8 +82,7 @@ def _flatten(A: Tensor, q: Tensor) -> tuple[Tensor, Tensor]:
         shape = torch.broadcast_shapes(A.shape[:-2], q.shape[:-1])
     except RuntimeError:
         raise ValueError(
-            f"batch shapes of A {tuple(A.shape[:-2])} and q {tuple(q.shape[:-1])} do not "
-            "broadcast"
+            f"batch shapes of A {tuple(A.shape[:-2])} and q {tuple(q.shape[:-1])} do not broadcast"
         ) from None
     if math.prod(shape) == 0:
         raise ValueError("no samples to fit a temperature on (empty batch)")

@@ -151,6 +151,7 @@ TOP_LEVEL: dict[str, Any] = {
     "ckpt_path": str | None,
     "seed": int,
     "test_ckpt": Literal["last", "best"],
+    "calibrate": bool,
     "float32_matmul_precision": Literal["highest", "high", "medium"],
     "trial": int,
     "trials": int,
