@@ -173,7 +173,7 @@ def _read_record(path: Path, what: str) -> Any:
     """The JSON in `path` (a small record file), refusing a large file unread, NaN and the
     infinities, and nesting too deep to parse; ValueError naming the file otherwise."""
     if path.stat().st_size > _MAX_RECORD_BYTES:
-        raise ValueError(f"{path}: too large for a {what} (at most {_MAX_RECORD_BYTES} bytes)")
+        raise ValueError(f"{path}: too large for a JSON {what} (at most {_MAX_RECORD_BYTES} bytes)")
 
     def refuse(constant: str) -> None:
         raise ValueError(f"{constant} is not a number")

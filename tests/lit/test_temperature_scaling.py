@@ -96,3 +96,46 @@ def test_records_are_never_written_outside_the_run(make_cfg, tmp_path):
     trainer.test(model, datamodule=datamodule, verbose=False)
     assert scaling.record is not None and model.belief_temperature == scaling.record["temperature"]
     assert not (Path(cfg.paths.output_dir) / "checkpoints" / TEMPERATURE_FILE).exists()
+
+
+def test_an_image_pair_run_calibrates_before_its_ood_evaluation_and_eval_reuses_t(
+    make_cfg, tmp_path
+):
+    """data=kitti with callbacks=ood: temperature.json and ood_thresholds.json sit side by side
+    (the OOD evaluation ran with the temperature set), and rotlearn-eval applies the stored T
+    without refitting or writing into the run."""
+    from hydra import compose, initialize_config_dir
+
+    from rotlearn.checkpoint import THRESHOLDS_FILE
+    from rotlearn.cli.evaluate import evaluate
+    from rotlearn.paths import config_dir
+    from tests.conftest import write_kitti, yaw_sequence
+
+    root = write_kitti(
+        tmp_path / "kitti", {"00": yaw_sequence(11, 1.0), "01": yaw_sequence(9, -1.0)}, seed=3
+    )
+    pairs = [
+        "data=kitti", f"data.root={root}", "data.train_sequences=[01]", "data.test_sequences=[00]",
+        "data.image_size=16", "data.num_workers=0", "data.eval_batch_size=4",
+        "net.channels=[8,8,8,8]", "net.hidden=16", "trainer=cpu", "trainer.max_epochs=1",
+        "trainer.enable_progress_bar=false", "trainer.enable_model_summary=false",
+        "callbacks=ood", "callbacks.ood.noise_pairs=4", "callbacks.ood.examples=0",
+        "logger=none", "calibrate=true",
+    ]  # fmt: skip
+    run = tmp_path / "run"
+    model, datamodule, trainer = build(make_cfg(pairs, run_dir=run))
+    spy = _SeesTheTemperature()
+    trainer.callbacks.insert(0, spy)
+    trainer.fit(model, datamodule=datamodule)
+    trainer.test(model, datamodule=datamodule, verbose=False)
+    record = read_temperature(run / "checkpoints" / TEMPERATURE_FILE)
+    assert record is not None and spy.seen["end"] == record["temperature"]
+    assert (run / "checkpoints" / THRESHOLDS_FILE).is_file()
+    before = sorted(p.name for p in (run / "checkpoints").iterdir())
+    out = tmp_path / "eval"
+    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
+        cfg = compose("eval", [f"paths.output_dir={out}", f"ckpt={run}"])
+    result = evaluate(cfg)
+    assert result["temperature"] == record["temperature"]
+    assert "calibration/temperature" not in result  # applied, not refitted
+    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == before
