@@ -125,8 +125,8 @@ def build(cfg: DictConfig) -> tuple[pl.LightningModule, pl.LightningDataModule, 
     if OmegaConf.select(cfg, "calibrate", default=False):
         head = getattr(model, "head", None)
         if not getattr(head, "defines_belief", False):
-            what = f"rep={head.name}" if head is not None else f"a {type(model).__name__}"
-            raise ConfigError("calibrate", f"fits the temperature of a belief; {what} defines none")
+            what = f"rep={head.name}" if head is not None else f"the {type(model).__name__}"
+            raise ConfigError("calibrate", f"fits the temperature of a belief; {what} has none")
         callbacks.append(TemperatureScaling(cfg.paths.output_dir))
     if OmegaConf.select(cfg, "trainer.enable_model_summary", default=True):
         callbacks.append(ModelSummary())  # Lightning's, without its column of zero FLOPs
