@@ -31,6 +31,7 @@ import torch
 from rotlearn.bingham import temperature_fit
 from rotlearn.checkpoint import TEMPERATURE_FILE
 from rotlearn.errors import ConfigError
+from rotlearn.geometry import rotmat_to_quat
 from rotlearn.io import write_json_atomic
 
 __all__ = ["TemperatureScaling", "validation_beliefs"]
@@ -61,7 +62,8 @@ def validation_beliefs(
                 batch = _finish(datamodule, batch, module)
                 prediction = module.head(module.net(batch["input"]))
                 beliefs.append(prediction.A.double().cpu())
-                targets.append(batch["q"].double().cpu())
+                q = batch["q"] if "q" in batch else rotmat_to_quat(batch["R"])
+                targets.append(q.double().cpu())
     finally:
         module.train(was_training)
     if not beliefs:
