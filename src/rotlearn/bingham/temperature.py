@@ -157,7 +157,7 @@ def temperature_fit(
     beta = math.exp(log_beta)
     before = _mean_nll(energy, lam, 1.0) if spread <= MAX_DISPERSION else math.nan
     return TemperatureFit(
-        temperature=torch.tensor(1.0 / beta, dtype=A.dtype if A.is_floating_point() else None),
+        temperature=torch.tensor(1.0 / beta, dtype=A.dtype),
         nll_before=before,
         nll_after=_mean_nll(energy, lam, beta),
         num=int(energy.shape[0]),
