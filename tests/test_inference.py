@@ -233,3 +233,165 @@ def test_thresholds_beside_the_checkpoint_give_keep_flags(trained_runs, tmp_path
         with pytest.raises(ValueError, match=reason) as info:
             rotlearn.load(run)
         assert str(path) in str(info.value)
+    for text, reason in [  # hostile numbers and shapes (the temperature file's tests share them)
+        ('{"score": "dt", "threshold": 1' + "0" * 400 + ', "q": 0.5}', "threshold must be a"),
+        ("[" * 2000 + "]" * 2000, "nested too deeply"),
+        (" " * 5000, "too large"),
+    ]:
+        path.write_text(text)
+        with pytest.raises(ValueError, match=reason) as info:
+            rotlearn.load(run)
+        assert str(path) in str(info.value)
+
+
+# -- the calibrated temperature (calibrate=true: checkpoints/temperature.json) -------------------
+
+
+def _temperature_record(t: float = 2.5, checkpoint: str = "last.ckpt") -> dict:
+    return {"temperature": t, "checkpoint": checkpoint, "val_nll": -1.5,
+            "val_nll_uncalibrated": -1.0, "num_val": 16}  # fmt: skip
+
+
+@pytest.fixture
+def calibrated_run(trained_runs, tmp_path) -> Path:
+    """A copy of the A head's run with a temperature record for its last.ckpt (T = 2.5)."""
+    import shutil
+
+    from rotlearn.checkpoint import TEMPERATURE_FILE
+
+    run = tmp_path / "run"
+    shutil.copytree(trained_runs["a"], run)
+    (run / "checkpoints" / TEMPERATURE_FILE).write_text(json.dumps(_temperature_record()))
+    return run
+
+
+def test_load_applies_the_checkpoints_temperature_to_the_belief(trained_runs, calibrated_run):
+    x = _points(4)
+    plain = rotlearn.load(trained_runs["a"])(x)
+    predictor = rotlearn.load(calibrated_run)
+    assert predictor.temperature == 2.5
+    tempered = predictor(x)
+    assert plain.temperature == 1.0 and tempered.temperature == 2.5
+    torch.testing.assert_close(tempered.R, plain.R)  # the mode is untouched
+    torch.testing.assert_close(tempered.A, plain.A / 2.5)
+    torch.testing.assert_close(tempered.dt, plain.dt / 2.5)
+    torch.testing.assert_close(tempered.dispersion, plain.dispersion / 2.5)
+    assert tempered.A.shape == (4, 4, 4) and tempered.F is None  # the A head has no F
+    # the keep flags compare the tempered DT with the threshold (written after calibration)
+    from rotlearn.ood.report import write_thresholds
+
+    threshold = float(tempered.dt.median())
+    write_thresholds(calibrated_run / "checkpoints", {"score": "dt", "threshold": threshold,
+                                                      "q": 0.5})  # fmt: skip
+    assert torch.equal(rotlearn.load(calibrated_run)(x).keep, tempered.dt < threshold)
+    # the best checkpoint was not calibrated: loading it leaves the belief as trained
+    best = rotlearn.load(calibrated_run / "checkpoints" / "best.ckpt")
+    assert best.temperature == 1.0
+
+
+def test_a_temperature_fitted_for_another_checkpoint_is_ignored_with_a_warning(
+    calibrated_run, caplog
+):
+    from rotlearn.checkpoint import TEMPERATURE_FILE
+
+    path = calibrated_run / "checkpoints" / TEMPERATURE_FILE
+    path.write_text(json.dumps(_temperature_record(checkpoint="best.ckpt")))
+    with caplog.at_level("WARNING", logger="rotlearn"):
+        predictor = rotlearn.load(calibrated_run)  # last.ckpt
+    assert predictor.temperature == 1.0
+    assert "fitted for best.ckpt, not last.ckpt" in caplog.text and str(path) in caplog.text
+    assert rotlearn.load(calibrated_run / "checkpoints" / "best.ckpt").temperature == 2.5
+
+
+def test_estimates_sample_and_score_their_belief(calibrated_run, trained_runs):
+    from rotlearn import bingham
+
+    estimate = rotlearn.load(calibrated_run)(_points(3))
+    draws = estimate.sample(50, generator=torch.Generator().manual_seed(0))
+    assert draws.shape == (3, 50, 4)
+    torch.testing.assert_close(draws.norm(dim=-1), torch.ones(3, 50))
+    scores = estimate.log_prob(draws)
+    assert scores.shape == (3, 50)
+    torch.testing.assert_close(scores[1], bingham.log_prob(estimate.A[1], draws[1]))
+    one = estimate.log_prob(estimate.q)
+    assert one.shape == (3,)
+    torch.testing.assert_close(estimate.log_prob(estimate.R), one, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(
+        estimate.log_prob(quat_to_rotmat(draws)), scores, rtol=1e-4, atol=1e-4
+    )
+    assert (one >= scores.max(-1).values - 1e-5).all()  # the mode is the most likely rotation
+    with pytest.raises(ValueError, match=r"quaternions \(B, 4\) or \(B, n, 4\)"):
+        estimate.log_prob(torch.zeros(3, 5))
+    with pytest.raises(ValueError, match="2 entries for 3 estimates"):
+        estimate.log_prob(estimate.q[:2])
+    no_belief = rotlearn.load(trained_runs["sixd"])(_points(2))
+    assert no_belief.A is None and no_belief.F is None
+    with pytest.raises(ValueError, match="defines no belief"):
+        no_belief.sample(3)
+
+
+@pytest.mark.parametrize(
+    ("text", "reason"),
+    [
+        ("not json", "not a JSON temperature file"),
+        ("", "not a JSON temperature file"),
+        ('{"temperature": NaN}', "NaN is not a number"),
+        ('{"temperature": Infinity}', "Infinity is not a number"),
+        (json.dumps(_temperature_record(-2.0)), "temperature must be a finite number > 0"),
+        (json.dumps(_temperature_record(0.0)), "temperature must be a finite number > 0"),
+        (json.dumps(_temperature_record(1e-320)), "temperature must be a finite number > 0"),
+        (json.dumps(_temperature_record(True)), "temperature must be a finite number > 0"),
+        (json.dumps(_temperature_record("2.5")), "temperature must be a finite number > 0"),
+        (json.dumps(_temperature_record()).replace("2.5", "1e999"), "finite number > 0"),
+        (json.dumps(_temperature_record()).replace("2.5", "1" + "0" * 400), "finite number > 0"),
+        (json.dumps(_temperature_record(checkpoint="../other/last.ckpt")), "file name"),
+        (json.dumps(_temperature_record(checkpoint="")), "file name"),
+        (json.dumps(_temperature_record(checkpoint=7)), "file name"),
+        (json.dumps({**_temperature_record(), "num_val": 0}), "num_val must be a positive"),
+        (json.dumps({**_temperature_record(), "num_val": 1.5}), "num_val must be a positive"),
+        (json.dumps({**_temperature_record(), "val_nll": None}), "val_nll must be a finite"),
+        (json.dumps({**_temperature_record(), "extra": 1}), r"must be \{temperature.*'extra'"),
+        (json.dumps({"temperature": 2.0}), r"got \['temperature'\]"),
+        (json.dumps([2.5, "last.ckpt"]), "got list"),
+        ("[" * 2000 + "]" * 2000, "nested too deeply"),
+        (" " * 4000 + json.dumps(_temperature_record()), "too large"),
+        ("\udcff", "not a JSON temperature file"),
+    ],
+)
+def test_a_hostile_temperature_file_is_refused_naming_it(calibrated_run, text, reason):
+    from rotlearn.checkpoint import TEMPERATURE_FILE, read_temperature
+
+    path = calibrated_run / "checkpoints" / TEMPERATURE_FILE
+    path.write_bytes(text.encode("utf-8", "surrogateescape"))
+    for load in (lambda: rotlearn.load(calibrated_run), lambda: read_temperature(path)):
+        with pytest.raises(ValueError, match=reason) as info:
+            load()
+        assert str(path) in str(info.value)
+
+
+def test_a_genuine_temperature_record_reads_back_whole(calibrated_run):
+    from rotlearn.checkpoint import TEMPERATURE_FILE, load_run, read_temperature
+
+    path = calibrated_run / "checkpoints" / TEMPERATURE_FILE
+    assert read_temperature(path) == _temperature_record()
+    path.write_text(json.dumps({**_temperature_record(), "val_nll_uncalibrated": None}))
+    assert read_temperature(path)["val_nll_uncalibrated"] is None
+    assert load_run(calibrated_run).temperature == 2.5
+    path.unlink()
+    assert read_temperature(path) is None and load_run(calibrated_run).temperature == 1.0
+
+
+def test_predictor_refuses_a_bad_temperature(trained_runs):
+    predictor = rotlearn.load(trained_runs["a"])
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="temperature must be a finite number > 0"):
+            rotlearn.inference.Predictor(predictor.net, predictor.head, temperature=bad)
+
+
+def test_predict_command_reports_the_temperature(calibrated_run, tmp_path, capsys):
+    path = tmp_path / "pairs.npy"
+    np.save(path, _points(1)[0].numpy())
+    assert predict_main([str(calibrated_run), str(path), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["temperature"] == 2.5
+    assert predict_main([str(calibrated_run), str(path)]) == 0
+    assert "temperature 2.5" in capsys.readouterr().out

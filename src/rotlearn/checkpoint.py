@@ -8,11 +8,18 @@ components (`rotlearn.trust`) before anything is built from it. `rotlearn.load`,
 The OOD evaluation's calibrated threshold lives beside the checkpoints, in
 `<run>/checkpoints/ood_thresholds.json` ({"score": str, "threshold": number, "q": number});
 `load_run` reads it (strictly: it is data from a run directory, not trusted) when present.
+
+The belief's post-hoc temperature (`calibrate=true`, `rotlearn.lit.calibration`) lives there too,
+in `<run>/checkpoints/temperature.json` ({"temperature": number > 0, "checkpoint": the file name
+of the checkpoint it was fitted for, "val_nll", "val_nll_uncalibrated": number or null,
+"num_val": int}); `load_run` reads it as strictly and applies it (`SavedRun.temperature`) only to
+the checkpoint it names.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 import pickle
@@ -27,17 +34,24 @@ from rotlearn.extras import require
 from rotlearn.trust import UntrustedConfigError, trusted_config
 
 __all__ = [
+    "TEMPERATURE_FILE",
     "THRESHOLDS_FILE",
     "SavedRun",
     "UnsafeCheckpointError",
     "UntrustedConfigError",
+    "checkpoint_temperature",
     "load_checkpoint",
     "load_run",
+    "read_temperature",
     "read_thresholds",
     "resolve_checkpoint",
 ]
 
 THRESHOLDS_FILE = "ood_thresholds.json"  # beside the checkpoints it calibrates
+TEMPERATURE_FILE = "temperature.json"  # beside the checkpoint whose belief it tempers
+_MAX_RECORD_BYTES = 4096  # either file is a few dozen bytes; anything larger is refused unread
+
+log = logging.getLogger("rotlearn")
 
 
 class UnsafeCheckpointError(pickle.UnpicklingError, ValueError):
@@ -106,12 +120,16 @@ class SavedRun:
         state_dict: the LightningModule's weights, name -> tensor.
         ood: the calibrated OOD threshold written by the OOD evaluation beside the checkpoint
             (`THRESHOLDS_FILE`), {"score": str, "threshold": float, "q": float}, or None.
+        temperature: the belief's post-hoc temperature T (A -> A / T) fitted for this
+            checkpoint (`TEMPERATURE_FILE`); 1.0 without one, or when the file names another
+            checkpoint.
     """
 
     path: Path
     config: Any
     state_dict: dict[str, Tensor]
     ood: dict[str, Any] | None = field(default=None)
+    temperature: float = 1.0
 
     @property
     def task(self) -> str:
@@ -142,7 +160,30 @@ class SavedRun:
 
 
 def _number(value: Any) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    """A finite JSON number (not a bool; an integer too large for a float is not finite)."""
+    if not isinstance(value, int | float) or isinstance(value, bool):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
+
+
+def _read_record(path: Path, what: str) -> Any:
+    """The JSON in `path` (a small record file), refusing a large file unread, NaN and the
+    infinities, and nesting too deep to parse; ValueError naming the file otherwise."""
+    if path.stat().st_size > _MAX_RECORD_BYTES:
+        raise ValueError(f"{path}: too large for a JSON {what} (at most {_MAX_RECORD_BYTES} bytes)")
+
+    def refuse(constant: str) -> None:
+        raise ValueError(f"{constant} is not a number")
+
+    try:
+        return json.loads(path.read_text(encoding="utf-8"), parse_constant=refuse)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: not a JSON {what} ({exc})") from None
+    except RecursionError:
+        raise ValueError(f"{path}: not a JSON {what} (nested too deeply)") from None
 
 
 def _check_ood(ood: Any, path: Path, what: str) -> dict[str, Any]:
@@ -171,17 +212,80 @@ def read_thresholds(path: str | os.PathLike) -> dict[str, Any] | None:
     path = Path(path)
     if not path.is_file():
         return None
-    if path.stat().st_size > 4096:
-        raise ValueError(f"{path}: too large for an OOD threshold file (at most 4096 bytes)")
-
-    def refuse(constant: str) -> None:
-        raise ValueError(f"{constant} is not a number")
-
-    try:
-        ood = json.loads(path.read_text(encoding="utf-8"), parse_constant=refuse)
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise ValueError(f"{path}: not a JSON OOD threshold file ({exc})") from None
+    ood = _read_record(path, "OOD threshold file")
     return _check_ood(ood, path, "the OOD threshold")
+
+
+_TEMPERATURE_KEYS = {"temperature", "checkpoint", "val_nll", "val_nll_uncalibrated", "num_val"}
+
+
+def read_temperature(path: str | os.PathLike) -> dict[str, Any] | None:
+    """The post-hoc temperature record in `path` (a `TEMPERATURE_FILE`), or None if there is none.
+
+    Returns:
+        {"temperature": float > 0, "checkpoint": str (a file name), "val_nll": float,
+        "val_nll_uncalibrated": float or None, "num_val": int >= 1}.
+
+    Raises:
+        ValueError: the file is larger than 4096 bytes, not JSON, holds NaN or an infinity, lacks
+            or adds a key, or holds a temperature that is not a finite number > 0 (with a finite
+            1 / T), a checkpoint that is not a plain file name, or a count that is not a positive
+            integer; the message names the file. Nothing is half-read: the record is checked
+            whole before it is returned.
+    """
+    path = Path(path)
+    if not path.is_file():
+        return None
+    record = _read_record(path, "temperature file")
+    expected = (
+        "{temperature: number > 0, checkpoint: file name, val_nll: number, "
+        "val_nll_uncalibrated: number or null, num_val: int}"
+    )
+    if not isinstance(record, dict) or set(record) != _TEMPERATURE_KEYS:
+        keys = sorted(map(str, record)) if isinstance(record, dict) else type(record).__name__
+        raise ValueError(f"{path}: the temperature record must be {expected}, got {keys}")
+    t = record["temperature"]
+    if not _number(t) or not t > 0 or not math.isfinite(1.0 / float(t)):
+        raise ValueError(f"{path}: temperature must be a finite number > 0, got {t!r}")
+    name = record["checkpoint"]
+    if not isinstance(name, str) or not name or Path(name).name != name or name in (".", ".."):
+        raise ValueError(f"{path}: checkpoint must be a checkpoint's file name, got {name!r}")
+    for key in ("val_nll", "val_nll_uncalibrated"):
+        value = record[key]
+        if not _number(value) and not (key == "val_nll_uncalibrated" and value is None):
+            raise ValueError(f"{path}: {key} must be a finite number, got {value!r}")
+    count = record["num_val"]
+    if not isinstance(count, int) or isinstance(count, bool) or count < 1:
+        raise ValueError(f"{path}: num_val must be a positive integer, got {count!r}")
+    before = record["val_nll_uncalibrated"]
+    return {
+        "temperature": float(t),
+        "checkpoint": name,
+        "val_nll": float(record["val_nll"]),
+        "val_nll_uncalibrated": None if before is None else float(before),
+        "num_val": count,
+    }
+
+
+def checkpoint_temperature(ckpt: Path) -> float:
+    """The temperature fitted for the checkpoint file `ckpt` (`read_temperature` of the
+    `TEMPERATURE_FILE` beside it): 1.0 without one, and 1.0 with a logged warning when the file
+    was fitted for another checkpoint (e.g. best.ckpt's temperature while loading last.ckpt).
+
+    Raises:
+        ValueError: as `read_temperature`.
+    """
+    record = read_temperature(ckpt.parent / TEMPERATURE_FILE)
+    if record is None:
+        return 1.0
+    if record["checkpoint"] != ckpt.name:
+        log.warning(
+            "%s: the temperature %.4g was fitted for %s, not %s; the belief is left untempered "
+            "(T = 1)",
+            ckpt.parent / TEMPERATURE_FILE, record["temperature"], record["checkpoint"], ckpt.name,
+        )  # fmt: skip
+        return 1.0
+    return record["temperature"]
 
 
 def load_run(path: str | os.PathLike, task: str | None = None) -> SavedRun:
@@ -213,7 +317,7 @@ def load_run(path: str | os.PathLike, task: str | None = None) -> SavedRun:
     ood = read_thresholds(ckpt.parent / THRESHOLDS_FILE)
     if ood is None and checkpoint.get("rotlearn_ood") is not None:  # runs calibrated in place
         ood = _check_ood(checkpoint["rotlearn_ood"], ckpt, "rotlearn_ood")
-    run = SavedRun(ckpt, config, state_dict, ood)
+    run = SavedRun(ckpt, config, state_dict, ood, checkpoint_temperature(ckpt))
     if task is not None and run.task != task:
         raise ValueError(f"{ckpt} is a task={run.task!r} checkpoint, not task={task!r}")
     return run

@@ -182,6 +182,21 @@ def test_test_ckpt_must_be_last_or_best(make_cfg):
         train(cfg)
 
 
+def test_calibrate_defaults_off_and_adds_the_temperature_fit(make_cfg):
+    from rotlearn.lit import TemperatureScaling
+
+    def scaling(trainer: Trainer) -> list[Callback]:
+        return [cb for cb in trainer.callbacks if isinstance(cb, TemperatureScaling)]
+
+    cfg = make_cfg(["data=tiny"])
+    assert cfg.calibrate is False
+    assert not scaling(build(cfg)[2])
+    on = make_cfg(["data=tiny", "calibrate=true"])
+    assert on.calibrate is True and len(scaling(build(on)[2])) == 1
+    with pytest.raises(ConfigError, match="config key calibrate"):
+        build(make_cfg(["data=tiny", "calibrate=[1]"]))
+
+
 def test_the_a_head_uses_the_auto_solver_and_jacobi_and_eigh_stay_selectable(make_cfg):
     heads = {
         solver: instantiate(make_cfg([] if solver == "auto" else [f"rep.solver={solver}"]).rep)

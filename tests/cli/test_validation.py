@@ -46,7 +46,7 @@ BAD = [
     ("float32_matmul_precision=bogus", r"float32_matmul_precision: must be 'highest', 'high' or"),
     ("seed=abc", r"config key seed: expected int, got 'abc'"),
     ("seed=-1", r"config key seed: must lie in \[0, 4294967295\], got -1"),
-    ("+bogus_top=1", r"config key bogus_top: unknown; allowed: callbacks, ckpt_path, data, "),
+    ("+bogus_top=1", r"config key bogus_top: unknown; allowed: calibrate, callbacks, ckpt_path, "),
     ("+sed=1", r"config key sed: unknown \(did you mean seed\?\)"),
     ("test_ckpt=worst", r"config key test_ckpt: must be 'last' or 'best', got 'worst'"),
     ("+task=rotation", r"config key task: unknown"),  # model=regressor|autoencoder instead

@@ -87,11 +87,13 @@ from rotlearn.bingham.descriptors import (
 )
 from rotlearn.bingham.normalizer import log_normalizer, log_prob, moments, nll, normalizer
 from rotlearn.bingham.sampling import sample
+from rotlearn.bingham.temperature import TemperatureFit, fit_temperature, temperature_fit
 
 __all__ = [
     "CREDIBLE_LEVELS",
     "LOG_AREA_S3",
     "MAX_DISPERSION",
+    "TemperatureFit",
     "bingham_parameters",
     "coverage",
     "dispersion",
@@ -101,6 +103,7 @@ __all__ = [
     "eigengap",
     "eigengap_from_eigenvalues",
     "expected_calibration_error",
+    "fit_temperature",
     "hpd_level",
     "log_normalizer",
     "log_prob",
@@ -109,4 +112,5 @@ __all__ = [
     "nll",
     "normalizer",
     "sample",
+    "temperature_fit",
 ]

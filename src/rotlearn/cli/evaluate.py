@@ -3,7 +3,9 @@
 The run's own config (saved in the checkpoint) rebuilds the data, net and head; the non-null keys
 of conf/eval.yaml's `ood`, `data` and `trainer` are merged into it. Results go to a new directory
 (`outputs/eval/<time>`): metrics.json, ood.csv, ood.md and TensorBoard events. Nothing in the
-trained run's directory is touched.
+trained run's directory is touched. The belief's temperature fitted for the checkpoint
+(`calibrate=true` in training: `checkpoints/temperature.json`) is applied (`temperature` in
+metrics.json); it is never refitted here.
 """
 
 from __future__ import annotations
@@ -67,6 +69,7 @@ def evaluation_config(cfg: DictConfig, saved: SavedRun) -> DictConfig:
     }  # fmt: skip
     run.paths = {"output_dir": out}
     run.ckpt_path = None
+    run.calibrate = False  # the checkpoint's own temperature is applied (`evaluate`), not refitted
     return run
 
 
@@ -82,9 +85,12 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     run = evaluation_config(cfg, saved)
     model, datamodule, trainer = build(run)
     model.load_state_dict(saved.state_dict)
+    model.belief_temperature = saved.temperature  # the test metrics and OOD scores use it
     trainer.test(model, datamodule=datamodule, verbose=False)
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
-    metrics.update({"ckpt": str(ckpt.resolve()), "rep": run.rep.name})
+    metrics.update(
+        {"ckpt": str(ckpt.resolve()), "rep": run.rep.name, "temperature": saved.temperature}
+    )
     write_json_atomic(Path(cfg.paths.output_dir) / "metrics.json", metrics)
     return metrics
 

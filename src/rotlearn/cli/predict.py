@@ -5,7 +5,8 @@ Point models: INPUT is a point-cloud pair file, a `.npy` array (N, 6) or (B, N, 
 file of N lines "ux uy uz vx vy vz" (whitespace or commas; `#` starts a comment): the matched
 pairs (u_i, v_i) with v_i = R u_i. Image-pair models (data=kitti, data=mav): INPUT and INPUT2 are
 the two frames (e.g. sequences/00/image_2/000000.png and 000001.png), preprocessed as in
-training; the answer is C_21, the rotation from the first camera to the second.
+training; the answer is C_21, the rotation from the first camera to the second. The uncertainty
+(A head) is that of the belief tempered by the checkpoint's calibrated temperature, if any.
 """
 
 from __future__ import annotations
@@ -89,6 +90,7 @@ def main(argv: list[str] | None = None) -> int:
         if estimate.dt is not None:
             item["dispersion"] = estimate.dispersion[i].tolist()
             item["dt_score"] = float(estimate.dt[i])
+            item["temperature"] = estimate.temperature
         if estimate.keep is not None:
             item["keep"] = bool(estimate.keep[i])
         results.append(item)
@@ -103,9 +105,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{prefix}  " + " ".join(f"{v:+.6f}" for v in row))
         if "dt_score" in item:
             disp = ", ".join(f"{v:.4g}" for v in item["dispersion"])
+            t = item["temperature"]
+            tempered = f", temperature {t:.4g}" if t != 1 else ""
             print(
                 f"{prefix}uncertainty: DT score {item['dt_score']:.4g} (lower = more confident), "
-                f"Bingham dispersion ({disp})"
+                f"Bingham dispersion ({disp}){tempered}"
             )
         if "keep" in item:
             print(f"{prefix}OOD check: {'keep' if item['keep'] else 'reject'}")

@@ -152,6 +152,7 @@ TOP_LEVEL: dict[str, Any] = {
     "ckpt_path": str | None,
     "seed": int,
     "test_ckpt": Literal["last", "best"],
+    "calibrate": bool,
     "float32_matmul_precision": Literal["highest", "high", "medium"],
     "trial": int,
     "trials": int,
@@ -283,9 +284,13 @@ def validate(cfg: DictConfig) -> None:
     for key in ("logger", "callbacks"):
         _check_collection(cfg, key)
     try:  # the registry knows the names and sizes; heads are stateless and cheap to make
-        make_head(cfg.rep.name, cfg.rep.out_dim, cfg.rep.get("solver"))
+        head = make_head(cfg.rep.name, cfg.rep.out_dim, cfg.rep.get("solver"))
     except ConfigError as exc:
         raise exc.within("rep") from None
+    if _resolved(cfg, "calibrate") and not head.defines_belief:  # refused before any run dir
+        raise ConfigError(
+            "calibrate", f"fits the temperature of a belief; rep={head.name} has none"
+        )
 
 
 def validate_command_line(args: list[str], output_dir: str) -> None:

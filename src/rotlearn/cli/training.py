@@ -30,7 +30,13 @@ from rotlearn.cli.callbacks import record_job
 from rotlearn.cli.resume import checkpoint_to_resume
 from rotlearn.cli.schemas import validate
 from rotlearn.errors import ConfigError
-from rotlearn.lit import EpochLosses, InterruptRecorder, ModelSummary, RunRecords
+from rotlearn.lit import (
+    EpochLosses,
+    InterruptRecorder,
+    ModelSummary,
+    RunRecords,
+    TemperatureScaling,
+)
 
 __all__ = ["ConfigError", "RunInterrupted", "build", "report", "train"]
 
@@ -105,8 +111,10 @@ def build(cfg: DictConfig) -> tuple[pl.LightningModule, pl.LightningDataModule, 
     `instantiate(cfg.model)` is the whole model (`model=regressor`: net, head, loss, optimizer
     and scheduler from their groups; `model=autoencoder`: the OOD baseline). The trainer gets
     the configured callbacks plus the run's record keeping (`RunRecords`, `InterruptRecorder`,
-    `EpochLosses`), whatever `callbacks=` says, and `trainer.enable_model_summary` gives rotlearn's
-    `ModelSummary`."""
+    `EpochLosses`), whatever `callbacks=` says, `calibrate: true` adds the post-hoc temperature
+    fit (`rotlearn.lit.calibration.TemperatureScaling`; refused with a `ConfigError` naming
+    `calibrate` for a head without a belief), and `trainer.enable_model_summary` gives
+    rotlearn's `ModelSummary`."""
     validate(cfg)
     pl.seed_everything(cfg.seed, workers=True, verbose=False)
     datamodule = _instantiate(cfg, "data")
@@ -114,6 +122,12 @@ def build(cfg: DictConfig) -> tuple[pl.LightningModule, pl.LightningDataModule, 
     model.run_config = OmegaConf.to_container(cfg, resolve=True)
     callbacks = _instantiate_all(cfg, "callbacks")
     callbacks += [RunRecords(cfg.paths.output_dir), InterruptRecorder(), EpochLosses()]
+    if OmegaConf.select(cfg, "calibrate", default=False):
+        head = getattr(model, "head", None)
+        if not getattr(head, "defines_belief", False):
+            what = f"rep={head.name}" if head is not None else f"the {type(model).__name__}"
+            raise ConfigError("calibrate", f"fits the temperature of a belief; {what} has none")
+        callbacks.append(TemperatureScaling(cfg.paths.output_dir))
     if OmegaConf.select(cfg, "trainer.enable_model_summary", default=True):
         callbacks.append(ModelSummary())  # Lightning's, without its column of zero FLOPs
     trainer = _instantiate(

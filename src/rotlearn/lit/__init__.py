@@ -5,6 +5,7 @@ from rotlearn.extras import require
 require("train", "rotlearn.lit")
 
 from rotlearn.lit.autoencoder import AutoEncoderModule, load_autoencoder
+from rotlearn.lit.calibration import TemperatureScaling
 from rotlearn.lit.callbacks import EpochLosses, EpochTimer, InterruptRecorder, ModelSummary
 from rotlearn.lit.records import RunRecords, barely_learned, divergence
 from rotlearn.lit.regressor import RotationRegressor
@@ -17,6 +18,7 @@ __all__ = [
     "ModelSummary",
     "RotationRegressor",
     "RunRecords",
+    "TemperatureScaling",
     "barely_learned",
     "divergence",
     "load_autoencoder",

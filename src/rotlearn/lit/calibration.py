@@ -1,0 +1,152 @@
+"""`calibrate=true`: post-hoc temperature scaling of the belief when testing starts (issue 17).
+
+`TemperatureScaling` runs when the test loop starts, after Lightning has loaded the tested weights
+(`test_ckpt`: the last epoch's, or best.ckpt's). It predicts the VALIDATION set with those weights,
+fits one scalar temperature T on the beliefs A and the targets q by mean NLL
+(`rotlearn.bingham.temperature_fit`; A -> A / T, the mode unchanged), and
+
+* sets `pl_module.belief_temperature = T`, which the regressor applies in `forward` and its test
+  step: every test metric, and the OOD evaluation (`callbacks=ood`, which runs at the test's END
+  and predicts through `forward`), see the tempered belief, whatever the callbacks' order;
+* logs `calibration/temperature`, `calibration/val_nll` and `calibration/val_nll_uncalibrated`
+  (nats, w.r.t. the uniform measure on SO(3)), which reach metrics.json;
+* writes `<run>/checkpoints/temperature.json` beside the tested checkpoint (`TEMPERATURE_FILE`,
+  read by `rotlearn.load` and `rotlearn-eval`): {"temperature", "checkpoint" (the tested file's
+  name), "val_nll", "val_nll_uncalibrated" (null where not computable), "num_val"}.
+
+The fit always starts from the untempered belief (the net and head, not `forward`), so testing
+twice fits the same T. Quaternions are scalar LAST (x, y, z, w).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+from typing import Any
+
+import lightning.pytorch as pl
+import torch
+
+from rotlearn.bingham import temperature_fit
+from rotlearn.checkpoint import TEMPERATURE_FILE
+from rotlearn.errors import ConfigError
+from rotlearn.geometry import rotmat_to_quat
+from rotlearn.io import write_json_atomic
+
+__all__ = ["TemperatureScaling", "validation_beliefs"]
+
+log = logging.getLogger("rotlearn")
+
+
+def _finish(datamodule: Any, batch: Any, module: pl.LightningModule) -> Any:
+    """A loader batch as the model sees it, on its device and in its dtype (as
+    `rotlearn.lit.callbacks.DataDependentInit` makes one)."""
+    if hasattr(datamodule, "finish_batch"):
+        return datamodule.finish_batch(batch, module.device, module.dtype)
+    batch = {k: v.to(module.device) if torch.is_tensor(v) else v for k, v in batch.items()}
+    return datamodule.on_after_batch_transfer(batch, 0)
+
+
+def validation_beliefs(
+    module: pl.LightningModule, datamodule: Any
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The untempered beliefs A (N, 4, 4) and targets q (N, 4) of the validation set, float64 on
+    the CPU, predicted by `module.head(module.net(...))` in eval mode without gradients."""
+    was_training = module.training
+    module.eval()
+    beliefs, targets = [], []
+    try:
+        with torch.inference_mode():
+            for batch in datamodule.val_dataloader():
+                batch = _finish(datamodule, batch, module)
+                prediction = module.head(module.net(batch["input"]))
+                beliefs.append(prediction.A.double().cpu())
+                q = batch["q"] if "q" in batch else rotmat_to_quat(batch["R"])
+                targets.append(q.double().cpu())
+    finally:
+        module.train(was_training)
+    if not beliefs:
+        raise ConfigError("calibrate", "needs a validation set, but the datamodule has none")
+    return torch.cat(beliefs), torch.cat(targets)
+
+
+class TemperatureScaling(pl.Callback):
+    """Fit the belief's temperature on the validation set when testing starts (module docstring).
+
+    `rotlearn.cli.training.build` adds it when the config says `calibrate: true`.
+
+    Args:
+        dirpath: the run directory; temperature.json is written only below it (never into
+            another run's checkpoints).
+
+    Attributes:
+        record: what was written to temperature.json (None before the test starts).
+    """
+
+    def __init__(self, dirpath: str | Path) -> None:
+        self.dirpath = Path(dirpath)
+        self.record: dict[str, Any] | None = None
+
+    def setup(self, trainer: pl.Trainer, pl_module: pl.LightningModule, stage: str) -> None:
+        head = getattr(pl_module, "head", None)
+        if not getattr(head, "defines_belief", False):
+            name = getattr(head, "name", type(head).__name__)
+            raise ConfigError(
+                "calibrate", f"needs a head that defines a belief; rep={name} has none"
+            )
+
+    def on_test_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        A, q = validation_beliefs(pl_module, trainer.datamodule)
+        fit = temperature_fit(A, q)
+        temperature = float(fit.temperature)
+        pl_module.belief_temperature = temperature
+        if fit.at_bound is not None:
+            log.warning(
+                "calibration: the validation NLL still falls at the %s end of the temperature "
+                "range (T = %.4g); the belief is %s",
+                "sharp" if fit.at_bound == "lower" else "flat",
+                temperature,
+                "as sharp as supported" if fit.at_bound == "lower" else "nearly uniform",
+            )
+        log.info(
+            "calibration: temperature %.4g on %d validation samples (mean NLL %.4f -> %.4f nats)",
+            temperature, fit.num, fit.nll_before, fit.nll_after,
+        )  # fmt: skip
+        metrics = {"calibration/temperature": temperature, "calibration/val_nll": fit.nll_after}
+        if math.isfinite(fit.nll_before):
+            metrics["calibration/val_nll_uncalibrated"] = fit.nll_before
+        pl_module.log_dict(metrics, on_step=False, on_epoch=True)
+        folder, name = self._tested_checkpoint(trainer)
+        self.record = {
+            "temperature": temperature,
+            "checkpoint": name,
+            "val_nll": fit.nll_after,
+            "val_nll_uncalibrated": fit.nll_before if math.isfinite(fit.nll_before) else None,
+            "num_val": fit.num,
+        }
+        if not trainer.is_global_zero:
+            return
+        if folder is None:
+            log.warning("calibration: no checkpoint directory; %s not written", TEMPERATURE_FILE)
+        elif not folder.resolve().is_relative_to(self.dirpath.resolve()):
+            log.warning(
+                "calibration: the tested checkpoint's directory %s is outside this run's "
+                "directory %s; %s not written there",
+                folder, self.dirpath, TEMPERATURE_FILE,
+            )  # fmt: skip
+        else:
+            write_json_atomic(folder / TEMPERATURE_FILE, self.record)
+
+    @staticmethod
+    def _tested_checkpoint(trainer: pl.Trainer) -> tuple[Path | None, str]:
+        """(directory, file name) of the checkpoint whose weights are tested: the one Lightning
+        loaded (test_ckpt=best), else the last one (the weights in memory)."""
+        if trainer.ckpt_path:
+            path = Path(trainer.ckpt_path)
+            return path.parent, path.name
+        callback = trainer.checkpoint_callback
+        last = getattr(callback, "last_model_path", "") or ""
+        folder = getattr(callback, "dirpath", None)
+        name = Path(last).name if last else "last.ckpt"
+        return (Path(folder) if folder else None), name

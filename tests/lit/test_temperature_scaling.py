@@ -1,0 +1,149 @@
+"""`calibrate=true`: the temperature fitted on the validation set at test start (issue 17)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import lightning.pytorch as pl
+import pytest
+import torch
+
+from rotlearn.bingham import fit_temperature
+from rotlearn.checkpoint import TEMPERATURE_FILE, read_temperature
+from rotlearn.cli.train import ConfigError, build, train
+from rotlearn.lit.calibration import TemperatureScaling, validation_beliefs
+from tests.conftest import FAST
+
+RUN = ["rep=a", *FAST, "trainer.max_epochs=1", "logger=csv", "calibrate=true"]
+
+
+class _SeesTheTemperature(pl.Callback):
+    """Records the module's temperature when the test starts and ends (as the OOD evaluation,
+    which runs at the test's end, would see it)."""
+
+    def __init__(self) -> None:
+        self.seen: dict[str, float | None] = {}
+
+    def on_test_start(self, trainer, pl_module) -> None:
+        self.seen["start"] = getattr(pl_module, "belief_temperature", None)
+
+    def on_test_end(self, trainer, pl_module) -> None:
+        self.seen["end"] = getattr(pl_module, "belief_temperature", None)
+
+
+def test_a_calibrated_run_writes_logs_and_sets_the_temperature(make_cfg):
+    cfg = make_cfg(RUN)
+    model, datamodule, trainer = build(cfg)
+    spy = _SeesTheTemperature()
+    trainer.callbacks.insert(0, spy)  # before TemperatureScaling: the hook order still holds
+    trainer.fit(model, datamodule=datamodule)
+    trainer.test(model, datamodule=datamodule, verbose=False)
+    run = Path(cfg.paths.output_dir)
+    record = read_temperature(run / "checkpoints" / TEMPERATURE_FILE)
+    assert record is not None and record["checkpoint"] == "last.ckpt"
+    assert record["num_val"] == 16  # data=tiny's validation set
+    t = record["temperature"]
+    assert t > 0 and model.belief_temperature == t
+    assert spy.seen["end"] == t  # what an on_test_end callback (the OOD evaluation) sees
+    assert record["val_nll"] <= record["val_nll_uncalibrated"] + 1e-9
+    # the same fit, redone from the tested weights and the validation set
+    A, q = validation_beliefs(model, datamodule)
+    assert A.shape == (16, 4, 4) and q.shape == (16, 4)
+    assert float(fit_temperature(A, q)) == pytest.approx(t, rel=1e-9)
+    # logged: in the metrics of the test, and in the CSV logger's file
+    metrics = trainer.callback_metrics
+    assert float(metrics["calibration/temperature"]) == pytest.approx(t, rel=1e-6)
+    assert float(metrics["calibration/val_nll"]) == pytest.approx(record["val_nll"], rel=1e-6)
+    assert "calibration/temperature" in (run / "csv" / "metrics.csv").read_text()
+    # testing again fits again from the untempered belief: the same T, not T^2
+    trainer.test(model, datamodule=datamodule, verbose=False)
+    assert model.belief_temperature == pytest.approx(t, rel=1e-12)
+
+
+def test_the_record_names_the_tested_checkpoint_and_reaches_metrics_json(make_cfg):
+    cfg = make_cfg([*RUN, "test_ckpt=best"])
+    metrics = train(cfg)
+    run = Path(cfg.paths.output_dir)
+    record = json.loads((run / "checkpoints" / TEMPERATURE_FILE).read_text())
+    assert record["checkpoint"] == "best.ckpt"
+    assert set(record) == {"temperature", "checkpoint", "val_nll", "val_nll_uncalibrated",
+                           "num_val"}  # fmt: skip
+    on_disk = json.loads((run / "metrics.json").read_text())
+    assert on_disk["calibration/temperature"] == pytest.approx(record["temperature"], rel=1e-6)
+    assert metrics["tested_weights"] == "best"
+
+
+def test_calibration_is_refused_for_a_head_without_a_belief(make_cfg, tmp_path):
+    from rotlearn.cli.schemas import validate_command_line
+
+    with pytest.raises(ConfigError, match=r"config key calibrate: .*rep=sixd has none"):
+        build(make_cfg(["rep=sixd", *FAST, "calibrate=true"]))
+    # rotlearn-train checks the command line this way before Hydra makes the run directory
+    with pytest.raises(ConfigError, match=r"config key calibrate: .*rep=quat has none"):
+        validate_command_line(["rep=quat", "calibrate=true"], str(tmp_path / "run"))
+    assert not (tmp_path / "run").exists()
+    with pytest.raises(ConfigError, match=r"calibrate: .*AutoEncoderModule has none"):
+        build(make_cfg(["experiment=kitti_autoencoder", "calibrate=true"]))
+    with pytest.raises(ConfigError, match="calibrate"):
+        TemperatureScaling("x").setup(None, torch.nn.Module(), "test")
+
+
+def test_calibrate_must_be_a_boolean(make_cfg):
+    with pytest.raises(ConfigError, match="calibrate"):
+        build(make_cfg(["rep=a", *FAST, "calibrate=maybe"]))
+
+
+def test_records_are_never_written_outside_the_run(make_cfg, tmp_path):
+    cfg = make_cfg(RUN)
+    model, datamodule, trainer = build(cfg)
+    scaling = next(cb for cb in trainer.callbacks if isinstance(cb, TemperatureScaling))
+    other = tmp_path / "another_run"
+    scaling.dirpath = other  # as if this run's checkpoints lay in another run's directory
+    trainer.fit(model, datamodule=datamodule)
+    trainer.test(model, datamodule=datamodule, verbose=False)
+    assert scaling.record is not None and model.belief_temperature == scaling.record["temperature"]
+    assert not (Path(cfg.paths.output_dir) / "checkpoints" / TEMPERATURE_FILE).exists()
+
+
+def test_an_image_pair_run_calibrates_before_its_ood_evaluation_and_eval_reuses_t(
+    make_cfg, tmp_path
+):
+    """data=kitti with callbacks=ood: temperature.json and ood_thresholds.json sit side by side
+    (the OOD evaluation ran with the temperature set), and rotlearn-eval applies the stored T
+    without refitting or writing into the run."""
+    from hydra import compose, initialize_config_dir
+
+    from rotlearn.checkpoint import THRESHOLDS_FILE
+    from rotlearn.cli.evaluate import evaluate
+    from rotlearn.paths import config_dir
+    from tests.conftest import write_kitti, yaw_sequence
+
+    root = write_kitti(
+        tmp_path / "kitti", {"00": yaw_sequence(11, 1.0), "01": yaw_sequence(9, -1.0)}, seed=3
+    )
+    pairs = [
+        "data=kitti", f"data.root={root}", "data.train_sequences=[01]", "data.test_sequences=[00]",
+        "data.image_size=16", "data.num_workers=0", "data.eval_batch_size=4",
+        "net.channels=[8,8,8,8]", "net.hidden=16", "trainer=cpu", "trainer.max_epochs=1",
+        "trainer.enable_progress_bar=false", "trainer.enable_model_summary=false",
+        "callbacks=ood", "callbacks.ood.noise_pairs=4", "callbacks.ood.examples=0",
+        "logger=none", "calibrate=true",
+    ]  # fmt: skip
+    run = tmp_path / "run"
+    model, datamodule, trainer = build(make_cfg(pairs, run_dir=run))
+    spy = _SeesTheTemperature()
+    trainer.callbacks.insert(0, spy)
+    trainer.fit(model, datamodule=datamodule)
+    trainer.test(model, datamodule=datamodule, verbose=False)
+    record = read_temperature(run / "checkpoints" / TEMPERATURE_FILE)
+    assert record is not None and spy.seen["end"] == record["temperature"]
+    assert (run / "checkpoints" / THRESHOLDS_FILE).is_file()
+    before = sorted(p.name for p in (run / "checkpoints").iterdir())
+    out = tmp_path / "eval"
+    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
+        cfg = compose("eval", [f"paths.output_dir={out}", f"ckpt={run}"])
+    result = evaluate(cfg)
+    assert result["temperature"] == record["temperature"]
+    assert "calibration/temperature" not in result  # applied, not refitted
+    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == before
