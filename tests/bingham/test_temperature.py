@@ -49,7 +49,7 @@ def test_fit_recovers_a_known_temperature_within_its_standard_error(t0):
     n = 3000
     A = beliefs(n, seed=11)
     q = targets(A / t0, seed=12)
-    fit = bh.temperature_fit(A, q)
+    fit = bh.fit_temperature(A, q)
     assert fit.num == n and fit.at_bound is None
     # the MLE of beta = 1 / T is asymptotically normal with variance 1 / (Fisher information)
     beta0, beta = 1.0 / t0, 1.0 / float(fit.temperature)
@@ -67,7 +67,7 @@ def test_fit_recovers_a_known_temperature_within_its_standard_error(t0):
 def test_mean_nll_is_convex_in_beta_and_minimal_at_the_fit():
     A = beliefs(400, seed=21)
     q = targets(A / 2.0, seed=22)
-    t = bh.fit_temperature(A, q)
+    t = bh.fit_temperature(A, q).temperature
     betas = torch.logspace(-2, 1, 31, dtype=F64).tolist()
     values = torch.tensor([float(bh.nll(A * b, q).mean()) for b in betas], dtype=F64)
     b = torch.tensor(betas, dtype=F64)
@@ -92,13 +92,13 @@ def test_mean_nll_is_convex_in_beta_and_minimal_at_the_fit():
 def test_temperature_scales_with_a_and_ignores_shifts_and_signs(seed, scale, shift, t0):
     A = beliefs(24, seed=seed)
     q = targets(A / t0, seed=seed + 1)
-    t = float(bh.fit_temperature(A, q))
+    t = float(bh.fit_temperature(A, q).temperature)
     assert t > 0
-    assert float(bh.fit_temperature(scale * A, q)) == pytest.approx(scale * t, rel=1e-7)
+    assert float(bh.fit_temperature(scale * A, q).temperature) == pytest.approx(scale * t, rel=1e-7)
     eye = torch.eye(4, dtype=F64)
-    assert float(bh.fit_temperature(A + shift * eye, -q)) == pytest.approx(t, rel=1e-7)
+    assert float(bh.fit_temperature(A + shift * eye, -q).temperature) == pytest.approx(t, rel=1e-7)
     # float32 input gives the same answer (computed in float64), in float32
-    t32 = bh.fit_temperature(A.float(), q.float())
+    t32 = bh.fit_temperature(A.float(), q.float()).temperature
     assert t32.dtype == torch.float32 and t32.dim() == 0
     assert float(t32) == pytest.approx(t, rel=1e-4)
 
@@ -106,16 +106,18 @@ def test_temperature_scales_with_a_and_ignores_shifts_and_signs(seed, scale, shi
 def test_broadcasting_and_batch_shapes():
     A = beliefs(6, seed=31)
     q = targets(A, seed=32)
-    flat = bh.fit_temperature(A, q)
-    torch.testing.assert_close(bh.fit_temperature(A.reshape(2, 3, 4, 4), q.reshape(2, 3, 4)), flat)
+    flat = bh.fit_temperature(A, q).temperature
+    torch.testing.assert_close(
+        bh.fit_temperature(A.reshape(2, 3, 4, 4), q.reshape(2, 3, 4)).temperature, flat
+    )
     many = bh.sample(A[0], 50, generator=gen(33))  # (50, 4) targets of one belief
-    assert bh.temperature_fit(A[0], many).num == 50
+    assert bh.fit_temperature(A[0], many).num == 50
 
 
 def test_the_bracket_keeps_every_tempered_belief_supported():
     A = beliefs(5, seed=41)
     modes = bh.mode(A)
-    fit = bh.temperature_fit(A, modes)  # every target at its mode: sharper is always better
+    fit = bh.fit_temperature(A, modes)  # every target at its mode: sharper is always better
     assert fit.at_bound == "lower"
     spread = float(bh.dispersion(A)[:, 0].neg().max())
     assert spread / float(fit.temperature) <= bh.MAX_DISPERSION
@@ -123,14 +125,14 @@ def test_the_bracket_keeps_every_tempered_belief_supported():
     bh.nll(A / fit.temperature, modes)  # still inside the supported range: no error
     # targets farthest from the modes: the belief is anti-informative, T goes to the flat end
     _, V = torch.linalg.eigh(A)
-    worst = bh.temperature_fit(A, V[..., -1])
+    worst = bh.fit_temperature(A, V[..., -1])
     assert worst.at_bound == "upper" and worst.nll_after < 1e-4
 
 
 def test_spreads_beyond_max_dispersion_fit_with_an_unknown_before():
     A = beliefs(50, seed=51) * 1e5  # spreads up to 6e6 > MAX_DISPERSION
     q = targets(A / 1e5, seed=52)
-    fit = bh.temperature_fit(A, q)
+    fit = bh.fit_temperature(A, q)
     assert math.isnan(fit.nll_before) and math.isfinite(fit.nll_after)
     assert float(fit.temperature) == pytest.approx(1e5, rel=0.2)
 

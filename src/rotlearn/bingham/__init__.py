@@ -87,7 +87,7 @@ from rotlearn.bingham.descriptors import (
 )
 from rotlearn.bingham.normalizer import log_normalizer, log_prob, moments, nll, normalizer
 from rotlearn.bingham.sampling import sample
-from rotlearn.bingham.temperature import TemperatureFit, fit_temperature, temperature_fit
+from rotlearn.bingham.temperature import TemperatureFit, fit_temperature
 
 __all__ = [
     "CREDIBLE_LEVELS",
@@ -112,5 +112,4 @@ __all__ = [
     "nll",
     "normalizer",
     "sample",
-    "temperature_fit",
 ]

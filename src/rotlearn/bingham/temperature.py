@@ -41,7 +41,7 @@ from rotlearn.bingham.descriptors import (
 )
 from rotlearn.bingham.normalizer import _log_normalizer3, moments
 
-__all__ = ["MIN_SPREAD_RATIO", "TemperatureFit", "fit_temperature", "temperature_fit"]
+__all__ = ["MIN_SPREAD_RATIO", "TemperatureFit", "fit_temperature"]
 
 MIN_SPREAD_RATIO = 1e-6
 """The near-uniform end of the bracket: beta (l4 - l1) >= this for the widest-spread sample."""
@@ -51,7 +51,7 @@ _MAX_SPREAD_RATIO = MAX_DISPERSION * (1.0 - 1e-9)  # the supported end, with rou
 
 @dataclass(frozen=True)
 class TemperatureFit:
-    """The result of `temperature_fit`.
+    """The result of `fit_temperature`.
 
     Attributes:
         temperature: 0-dim tensor T > 0 in A's dtype (A -> A / T).
@@ -103,7 +103,7 @@ def _slope(energy: Tensor, lam: Tensor, beta: float) -> float:
     return float((energy + (lam * m).sum(-1)).mean())
 
 
-def temperature_fit(
+def fit_temperature(
     A: Tensor, q: Tensor, *, rtol: float = 1e-10, max_iter: int = 200
 ) -> TemperatureFit:
     """Fit the temperature T minimising the mean of `nll(A / T, q)` (module docstring).
@@ -163,12 +163,3 @@ def temperature_fit(
         num=int(energy.shape[0]),
         at_bound=at_bound,
     )
-
-
-def fit_temperature(A: Tensor, q: Tensor, *, rtol: float = 1e-10, max_iter: int = 200) -> Tensor:
-    """The temperature T > 0 (0-dim tensor, A's dtype) minimising the mean `nll(A / T, q)`.
-
-    `temperature_fit(...).temperature`; see `temperature_fit` for the arguments, the NLL before
-    and after, and the errors.
-    """
-    return temperature_fit(A, q, rtol=rtol, max_iter=max_iter).temperature

@@ -3,7 +3,7 @@
 `TemperatureScaling` runs when the test loop starts, after Lightning has loaded the tested weights
 (`test_ckpt`: the last epoch's, or best.ckpt's). It predicts the VALIDATION set with those weights,
 fits one scalar temperature T on the beliefs A and the targets q by mean NLL
-(`rotlearn.bingham.temperature_fit`; A -> A / T, the mode unchanged), and
+(`rotlearn.bingham.fit_temperature`; A -> A / T, the mode unchanged), and
 
 * sets `pl_module.belief_temperature = T`, which the regressor applies in `forward` and its test
   step: every test metric, and the OOD evaluation (`callbacks=ood`, which runs at the test's END
@@ -28,7 +28,7 @@ from typing import Any
 import lightning.pytorch as pl
 import torch
 
-from rotlearn.bingham import temperature_fit
+from rotlearn.bingham import fit_temperature
 from rotlearn.checkpoint import TEMPERATURE_FILE
 from rotlearn.errors import ConfigError
 from rotlearn.geometry import rotmat_to_quat
@@ -98,7 +98,7 @@ class TemperatureScaling(pl.Callback):
 
     def on_test_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         A, q = validation_beliefs(pl_module, trainer.datamodule)
-        fit = temperature_fit(A, q)
+        fit = fit_temperature(A, q)
         temperature = float(fit.temperature)
         pl_module.belief_temperature = temperature
         if fit.at_bound is not None:
