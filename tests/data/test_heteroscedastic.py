@@ -159,3 +159,62 @@ def test_check_range_passes_null_and_good_pairs():
     assert check_range("k", [2, 2], minimum=2, integer=True) == (2.0, 2.0)
     with pytest.raises(ConfigValueError, match="hi <= 1"):
         check_range("k", [0.5, 2], minimum=0, maximum=1)
+
+
+def _shapenet(**kw):
+    from rotlearn.data import ShapeNetDataModule
+
+    dm = ShapeNetDataModule("unused", rotations_per_cloud=16, test_rotations=16, **kw)
+    g = torch.Generator().manual_seed(0)
+    cloud = torch.randn(50, 3, generator=g, dtype=torch.float64)  # no files: clouds set directly
+    dm.clouds = {TRAIN: [cloud], VAL: [cloud], TEST: [cloud]}
+    dm.trainer = SimpleNamespace(current_epoch=0, lightning_module=None)
+    return dm, cloud
+
+
+def test_shapenet_noise_and_dropout_per_sample():
+    dm, cloud = _shapenet(noise_range=[0.01, 0.1], keep_range=[0.2, 0.6])
+    batch = dm.draw(TEST, 0, 16, dtype=torch.float64)
+    x, y, n = batch["input"][..., :3], batch["input"][..., 3:], batch["num_points"]
+    assert ((batch["sigma"] >= 0.01) & (batch["sigma"] <= 0.1)).all()
+    assert ((n >= 10) & (n <= 30)).all() and len(n.unique()) > 1  # ceil(f * 50), f in [0.2, 0.6]
+    torch.testing.assert_close(batch["difficulty"], batch["sigma"] / n.double().sqrt())
+    for b in range(16):  # a test, not a hot path
+        k = int(n[b])
+        kept = x[b, :k]
+        assert torch.equal(x[b], kept[torch.arange(50) % k])  # the rest repeats the kept points
+        assert len(torch.unique(kept, dim=0)) == k  # distinct points of the cloud
+        assert (kept[:, None] == cloud).all(-1).any(-1).all()  # each a point of the cloud
+        residual = y[b, :k] - kept @ batch["R"][b].T
+        assert residual.std() == pytest.approx(float(batch["sigma"][b]), rel=0.6)
+    again = dm.draw(TEST, 0, 16, dtype=torch.float64)
+    assert all(torch.equal(batch[k], again[k]) for k in batch)
+
+
+def test_shapenet_without_ranges_is_unchanged():
+    dm, _ = _shapenet()
+    batch = dm.draw(TEST, 0, 16, dtype=torch.float64)
+    assert set(batch) == {"input", "R", "q"}
+    x, y = batch["input"][..., :3], batch["input"][..., 3:]
+    torch.testing.assert_close(y, x @ batch["R"].transpose(-1, -2))
+    only_keep, _ = _shapenet(keep_range=[0.5, 0.5])
+    kept = only_keep.draw(TEST, 0, 16, dtype=torch.float64)
+    torch.testing.assert_close(kept["R"], batch["R"])  # extra draws come after the rotations
+    assert (kept["num_points"] == 25).all() and (kept["sigma"] == 0).all()
+    torch.testing.assert_close(kept["difficulty"], torch.full((16,), 0.2, dtype=torch.float64))
+
+
+@pytest.mark.parametrize(
+    ("kw", "key"),
+    [
+        ({"noise_range": [0.0, 0.1]}, "noise_range"),
+        ({"noise_range": [0.2, 0.1]}, "noise_range"),
+        ({"keep_range": [0.0, 0.5]}, "keep_range"),
+        ({"keep_range": [0.5, 1.5]}, "keep_range"),
+        ({"keep_range": [0.5]}, "keep_range"),
+    ],
+)
+def test_shapenet_bad_ranges_are_refused_naming_the_key(kw, key):
+    with pytest.raises(ConfigValueError) as info:
+        _shapenet(**kw)
+    assert info.value.key == key

@@ -8,6 +8,11 @@ information, so the net sees exactly n_i points.
 Laws (one source for the synthetic Wahba and the ShapeNet data):
 - noise level: log-uniform in [lo, hi], i.e. log s ~ U[log lo, log hi] (density 1 / (s log(hi/lo)));
 - number of distinct points: uniform on the integers lo, lo + 1, ..., hi.
+
+A batch of such data carries "sigma" (B,), "num_matches" (B,) (int64) and "difficulty" (B,) =
+sigma / sqrt(n): for small isotropic noise of std sigma on n points, the least-squares rotation's
+angular error scales as sigma / sqrt(n), so the difficulty grows with the expected error of the
+best estimate (test metrics rank samples by it, e.g. the noisiest decile).
 """
 
 from __future__ import annotations
@@ -20,7 +25,14 @@ from torch import Tensor
 
 from rotlearn.errors import ConfigValueError
 
-__all__ = ["check_range", "log_uniform", "repeat_rows", "uniform_counts"]
+__all__ = [
+    "check_range",
+    "difficulty",
+    "keep_random_rows",
+    "log_uniform",
+    "repeat_rows",
+    "uniform_counts",
+]
 
 
 def check_range(
@@ -101,3 +113,27 @@ def repeat_rows(x: Tensor, counts: Tensor) -> Tensor:
     N = x.shape[-2]
     rows = torch.arange(N, device=x.device) % counts.to(x.device).unsqueeze(-1)  # (B, N)
     return torch.gather(x, -2, rows.unsqueeze(-1).expand(-1, -1, x.shape[-1]))
+
+
+def difficulty(sigma: Tensor, counts: Tensor) -> Tensor:
+    """sigma / sqrt(n), (B,) in sigma's dtype: grows with the best estimate's expected error."""
+    return sigma / counts.to(sigma.dtype).sqrt()
+
+
+def keep_random_rows(
+    x: Tensor, counts: Tensor, *, generator: torch.Generator | None = None
+) -> Tensor:
+    """Keep counts[b] rows of sample b chosen uniformly at random (without replacement) and fill
+    the rest by repeating them (`repeat_rows`).
+
+    Args:
+        x: (B, N, C); counts: (B,) integers in [1, N].
+
+    Returns:
+        (B, N, C): rows 0..counts[b]-1 are distinct rows of x[b], in random order.
+    """
+    B, N = x.shape[:2]
+    keys = torch.rand(B, N, generator=generator, device=generator.device if generator else x.device)
+    order = keys.to(x.device).argsort(dim=-1)  # a uniform random permutation per sample
+    shuffled = torch.gather(x, -2, order.unsqueeze(-1).expand(-1, -1, x.shape[-1]))
+    return repeat_rows(shuffled, counts)

@@ -14,7 +14,13 @@ from torch import Tensor
 from torch.utils.data import DataLoader
 
 from rotlearn.data.draws import DrawDataModule
-from rotlearn.data.heteroscedastic import check_range, log_uniform, repeat_rows, uniform_counts
+from rotlearn.data.heteroscedastic import (
+    check_range,
+    difficulty,
+    log_uniform,
+    repeat_rows,
+    uniform_counts,
+)
 from rotlearn.errors import ConfigValueError, require_positive_ints
 from rotlearn.geometry import (
     quat_to_rotmat,
@@ -86,7 +92,7 @@ def wahba_batch(
         "q": q,
         "sigma": sigmas,
         "num_matches": counts,
-        "difficulty": sigmas / counts.to(dtype).sqrt(),
+        "difficulty": difficulty(sigmas, counts),
     }
 
 
