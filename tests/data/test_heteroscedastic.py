@@ -218,3 +218,17 @@ def test_shapenet_bad_ranges_are_refused_naming_the_key(kw, key):
     with pytest.raises(ConfigValueError) as info:
         _shapenet(**kw)
     assert info.value.key == key
+
+
+@pytest.mark.parametrize(
+    ("override", "key"),
+    [
+        ("data.sigma_range=[0.5,0.1]", "data.sigma_range"),
+        ("data.matches_range=[3,99]", "data.matches_range"),
+    ],
+)
+def test_a_bad_range_on_the_command_line_names_the_config_key(make_cfg, override, key):
+    from rotlearn.cli.train import ConfigError, build
+
+    with pytest.raises(ConfigError, match=rf"config key {key}:"):
+        build(make_cfg([override]))
