@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed
 ARGS   ?=
 
 .DEFAULT_GOAL := help
-.PHONY: help venv train test test-full lint format bench reproduce-cpu reproduce-ood demo-data tensorboard clean
+.PHONY: help venv train test test-full lint format bench reproduce-cpu reproduce-ood reproduce-beliefs demo-data tensorboard clean
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-12s %s\n", $$1, $$2}'
@@ -54,6 +54,11 @@ reproduce-cpu: $(STAMP) ## paper Figs. 3 and 4 sized for this CPU (about 25 min)
 	$(BIN)/rotlearn-train -m experiment=synthetic_phi_max_cpu trainer.enable_progress_bar=false \
 		hydra.sweep.dir=outputs/reproduce-cpu/synthetic_phi_max_cpu
 	@echo "reports: outputs/reproduce-cpu/*/report.md"
+
+reproduce-beliefs: $(STAMP) ## issue 17 beliefs on heteroscedastic data, CPU-sized (about 20 min), with report
+	$(BIN)/rotlearn-train -m experiment=beliefs_cpu trainer.enable_progress_bar=false \
+		hydra.sweep.dir=outputs/reproduce-beliefs
+	@echo "report: outputs/reproduce-beliefs/report.md"
 
 OOD := outputs/reproduce-ood
 reproduce-ood: $(STAMP) ## paper Table I (KITTI demo) and Fig. 8 (MAV demo), about 40 min, with reports

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from rotlearn.cli.report import collect_runs, make_report
@@ -16,7 +17,7 @@ from rotlearn.cli.report import main as report_main
 from rotlearn.cli.resolvers import loguniform_trial
 from rotlearn.cli.schemas import validate
 from rotlearn.paths import config_dir
-from tests.conftest import FAST, config_options, run_cli
+from tests.conftest import CONFIG_DIR, FAST, config_options, run_cli
 
 
 @pytest.mark.parametrize("experiment", config_options("experiment"))
@@ -26,6 +27,7 @@ def test_every_experiment_composes_and_validates(make_cfg, experiment):
     assert cfg.trainer.max_epochs >= 1
     data = {
         "synthetic": "SyntheticWahbaDataModule",
+        "beliefs": "SyntheticWahbaDataModule",
         "shapenet": "ShapeNetDataModule",
         "kitti": "KittiOdometryDataModule",
         "mav": "MAVDataModule",
@@ -41,6 +43,49 @@ def test_every_experiment_composes_and_validates(make_cfg, experiment):
     if data in ("KittiOdometryDataModule", "MAVDataModule") and "autoencoder" not in experiment:
         net = "PairCorrelationNet" if experiment.endswith("_demo") else "PairCNN"  # issue 15
         assert cfg.net._target_.endswith(net) and "ood" in cfg.callbacks
+
+
+def _variant_exists(option: str) -> bool:
+    """Whether every group option a conf/variant file picks, and every top-level key it sets, is
+    in this checkout (Fisher and `calibrate` come from other branches of issue 17)."""
+    node = OmegaConf.to_container(OmegaConf.load(CONFIG_DIR / "variant" / f"{option}.yaml"))
+    base = OmegaConf.load(CONFIG_DIR / "train.yaml")
+    picks = [d for d in node.pop("defaults", []) if isinstance(d, dict)]
+    groups = all(
+        (CONFIG_DIR / key.split("/")[-1] / f"{value}.yaml").exists()
+        for d in picks
+        for key, value in d.items()
+    )
+    return groups and all(key in base for key in node)
+
+
+def test_beliefs_sweeps_every_variant_and_each_sets_its_head_and_loss(make_cfg):
+    variants = config_options("variant")
+    swept = OmegaConf.load(CONFIG_DIR / "experiment" / "beliefs.yaml").hydra.sweeper.params
+    assert sorted(swept.variant.split(",")) == variants
+    existing = [v for v in variants if _variant_exists(v)]
+    assert {"a_bingham", "sixd_chordal"} <= set(existing)  # the ones main has today
+    for variant in existing:  # beliefs_cpu: beliefs at CPU size (compared below)
+        cfg = make_cfg(["experiment=beliefs_cpu", f"variant={variant}"])
+        validate(cfg)
+        picks = {
+            key.split("/")[-1]: value
+            for d in OmegaConf.load(CONFIG_DIR / "variant" / f"{variant}.yaml").defaults
+            for key, value in d.items()
+        }
+        rep = OmegaConf.load(CONFIG_DIR / "rep" / f"{picks['rep']}.yaml")
+        loss = OmegaConf.load(CONFIG_DIR / "loss" / f"{picks['loss']}.yaml")
+        assert cfg.rep.name == rep.name and cfg.loss._target_ == loss._target_
+        data = instantiate(cfg.data)  # the ranges pass the data module's checks
+        assert data.sigma_range is not None and data.matches_range is not None
+        assert data.num_test >= 2000  # coverage at one level: binomial std <= 0.011
+
+
+def test_beliefs_cpu_is_no_larger_than_beliefs(make_cfg):
+    full, cpu = make_cfg(["experiment=beliefs"]), make_cfg(["experiment=beliefs_cpu"])
+    assert cpu.trainer.max_epochs <= full.trainer.max_epochs
+    assert cpu.data.num_test <= full.data.num_test
+    assert cpu.data.sigma_range == full.data.sigma_range
 
 
 @pytest.mark.parametrize("sweep", config_options("sweep"))

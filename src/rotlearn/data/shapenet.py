@@ -23,6 +23,12 @@ from torch import Tensor
 from torch.utils.data import DataLoader
 
 from rotlearn.data.draws import SPLITS, DrawDataModule
+from rotlearn.data.heteroscedastic import (
+    check_range,
+    difficulty,
+    keep_random_rows,
+    log_uniform,
+)
 from rotlearn.errors import ConfigValueError, require_positive_ints
 from rotlearn.extras import import_extra
 from rotlearn.geometry import quat_to_rotmat, so3_exp_quat
@@ -165,6 +171,16 @@ class ShapeNetDataModule(DrawDataModule):
             validation (monitoring; the test split is never used for training).
         seed: the data seed.
         cache_dir: where sampled meshes are cached (default: <root>/.rotlearn_cache).
+        noise_range: [lo, hi], 0 < lo <= hi: each rotated cloud gets isotropic Gaussian noise
+            on its rotated points, of a std drawn log-uniformly in [lo, hi] per sample (issue 17:
+            heteroscedastic data); null: no noise (the paper's setting).
+        keep_range: [lo, hi] fractions in (0, 1]: each sample keeps ceil(f N) of its N points,
+            f uniform in [lo, hi], chosen at random; its other rows repeat the kept ones, which a
+            max-pooling net cannot tell apart from the kept points alone; null: all points.
+            With either range, batches carry "sigma" (B,) (the noise std, 0 without
+            noise_range), "num_points" (B,) (distinct points, int64) and "difficulty" (B,):
+            sigma / sqrt(num_points) (`rotlearn.data.heteroscedastic`), with sigma read as 1
+            without noise_range so that it still ranks samples by their number of points.
     """
 
     def __init__(
@@ -182,6 +198,8 @@ class ShapeNetDataModule(DrawDataModule):
         num_val: int = 20,
         seed: int = 0,
         cache_dir: str | None = None,
+        noise_range: list[float] | None = None,
+        keep_range: list[float] | None = None,
     ) -> None:
         super().__init__()
         if format not in ("pts", "mesh"):
@@ -204,6 +222,10 @@ class ShapeNetDataModule(DrawDataModule):
         self.iterations_per_epoch = int(iterations_per_epoch)
         self.test_rotations, self.num_val = int(test_rotations), int(num_val)
         self.seed = int(seed)
+        self.noise_range = check_range("noise_range", noise_range, minimum=0.0, strict=True)
+        self.keep_range = check_range(
+            "keep_range", keep_range, minimum=0.0, strict=True, maximum=1.0
+        )
         self.cache_dir = Path(cache_dir) if cache_dir else self.root / ".rotlearn_cache"
         self.clouds: dict[int, list[Tensor]] = {}
 
@@ -272,7 +294,8 @@ class ShapeNetDataModule(DrawDataModule):
         device: torch.device | str = "cpu",
         dtype: torch.dtype = torch.float32,
     ) -> dict[str, Tensor]:
-        """One cloud under `size` rotations: {"input": (size, N, 6), "R", "q"}."""
+        """One cloud under `size` rotations: {"input": (size, N, 6), "R", "q"}, and with
+        `noise_range` or `keep_range` also "sigma", "num_points" and "difficulty" (size,)."""
         generator = self.generator(split, index, device)
         clouds = self.clouds[split]
         if split == SPLITS["train"]:  # which cloud, from the same seeded stream
@@ -284,4 +307,29 @@ class ShapeNetDataModule(DrawDataModule):
         q = so3_exp_quat(phi)
         R = quat_to_rotmat(q).to(device)
         x = cloud.to(device, dtype).expand(size, -1, -1)
-        return {"input": torch.cat((x, x @ R.transpose(-1, -2)), dim=-1), "R": R, "q": q.to(device)}
+        if self.noise_range is None and self.keep_range is None:
+            points = torch.cat((x, x @ R.transpose(-1, -2)), dim=-1)
+            return {"input": points, "R": R, "q": q.to(device)}
+        return {"R": R, "q": q.to(device), **self._degrade(x, R, generator)}
+
+    def _degrade(self, x: Tensor, R: Tensor, generator: torch.Generator) -> dict[str, Tensor]:
+        """Per-sample noise on the rotated points and per-sample point dropout (by repetition)."""
+        (size, N), device, dtype = x.shape[:2], x.device, x.dtype
+        gen = {"generator": generator, "device": generator.device}
+        if self.noise_range is not None:
+            sigma = log_uniform(size, *self.noise_range, dtype=dtype, **gen).to(device)
+        else:
+            sigma = torch.zeros(size, device=device, dtype=dtype)
+        if self.keep_range is not None:
+            lo, hi = self.keep_range
+            fraction = lo + (hi - lo) * torch.rand(size, dtype=torch.float64, **gen)
+            counts = (fraction * N).ceil().long().clamp(1, N).to(device)
+        else:
+            counts = torch.full((size,), N, device=device, dtype=torch.long)
+        noise = torch.randn(x.shape, dtype=dtype, **gen).to(device)
+        points = torch.cat((x, x @ R.transpose(-1, -2) + sigma[:, None, None] * noise), dim=-1)
+        if self.keep_range is not None:
+            points = keep_random_rows(points, counts, generator=generator)
+        level = sigma if self.noise_range is not None else torch.ones_like(sigma)
+        return {"input": points, "sigma": sigma, "num_points": counts,
+                "difficulty": difficulty(level, counts)}  # fmt: skip
