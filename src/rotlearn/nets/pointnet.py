@@ -42,9 +42,17 @@ class PointNet(nn.Module):
         center_init: whether `initialize_from` centres the biases on a batch (the training
             module calls it with the first training batch); False keeps PyTorch's initialisation,
             as in the authors' code.
+        output_gain: the last layer also outputs a log-gain g and the output is the other
+            out_dim numbers times exp(g) (g clamped to [-LOG_GAIN_MAX, LOG_GAIN_MAX]). Every
+            head's rotation is invariant to a positive scale of its input, so g moves only the
+            belief's concentration (A -> e^g A, F -> e^g F): on a log scale, which a
+            heteroscedastic belief needs (its concentration spans orders of magnitude across
+            samples; a linear output compresses that range, docs/results.md, issue 17).
 
     Input (..., N, in_channels) points; output (..., out_dim).
     """
+
+    LOG_GAIN_MAX = 20.0
 
     def __init__(
         self,
@@ -53,18 +61,24 @@ class PointNet(nn.Module):
         point_channels: Sequence[int] = (64, 128, 1024),
         head_channels: Sequence[int] = (256, 128),
         center_init: bool = True,
+        output_gain: bool = False,
     ) -> None:
         super().__init__()
         self.in_channels = in_channels
         self.center_init = center_init
+        self.output_gain = output_gain
         *hidden, pooled = point_channels
         self.point_mlp = nn.Sequential(*mlp([in_channels, *hidden]), nn.PReLU()) if hidden else None
         self.pool = LinearMaxPool(hidden[-1] if hidden else in_channels, pooled)
-        self.head_mlp = mlp([pooled, *head_channels, out_dim])
+        self.head_mlp = mlp([pooled, *head_channels, out_dim + int(output_gain)])
 
     def forward(self, points: Tensor) -> Tensor:
         features = self.point_mlp(points) if self.point_mlp is not None else points
-        return self.head_mlp(self.pool(features))
+        out = self.head_mlp(self.pool(features))
+        if not self.output_gain:
+            return out
+        log_gain = out[..., -1:].clamp(-self.LOG_GAIN_MAX, self.LOG_GAIN_MAX)
+        return out[..., :-1] * log_gain.exp()
 
     @torch.no_grad()
     def initialize_from(self, points: Tensor) -> None:
