@@ -45,27 +45,11 @@ def test_every_experiment_composes_and_validates(make_cfg, experiment):
         assert cfg.net._target_.endswith(net) and "ood" in cfg.callbacks
 
 
-def _variant_exists(option: str) -> bool:
-    """Whether every group option a conf/variant file picks, and every top-level key it sets, is
-    in this checkout (Fisher and `calibrate` come from other branches of issue 17)."""
-    node = OmegaConf.to_container(OmegaConf.load(CONFIG_DIR / "variant" / f"{option}.yaml"))
-    base = OmegaConf.load(CONFIG_DIR / "train.yaml")
-    picks = [d for d in node.pop("defaults", []) if isinstance(d, dict)]
-    groups = all(
-        (CONFIG_DIR / key.split("/")[-1] / f"{value}.yaml").exists()
-        for d in picks
-        for key, value in d.items()
-    )
-    return groups and all(key in base for key in node)
-
-
 def test_beliefs_sweeps_every_variant_and_each_sets_its_head_and_loss(make_cfg):
     variants = config_options("variant")
     swept = OmegaConf.load(CONFIG_DIR / "experiment" / "beliefs.yaml").hydra.sweeper.params
     assert sorted(swept.variant.split(",")) == variants
-    existing = [v for v in variants if _variant_exists(v)]
-    assert {"a_bingham", "sixd_chordal"} <= set(existing)  # the ones main has today
-    for variant in existing:  # beliefs_cpu: beliefs at CPU size (compared below)
+    for variant in variants:  # beliefs_cpu: beliefs at CPU size (compared below)
         cfg = make_cfg(["experiment=beliefs_cpu", f"variant={variant}"])
         validate(cfg)
         picks = {
