@@ -92,8 +92,9 @@ def test_run_directory_holds_config_events_checkpoints_and_metrics(make_cfg):
 
 def test_last_checkpoint_is_the_final_epoch_even_when_the_best_is_older(make_cfg):
     """last.ckpt holds the final epoch (resume, rotlearn.load, test_ckpt=last), best.ckpt the best
-    one. With lr = 1e-30 (no change in float32) the validation error never improves after the first epoch, so best.ckpt stays
-    at epoch 0 (Lightning >= 2.6's `save_last` alone would leave last.ckpt there too)."""
+    one. With lr = 1e-30 (no change in float32) the validation error never improves after the
+    first epoch, so best.ckpt stays at epoch 0 (Lightning >= 2.6's `save_last` alone would leave
+    last.ckpt there too)."""
     cfg = make_cfg([*FAST, "trainer.max_epochs=3", "optim.lr=1e-30"])
     train(cfg)
     checkpoints = Path(cfg.paths.output_dir) / "checkpoints"
