@@ -4,7 +4,7 @@ import rotlearn
 predictor = rotlearn.load("outputs/runs/<run>/checkpoints/best.ckpt")  # or the run directory
 estimate = predictor(points)        # (B, N, 6) matched pairs (u_i, v_i) for the point network
 estimate.R, estimate.q              # (B, 3, 3) and (B, 4) quaternions (x, y, z, w), w >= 0
-estimate.dispersion, estimate.dt    # A head only: Bingham dispersion (B, 3) and DT score (B,)
+estimate.dispersion, estimate.dt    # belief heads (A, Fisher): dispersion (B, 3), DT score (B,)
 estimate.A, estimate.temperature    # the belief p(q) ~ exp(-q^T A q), (B, 4, 4), tempered by T
 estimate.sample(100)                # (B, 100, 4) quaternions drawn from each belief
 estimate.log_prob(R_or_q)           # (B,) or (B, n) log densities of rotations / quaternions
