@@ -64,6 +64,10 @@ def checkpoint_epoch(path: Path) -> int:
         return -1
 
 
+DTYPES = [torch.float32, torch.float64]  # every public function is tested in both
+ATOL = {torch.float32: 1e-5, torch.float64: 1e-12}  # per-dtype absolute tolerance of the maths
+
+
 def gen(seed: int) -> torch.Generator:
     """A CPU random generator seeded with `seed` (each test draws from its own stream)."""
     return torch.Generator().manual_seed(seed)

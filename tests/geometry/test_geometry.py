@@ -41,10 +41,8 @@ from rotlearn.geometry import (
     so3_log_quat,
     vee,
 )
-from tests.conftest import gen
+from tests.conftest import ATOL, DTYPES, gen
 
-DTYPES = [torch.float32, torch.float64]
-ATOL = {torch.float32: 1e-5, torch.float64: 1e-12}
 PROPS = settings(max_examples=50, deadline=None)
 
 seeds = st.integers(min_value=0, max_value=2**32 - 1)

@@ -22,10 +22,8 @@ from rotlearn.geometry import (
     vec_from_a,
 )
 from rotlearn.geometry.eigen4 import METHODS
-from tests.conftest import assert_rotation, gen, randn, scipy_rotmats
+from tests.conftest import ATOL, DTYPES, assert_rotation, gen, randn, scipy_rotmats
 
-DTYPES = [torch.float32, torch.float64]
-ATOL = {torch.float32: 1e-5, torch.float64: 1e-12}
 F64 = torch.float64
 # theta of the identity matrix: adding c * EYE_VEC to theta adds c I to A (eq. 8)
 EYE_VEC = torch.tensor([1.0, 0, 0, 0, 1, 0, 0, 1, 0, 1], dtype=F64)

@@ -30,10 +30,8 @@ from rotlearn.heads import (
     a_min_eigvec,
     make_head,
 )
-from tests.conftest import assert_rotation, randn, scipy_rotmats
+from tests.conftest import ATOL, DTYPES, assert_rotation, randn, scipy_rotmats
 
-DTYPES = [torch.float32, torch.float64]
-ATOL = {torch.float32: 1e-5, torch.float64: 1e-12}
 F64 = torch.float64
 HEAD_NAMES = sorted(HEADS)
 

@@ -10,9 +10,7 @@ import torch
 from hydra.utils import instantiate
 
 from rotlearn.nets import PairCorrelationNet, correlation
-from tests.conftest import demo_overrides, gen
-
-DTYPES = [torch.float32, torch.float64]
+from tests.conftest import DTYPES, demo_overrides, gen
 
 
 def naive_correlation(first: torch.Tensor, second: torch.Tensor, radius: int) -> torch.Tensor:

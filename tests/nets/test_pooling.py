@@ -7,11 +7,9 @@ import torch
 from torch import nn
 
 from rotlearn.nets import LinearMaxPool, PointNet
-from tests.conftest import gen
+from tests.conftest import ATOL, DTYPES, gen
 
-DTYPES = [torch.float32, torch.float64]
 # values: a dot product of C_IN = 12 terms of size O(1); the two paths sum in different orders
-ATOL = {torch.float32: 1e-5, torch.float64: 1e-12}
 C_IN, C_OUT = 12, 16
 
 
