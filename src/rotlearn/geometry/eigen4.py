@@ -42,6 +42,12 @@ l2 - l1 >= 0.01 (l4 - l1)):
 With l2 - l1 = 1e-6 (l4 - l1) the residual bound still holds; q itself is then determined only
 up to ~eps / 1e-6 (float32: 10 deg for this solver, 27 deg for eigh).
 
+Kernels. Only ATen's own elementwise kernels: no op that ATen hands to MKL's vector math library
+(VML: sqrt, exp, log, ... of contiguous CPU tensors). VML's first call in a process races between
+intra-op threads on Intel CPUs and returned wrong square roots for one thread's share of the batch
+(issue 27: 0.1 degree eigenvectors for half the batch in about 4 % of fresh processes after a
+LAPACK call); the root below is x * rsqrt(x). tests/geometry/test_eigen4_first_call.py guards it.
+
 Speed: see `make bench` (bench/a_layer.py, bench/rep_layers.py; results in bench/results and
 docs/results.md). The cost is ~20 elementwise kernels per round on (2..8, B) rows, about 70 row
 passes per round and 850 per matrix, bound by memory traffic and per-kernel overhead (the
@@ -160,7 +166,12 @@ def _jacobi(S: Tensor, W: Tensor, rounds: int) -> None:
         if m == 2:
             aqq = torch.stack((d3, d2))
         d = aqq - app
-        r = torch.addcmul(tiny, d, d).addcmul_(apq, apq, value=4.0).sqrt_()
+        # r = sqrt(tiny + d^2 + 4 apq^2) as x * rsqrt(x): torch.sqrt of a contiguous CPU
+        # tensor calls MKL VML (vsSqrt) from every intra-op thread, and VML's first call in a
+        # process races on Intel CPUs (wrong roots for part of the batch, issue 27). rsqrt and
+        # mul are ATen's own kernels, bit-identical for any thread count.
+        r = torch.addcmul(tiny, d, d).addcmul_(apq, apq, value=4.0)
+        r = r.mul_(r.rsqrt())
         den = torch.copysign(r, d).add_(d)  # sign(d) (|d| + sqrt(d^2 + 4 apq^2)), never 0
         t = torch.addcdiv(zero, apq, den, value=2.0, out=tan)  # |t| <= 1
         c = torch.addcmul(one, t, t, out=cos).rsqrt_()
@@ -457,6 +468,15 @@ def sym4_eigh_min(
         q: (..., 4), the unit eigenvector of the smallest eigenvalue as a quaternion (x, y, z, w),
             sign exactly as `quat_canonical` (w > 0; ties by the first nonzero of w, x, y, z).
             Both are kept by the backward (q is a strided view of the saved eigenvectors).
+
+    Determinism: each output element is a function of its own matrix, the dtype, the device and
+    the solver alone. On the CPU both solvers give bit-identical results across runs and
+    processes (the first call included), thread counts and batch splits (any slice, chunk or
+    single matrix of a batch; tests/geometry/test_eigen4_first_call.py). With `method="auto"`
+    the solver itself depends on the batch size (eigh below `EIGH_BELOW`), so the same matrix in
+    batches of different sizes can differ in the last bits (within the accuracy below): pass
+    "jacobi" or "eigh" for results that do not depend on the batch. CPU and CUDA results agree
+    to the accuracy below, not bit for bit.
 
     Accuracy (against float64 torch.linalg.eigh; guaranteed by tests/test_eigen4.py, measured
     values in the module docstring): float32: rotation angle of q <= 1e-3 degrees where
