@@ -81,7 +81,7 @@ def test_training_batches_are_swapped_exactly(root):
 
 
 def test_validation_and_test_batches_are_never_augmented(root):
-    dm = kitti_module(root, swap_pairs=1.0, photometric={"brightness": 0.5}, num_val=4)
+    dm = kitti_module(root, swap_pairs=1.0, photometric={"brightness": 0.5}, val_fraction=0.1)
     dm.setup()
     assert all(bool(b["swap"].all()) for b in loader_batches(dm, "train"))
     for split in ("val", "test"):
@@ -131,7 +131,7 @@ def test_swap_is_off_by_default(root):
 
 
 def test_deltas_make_a_pair_per_gap_per_frame_with_its_relative_rotation(root):
-    dm = kitti_module(root, deltas=[1, 2, 5], delta=3)
+    dm = kitti_module(root, deltas=[1, 2, 5], delta=3, val_fraction=0.0)  # every training pair
     dm.setup()
     train, test = dm.sets["train"].index, dm.sets["test"].index
     gaps = train.second - train.first

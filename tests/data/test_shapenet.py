@@ -36,8 +36,8 @@ def test_point_files_are_read_and_bad_lines_named(tmp_path):
 
 
 def test_pts_layout_gives_clouds_under_exact_rotations(demo_data):
-    dm = _module(demo_data["pts"], num_val=2)
-    assert len(dm.clouds[TRAIN]) == 6 and len(dm.clouds[TEST]) == 3 and len(dm.clouds[VAL]) == 2
+    dm = _module(demo_data["pts"], num_val=1)
+    assert len(dm.clouds[TRAIN]) == 5 and len(dm.clouds[TEST]) == 3 and len(dm.clouds[VAL]) == 1
     assert dm.clouds[TRAIN][0].shape == (96, 3)  # point_fraction 0.5 of the file's 192 points
     batch = dm.draw(TRAIN, 0, 4)
     x, y = batch["input"][..., :3], batch["input"][..., 3:]

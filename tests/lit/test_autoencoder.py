@@ -128,7 +128,7 @@ def test_train_score_and_load(make_cfg, tmp_path):
             "data.test_sequences=[00]",
             "data.num_workers=0",
             "data.batch_size=4",
-            "data.num_val=4",
+            "data.val_fraction=0.2",
             *TINY_NET,
             "optim.lr=1e-2",
             "trainer=cpu",

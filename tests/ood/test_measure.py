@@ -84,7 +84,7 @@ def test_an_extra_set_is_the_test_set_then_its_pairs_as_ood():
     assert mixed["dt"].tolist() == [1.0, 2.0, 7.0, 8.0, 9.0]
     with pytest.raises(ValueError, match="cannot mix"):
         mixed_set(clean, {"error": extra["error"]})
-    sets = {"train": {"dt": torch.arange(10.0)}, "clean": clean, "unseen": mixed}
+    sets = {"val": {"dt": torch.arange(10.0)}, "clean": clean, "unseen": mixed}
     frame = rejection_table(sets, [DT], [0.5], {"dt": 0.5})
     assert list(frame["set"]) == ["clean", "unseen"]
     unseen = frame[frame["set"] == "unseen"].iloc[0]
@@ -158,7 +158,7 @@ def test_a_tiny_mav_run_scores_its_extra_sets(tmp_path, make_cfg):
     # indoor: 9 pairs, round(0.3 * 9) = 3 of them test pairs, appended as OOD
     assert indoor["n"] == clean["n"] + 3 and indoor["n_corrupted"] == 3
     sets = read_samples(run_dir / "ood_samples.csv")
-    assert {"train", "clean", "corrupted", "noise", "indoor"} == set(sets)
+    assert {"val", "clean", "corrupted", "noise", "indoor"} == set(sets)
     assert (run_dir / "ood_examples.png").stat().st_size > 0
     bad = [o for o in overrides if "extra_sets" not in o]
     bad.append("callbacks.ood.extra_sets={x: {nope: 1}}")

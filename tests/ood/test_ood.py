@@ -129,7 +129,7 @@ def test_evaluate_is_a_pure_function_of_predictions_and_flags():
         return [{"input": x[i : i + size], "R": eye.expand(len(x[i : i + size]), 3, 3)}
                 for i in range(0, len(x), size)]  # fmt: skip
 
-    loaders = {"train": batches([1.0, 2.0, 3.0, 4.0]), "corrupted": batches([0.5, 2.5, 3.5, 5.0])}
+    loaders = {"val": batches([1.0, 2.0, 3.0, 4.0]), "corrupted": batches([0.5, 2.5, 3.5, 5.0])}
     flags = {"corrupted": torch.tensor([True, False, False, False])}
     scores = [SCORES["raw_norm"]]  # kept above its threshold
     frame = evaluate(predict, loaders, flags, scores, [0.75], {"raw_norm": 0.75})
@@ -139,7 +139,12 @@ def test_evaluate_is_a_pure_function_of_predictions_and_flags():
     assert row["precision"] == pytest.approx(100.0) and row["auroc"] == pytest.approx(1.0)
     sets = score_sets(predict, loaders, flags, scores)
     assert sets["corrupted"]["corrupted"].tolist() == [True, False, False, False]
-    assert "corrupted" not in sets["train"] and (sets["train"]["error"] == 0).all()
+    assert "corrupted" not in sets["val"] and (sets["val"]["error"] == 0).all()
+    assert (frame["thresholds_from"] == "val").all()
+    # the paper's protocol: thresholds from the training scores, one argument away
+    train_loaders = {"train": loaders["val"], "corrupted": loaders["corrupted"]}
+    paper = evaluate(predict, train_loaders, flags, scores, [0.75], reference="train")
+    assert paper.iloc[0]["threshold"] == row["threshold"] and paper.iloc[0]["thresholds_from"] == "train"
     with pytest.raises(ValueError, match=r"flags\['corrupted'\] has shape \(2,\)"):
         score_sets(predict, loaders, {"corrupted": torch.zeros(2, dtype=torch.bool)}, scores)
     assert pr_quantiles()[:2] == [0.05, 0.07] and pr_quantiles()[-1] == 0.97
@@ -241,8 +246,8 @@ def test_nan_scores_are_counted_in_the_csv(tiny_kitti, make_cfg, tmp_path, monke
     patched = scores_module.Score("raw_norm", False, raw_norm_with_nans)
     monkeypatch.setitem(scores_module.SCORES, "raw_norm", patched)
     run_dir = tmp_path / "run"
-    cfg = make_cfg([*TINY_PAIRS, f"data.root={tiny_kitti}", "rep=sixd"], run_dir=run_dir)
-    train(cfg)
+    overrides = [*TINY_PAIRS, f"data.root={tiny_kitti}", "rep=sixd", "data.val_fraction=0.4"]
+    train(make_cfg(overrides, run_dir=run_dir))  # 3 validation pairs: the middle one finite
     frame = pd.read_csv(run_dir / "ood.csv")
     rows = frame[frame["score"] == "raw_norm"]
     assert (rows["nan_scores"] == 5).all()  # 10 test pairs, batches of 4: indices 0, 2 of each

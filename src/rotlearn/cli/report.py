@@ -467,7 +467,8 @@ def _ood_sections(frames, ood, layout, done, out, files) -> list[str]:
     quantiles = [float(q) for q in quantiles] if isinstance(quantiles, list) else None
     md += ["## OOD scores on each test set", "",
            "Per head and score: AUROC (OOD vs clean pairs), and at each quantile q of the "
-           "training scores the kept %, the mean and median error (deg) of the kept pairs, "
+           "reference scores (each run's thresholds_from: validation pairs by default, "
+           "training pairs in the paper's protocol) the kept %, the mean and median error (deg) of the kept pairs, "
            "precision (kept pairs that are clean) and the % of OOD pairs rejected.", "",
            score_table(frames, quantiles, set_names), ""]  # fmt: skip
     if any(set(f["set"]) - {"clean", "corrupted"} for _, f in frames):

@@ -186,8 +186,10 @@ def draw_plots(done: pd.DataFrame, layout: Mapping[str, Any], out: Path) -> tupl
     return files, md
 
 
-def _ood_samples(frames: list) -> list[tuple[str, dict, list]]:
-    """(setting, sets, scores) of each run whose `ood_samples.csv` is readable."""
+def _ood_samples(frames: list) -> list[tuple[str, dict, list, dict]]:
+    """(setting, sets, scores, reference scores) of each run whose `ood_samples.csv` is
+    readable (the reference: the set its thresholds come from)."""
+    from rotlearn.ood.evaluation import reference_set
     from rotlearn.ood.report import SAMPLES_FILE, read_samples
     from rotlearn.ood.scores import SCORES
 
@@ -201,8 +203,9 @@ def _ood_samples(frames: list) -> list[tuple[str, dict, list]]:
         except (ValueError, OSError, pd.errors.ParserError) as exc:
             log.warning("report: %s unreadable (%s); its OOD figures are skipped", path, exc)
             continue
-        names = [n for n in dict.fromkeys(frame["score"]) if n in SCORES and n in sets["train"]]
-        runs.append((str(run["setting"]), sets, [SCORES[n] for n in names]))
+        reference = sets.get(reference_set(frame), {})
+        names = [n for n in dict.fromkeys(frame["score"]) if n in SCORES and n in reference]
+        runs.append((str(run["setting"]), sets, [SCORES[n] for n in names], reference))
     return runs
 
 
@@ -278,29 +281,29 @@ def draw_ood(
     plt = _pyplot()
     runs = _ood_samples(frames)
     if runs:
-        flagged = list(dict.fromkeys(n for _, sets, _ in runs for n, v in sets.items()
+        flagged = list(dict.fromkeys(n for _, sets, _, _ in runs for n, v in sets.items()
                                      if n != "clean" and "corrupted" in v))  # fmt: skip
         fig, axes = _grid(plt, 1, len(flagged), size=(5.0, 4.0))
         for ax, name in zip(axes[0], flagged, strict=True):
             curves = {}
-            for setting, sets, scores in runs:
+            for setting, sets, scores, reference in runs:
                 for score in scores:
                     if name in sets:
                         curves[f"{setting} + {LABELS.get(score.name, score.name)}"] = (
-                            precision_recall_curve(score, sets["train"][score.name], sets[name])
+                            precision_recall_curve(score, reference[score.name], sets[name])
                         )
             if curves:
                 ax.set_visible(True)
-                first = next(s for _, _, scores in runs for s in scores)
+                first = next(s for _, _, scores, _ in runs for s in scores)
                 pr_figure(first, curves, ax=ax, title=f"{set_names.get(name, name)}")
         files["ood_pr"] = _save(fig, plt, out / "ood_pr.png")
-        n_cols = max(len(scores) for _, _, scores in runs)
+        n_cols = max(len(scores) for _, _, scores, _ in runs)
         for key, draw, what in (
             ("ood_scatter", scatter_figure, "Error against score on the half-erased test set"),
             ("ood_box", box_figure, "Score distributions (paper Fig. 6c)"),
         ):
             fig, axes = _grid(plt, len(runs), n_cols)
-            for row, (setting, sets, scores) in enumerate(runs):
+            for row, (setting, sets, scores, _) in enumerate(runs):
                 for col, score in enumerate(scores):
                     axes[row][col].set_visible(True)
                     draw(score, sets, ax=axes[row][col], title=f"{setting}:\n{score.name}")

@@ -83,6 +83,10 @@ class KittiOdometryDataModule(ImagePairDataModule):
         train_sequences: sequences to train on (paper: 00, 02, 05-10); those also listed in
             `test_sequences` are left out of training (the paper's leave-one-out).
         test_sequences: sequences to test on (paper: one of 00, 02, 05).
+        val_sequences: sequences held out whole for validation (never trained or tested on;
+            left out of training like the test sequences): streets unseen in training, as the
+            test street is. Their pairs join the held-out tail of every training sequence
+            (`val_fraction`). Empty by default.
         camera: "image_2" (left colour, the paper's) or "image_0" (left gray).
         delta: frame step of a pair (i, i + delta).
         deltas: frame steps of the training pairs: (i, i + d) for each d (several pairs per
@@ -100,6 +104,7 @@ class KittiOdometryDataModule(ImagePairDataModule):
         root: str,
         train_sequences: Sequence[int | str] = ("00", "02", "05", "06", "07", "08", "09", "10"),
         test_sequences: Sequence[int | str] = ("00",),
+        val_sequences: Sequence[int | str] = (),
         camera: str = "image_2",
         delta: int = 1,
         deltas: Sequence[int] | None = None,
@@ -118,10 +123,16 @@ class KittiOdometryDataModule(ImagePairDataModule):
             )
         self.root, self.camera = Path(root), camera
         self.test_sequences = _sequence_names("test_sequences", test_sequences)
+        self.val_sequences = _sequence_names("val_sequences", val_sequences)
+        tested = sorted(set(self.val_sequences) & set(self.test_sequences))
+        if tested:
+            raise ConfigValueError(
+                "val_sequences", f"{tested} are test sequences: validation never comes from test"
+            )
         self.train_sequences = [
             name
             for name in _sequence_names("train_sequences", train_sequences)
-            if name not in self.test_sequences
+            if name not in self.test_sequences and name not in self.val_sequences
         ]
         for key, names in (
             ("train_sequences", self.train_sequences),
@@ -147,6 +158,7 @@ class KittiOdometryDataModule(ImagePairDataModule):
     def _inside(self, path: Path, sequence: str) -> Path:
         """`path` (of `sequence`) unchanged, if it resolves inside data.root (symlinks followed)."""
         key = "train_sequences" if sequence in self.train_sequences else "test_sequences"
+        key = "val_sequences" if sequence in self.val_sequences else key
         resolve_inside(self.root, path, f"data.{key} entry {sequence!r}")
         return path
 
@@ -207,9 +219,12 @@ class KittiOdometryDataModule(ImagePairDataModule):
             names=[sequence],
         )
 
-    def load(self, split: str) -> PairIndex:
+    def load(self, split: str) -> PairIndex | None:
         if split == "train":
             return PairIndex.concat(
                 [self.sequence_pairs(n, self.deltas) for n in self.train_sequences]
             )
+        if split == "val":
+            names = self.val_sequences
+            return PairIndex.concat([self.sequence_pairs(n) for n in names]) if names else None
         return PairIndex.concat([self.sequence_pairs(name) for name in self.test_sequences])

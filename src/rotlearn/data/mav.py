@@ -13,7 +13,8 @@ Each frame takes the pose nearest in time, which must lie within `pose_tolerance
 A pair's target is C_21 = R_2^T R_1, as for KITTI (`rotlearn.geometry.relative_rotation`). Frames
 go through Resize(256) -> CenterCrop(224) (cached once as uint8) and Normalize(0.45, 0.25); the
 two gray frames of a pair are stacked as 2 channels. A seeded random `test_fraction` of each
-scene's pairs is its test set.
+scene's pairs is its test set; the validation pairs are the tail of each training scene without
+any frame of a test pair (`rotlearn.data.splits.hold_out_tail`, `val_fraction`).
 """
 
 from __future__ import annotations
@@ -311,6 +312,8 @@ class MAVDataModule(ImagePairDataModule):
             names=[scene],
         )
 
-    def load(self, split: str) -> PairIndex:
+    def load(self, split: str) -> PairIndex | None:
+        if split == "val":  # the tail of each training scene (`val_fraction`)
+            return None
         scenes = self.train_scenes if split == "train" else self.test_scenes
         return PairIndex.concat([self.scene_pairs(scene, split) for scene in scenes])

@@ -171,8 +171,11 @@ class ImagePairDataModule(pl.LightningDataModule):
         num_workers: loader processes gathering cached frames (0: in the main process).
         corrupt_fraction: fraction of the test set, at its end, that is randomly erased
             (the paper corrupts the second half: 0.5, Table I). Flagged `corrupted`.
-        num_val: test pairs, evenly spaced and never corrupted, also scored every epoch
-            (monitoring only; they are never trained on).
+        val_fraction: the fraction of each training sequence's / scene's frames, at its end,
+            held out for validation (`rotlearn.data.splits.hold_out_tail`: a gap of the pair
+            distance between them and the training frames, and no frame of a test pair); the
+            validation pairs select the best checkpoint, fit the belief's temperature and set
+            the OOD thresholds. 0: no validation pairs from the training sequences.
         mean, std: input normalisation after scaling pixels to [0, 1].
         seed: the data seed (shuffling, test/train split where random, erasing boxes,
             augmentation draws).
@@ -189,7 +192,7 @@ class ImagePairDataModule(pl.LightningDataModule):
         eval_batch_size: int = 64,
         num_workers: int = 2,
         corrupt_fraction: float = 0.0,
-        num_val: int = 64,
+        val_fraction: float = 0.1,
         mean: float = 0.0,
         std: float = 1.0,
         seed: int = 0,
@@ -202,13 +205,14 @@ class ImagePairDataModule(pl.LightningDataModule):
             raise ConfigValueError(
                 "corrupt_fraction", f"must lie in [0, 1], got {corrupt_fraction}"
             )
-        if int(num_workers) < 0 or int(num_val) < 0:
-            key = "num_workers" if int(num_workers) < 0 else "num_val"
-            raise ConfigValueError(key, "must be >= 0")
+        if int(num_workers) < 0:
+            raise ConfigValueError("num_workers", "must be >= 0")
+        if isinstance(val_fraction, bool) or not 0.0 <= val_fraction < 1.0:
+            raise ConfigValueError("val_fraction", f"must lie in [0, 1), got {val_fraction!r}")
         if not std > 0:
             raise ConfigValueError("std", f"must be > 0, got {std}")
         self.batch_size, self.eval_batch_size = int(batch_size), int(eval_batch_size)
-        self.num_workers, self.num_val = int(num_workers), int(num_val)
+        self.num_workers, self.val_fraction = int(num_workers), float(val_fraction)
         self.corrupt_fraction = float(corrupt_fraction)
         self.mean, self.std, self.seed = float(mean), float(std), int(seed)
         if isinstance(swap_pairs, bool) or not 0.0 <= swap_pairs <= 1.0:
@@ -217,15 +221,24 @@ class ImagePairDataModule(pl.LightningDataModule):
         self.photometric = augment.check_photometric(photometric)
         self.sets: dict[str, ImagePairs] = {}
 
-    def load(self, split: str) -> PairIndex:  # pragma: no cover
-        """The pairs of "train" or "test", in a fixed order (frame caches built as needed)."""
+    def load(self, split: str) -> PairIndex | None:  # pragma: no cover
+        """The pairs of "train" or "test", in a fixed order (frame caches built as needed);
+        for "val", the pairs of whole sequences / scenes held out for validation, or None."""
         raise NotImplementedError
 
     def setup(self, stage: str | None = None) -> None:
+        """The three splits: test from the test sequences / scenes; validation from the
+        training side only (the tail of each training source, `val_fraction`, and whole held-out
+        sources where the dataset has them); training from the rest."""
         if self.sets:
             return
+        from rotlearn.data.splits import hold_out_tail
+
         train, test = self.load("train"), self.load("test")
-        val = test.subset(np.unique(np.linspace(0, len(test) - 1, self.num_val).astype(int)))
+        train, val = hold_out_tail(train, self.val_fraction, exclude=test)
+        held_out = self.load("val")
+        if held_out is not None and len(held_out):
+            val = PairIndex.concat([val, held_out])
         self.sets = {
             "train": ImagePairs(train),
             "val": ImagePairs(val),

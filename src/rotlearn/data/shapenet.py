@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import io
 import json
+import logging
 import os
 from pathlib import Path
 
@@ -44,6 +45,8 @@ from rotlearn.io import (
 from rotlearn.trust import config_target
 
 __all__ = ["AIRPLANE_SYNSET", "ShapeNetDataModule", "read_mesh", "read_point_file", "sample_meshes"]
+
+log = logging.getLogger("rotlearn")
 
 AIRPLANE_SYNSET = "02691156"
 POINT_SUFFIXES = (".pts", ".xyz")
@@ -167,8 +170,10 @@ class ShapeNetDataModule(DrawDataModule):
         rotations_per_cloud: rotations of the one cloud in each training step (paper: 10).
         iterations_per_epoch: training steps per epoch (paper: 200).
         test_rotations: fixed rotations per held-out cloud (paper: 100).
-        num_val: held-out clouds also used, with the same fixed rotations, for per-epoch
-            validation (monitoring; the test split is never used for training).
+        num_val: training clouds held out for validation (the last ones of the training
+            split, at most a fifth of them; never trained on, never test clouds), each under
+            `test_rotations` fixed rotations: they select the best checkpoint and fit the
+            belief's temperature.
         seed: the data seed.
         cache_dir: where sampled meshes are cached (default: <root>/.rotlearn_cache).
         noise_range: [lo, hi], 0 < lo <= hi: each rotated cloud gets isotropic Gaussian noise
@@ -220,6 +225,8 @@ class ShapeNetDataModule(DrawDataModule):
         self.point_fraction, self.num_points = float(point_fraction), int(num_points)
         self.rotations_per_cloud = int(rotations_per_cloud)
         self.iterations_per_epoch = int(iterations_per_epoch)
+        if isinstance(num_val, bool) or int(num_val) < 0:
+            raise ConfigValueError("num_val", f"must be an integer >= 0, got {num_val!r}")
         self.test_rotations, self.num_val = int(test_rotations), int(num_val)
         self.seed = int(seed)
         self.noise_range = check_range("noise_range", noise_range, minimum=0.0, strict=True)
@@ -274,7 +281,12 @@ class ShapeNetDataModule(DrawDataModule):
             test = self._load_pts("test", self.num_test)
         else:
             train, test = self._load_meshes()
-        self.clouds = {SPLITS["train"]: train, SPLITS["val"]: test[: self.num_val],
+        num_val = min(self.num_val, len(train) // 5)
+        if num_val < self.num_val:
+            log.info("ShapeNet: %d training clouds: %d held out for validation (data.num_val=%d "
+                     "is capped at a fifth)", len(train), num_val, self.num_val)  # fmt: skip
+        cut = len(train) - num_val
+        self.clouds = {SPLITS["train"]: train[:cut], SPLITS["val"]: train[cut:],
                        SPLITS["test"]: test}  # fmt: skip
 
     def train_dataloader(self) -> DataLoader:

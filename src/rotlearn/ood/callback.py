@@ -1,7 +1,9 @@
 """`callbacks=ood`: OOD evaluation at test time (paper section V-A, Table I, Fig. 6-8).
 
 A thin callback: after the regular test, it reads the datamodule through `OODDataSource`, scores
-the TRAINING set (unshuffled, unaugmented), the clean test set and the same test set with its last
+the reference set of the thresholds (`thresholds_from`: the VALIDATION pairs, held out from the
+training side, by default; the TRAINING pairs, unshuffled and unaugmented, as in the paper), the
+clean test set and the same test set with its last
 `corrupt_fraction` randomly erased, pure-noise pairs, and each extra evaluation set (`extra_sets`:
 the test split of a copy of the datamodule with some settings changed, e.g. unseen scenes, appended
 to the clean test set and counted as OOD) (`rotlearn.ood.evaluation`), then writes `ood.csv` and a
@@ -32,6 +34,7 @@ from torch import Tensor
 from rotlearn.data.corruption import corrupted_flags, erase_boxes
 from rotlearn.errors import ConfigValueError
 from rotlearn.ood.evaluation import (
+    REFERENCE_SETS,
     calibrated_threshold,
     mixed_set,
     rejection_table,
@@ -44,7 +47,7 @@ from rotlearn.trust import config_target
 __all__ = ["OODEvaluation", "extra_source"]
 
 log = logging.getLogger("rotlearn")
-RESERVED_SETS = ("train", "clean", "corrupted", "noise")
+RESERVED_SETS = ("train", "val", "clean", "corrupted", "noise")
 
 
 def check_settings(source: Any, name: str, overrides: dict[str, Any]) -> None:
@@ -79,8 +82,13 @@ class OODEvaluation(pl.Callback):
     """Score, threshold and evaluate OOD rejection when the test loop ends (module docstring).
 
     Args:
-        quantiles: fractions of the training scores kept, each in [0, 1] (paper: 0.75 KITTI,
+        quantiles: fractions of the reference scores kept, each in [0, 1] (paper: 0.75 KITTI,
             0.5 MAV, 1.0 for the auto-encoder).
+        thresholds_from: the reference set of the quantile thresholds: "val" (the validation
+            pairs, held out from the training side: new pairs of the training distribution,
+            so about q of new clean pairs pass) or "train" (the training pairs: the paper's
+            protocol, section V-A; a model fits them more closely than new pairs, so fewer
+            than q of new clean pairs pass).
         scores: among dt, eigengap, raw_norm, autoencoder; those the head cannot give (dt and
             eigengap need the A head) or that lack a checkpoint (autoencoder) are skipped.
         autoencoder_ckpt: checkpoint of `rotlearn-train experiment=<data>_autoencoder`.
@@ -94,7 +102,8 @@ class OODEvaluation(pl.Callback):
         table: score -> quantile shown in `ood.md`'s Table I (others: the largest quantile <= 0.75);
             these quantiles are evaluated too.
         noise_pairs: pure-noise input pairs scored for the box plots.
-        max_train_pairs: score at most this many training pairs (evenly spaced); null: all.
+        max_train_pairs: with thresholds_from=train, score at most this many training pairs
+            (evenly spaced); null: all.
         unseen_scenes_ood: count test pairs from sequences / scenes absent from training as OOD
             (with the erased ones) in precision, recall and AUROC: the MAV experiment, where
             the indoor and transition scenes are the unseen environments (paper Fig. 8).
@@ -120,8 +129,14 @@ class OODEvaluation(pl.Callback):
         unseen_scenes_ood: bool = False,
         extra_sets: dict[str, dict[str, Any]] | None = None,
         examples: int = 6,
+        thresholds_from: str = "val",
     ) -> None:
         super().__init__()
+        if thresholds_from not in REFERENCE_SETS:
+            raise ConfigValueError(
+                "thresholds_from", f"must be one of {list(REFERENCE_SETS)}, got {thresholds_from!r}"
+            )
+        self.thresholds_from = thresholds_from
         self.quantiles = [float(q) for q in quantiles]
         bad = [q for q in self.quantiles if not 0.0 <= q <= 1.0 or math.isnan(q)]
         if bad or not self.quantiles:
@@ -189,17 +204,25 @@ class OODEvaluation(pl.Callback):
     def _loaders(
         self, source: OODDataSource, device: torch.device, dtype: torch.dtype
     ) -> tuple[dict[str, Iterable[dict[str, Tensor]]], dict[str, Tensor]]:
-        """Finished batches of the train, clean, corrupted and noise sets, and the OOD flags of
-        the test sets (erased pairs, and pairs from unseen scenes when `unseen_scenes_ood`)."""
-        n_train, n_test = source.pair_count("train"), source.pair_count("test")
+        """Finished batches of the reference (val or train), clean, corrupted and noise sets, and
+        the OOD flags of the test sets (erased pairs, and pairs from unseen scenes when
+        `unseen_scenes_ood`)."""
+        reference = self.thresholds_from
+        n_ref, n_test = source.pair_count(reference), source.pair_count("test")
+        if n_ref == 0:
+            raise ConfigValueError(
+                "callbacks.ood.thresholds_from",
+                f"{reference}: the datamodule has no {reference} pairs to take thresholds from "
+                "(data.val_fraction=0 and no data.val_sequences?)",
+            )
         keep = None
-        if self.max_train_pairs and n_train > self.max_train_pairs:
-            keep = np.linspace(0, n_train - 1, self.max_train_pairs).astype(int).tolist()
+        if reference == "train" and self.max_train_pairs and n_ref > self.max_train_pairs:
+            keep = np.linspace(0, n_ref - 1, self.max_train_pairs).astype(int).tolist()
         erase = corrupted_flags(n_test, self.corrupt_fraction)
         unseen = source.unseen_pairs("test") & self.unseen_scenes_ood
         finish = functools.partial(source.finish_batch, device=device, dtype=dtype)
         loaders = {
-            "train": map(finish, source.eval_loader("train", indices=keep)),
+            reference: map(finish, source.eval_loader(reference, indices=keep)),
             "clean": map(finish, source.eval_loader("test", erase=torch.zeros_like(erase))),
             "corrupted": map(finish, source.eval_loader("test", erase=erase)),
             "noise": [finish(source.noise_batch(self.noise_pairs))],
@@ -260,7 +283,7 @@ class OODEvaluation(pl.Callback):
         pl_module.train(was_training)
         for name in self.extra_sets:
             sets[name] = mixed_set(sets["clean"], sets.pop(f"extra:{name}"))
-        frame = rejection_table(sets, scores, self.quantiles, self.table)
+        frame = rejection_table(sets, scores, self.quantiles, self.table, self.thresholds_from)
         examples = self._examples(source, sets) if self.examples else None
         self._write(trainer, pl_module, scores, sets, frame, examples)
 

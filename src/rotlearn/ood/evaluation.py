@@ -1,7 +1,9 @@
 """The OOD evaluation as pure functions (paper section V-A, Table I): no Lightning, no files.
 
 `evaluate(predict_fn, loaders, flags, ...)` scores every sample of every set (`score_sets`) and
-tabulates rejection at each quantile threshold of the training scores (`rejection_table`). For one
+tabulates rejection at each quantile threshold of a reference set's scores (`rejection_table`):
+the validation set by default (held-out pairs of the training side, `callbacks.ood.
+thresholds_from: val`), or the training set (the paper's protocol, section V-A: `train`). For one
 score on one test set (`rejection_row`): kept %, the error (mean, median) of the kept and of all
 samples, precision = |kept and clean| / |kept| (the paper's Table I "Precision": its numbers fit
 this, not its footnote), recall = |kept and clean| / |clean|, the % of OOD samples rejected, the
@@ -29,6 +31,7 @@ if TYPE_CHECKING:
     import pandas as pd
 
 __all__ = [
+    "REFERENCE_SETS",
     "TEST_SETS",
     "auroc",
     "calibrated_threshold",
@@ -38,6 +41,7 @@ __all__ = [
     "precision_recall_curve",
     "rank",
     "rejection_row",
+    "reference_set",
     "rejection_table",
     "score_sets",
     "spearman",
@@ -47,6 +51,7 @@ __all__ = [
 log = logging.getLogger("rotlearn")
 
 TEST_SETS = ("clean", "corrupted")
+REFERENCE_SETS = ("val", "train")  # where quantile thresholds may come from (default first)
 
 
 def rank(x: Tensor) -> Tensor:
@@ -107,8 +112,8 @@ def rejection_row(
 
     Args:
         score: which score (for its direction).
-        q: quantile of the training scores (`quantile_threshold`).
-        train_scores: (N_train,) scores of the training set.
+        q: quantile of the reference scores (`quantile_threshold`).
+        train_scores: (N_ref,) scores of the reference set (validation or training).
         scores, errors, corrupted: (N,) scores, errors in degrees and flags of the test set.
 
     Returns:
@@ -161,7 +166,7 @@ def precision_recall_curve(
 
     Args:
         score: the score.
-        train_scores: (N_train,) its training scores (the thresholds).
+        train_scores: (N_ref,) its reference scores (the thresholds: validation or training).
         test: a flagged set of `score_sets`: {"error", "corrupted", score.name: (N,)}.
         quantiles: the q values, each in [0, 1].
     """
@@ -261,19 +266,21 @@ def rejection_table(
     scores: Sequence[Score],
     quantiles: Sequence[float],
     table: Mapping[str, float] | None = None,
-    train: str = "train",
+    reference: str = "val",
 ) -> pd.DataFrame:
-    """One `rejection_row` per score, test set and quantile, thresholds from the `train` set.
+    """One `rejection_row` per score, test set and quantile, thresholds from the `reference` set.
 
     Args:
         sets: `score_sets`' output.
         scores: the scores to tabulate.
-        quantiles: fractions of the training scores kept, each in [0, 1].
+        quantiles: fractions of the reference scores kept, each in [0, 1].
         table: score -> its Table I quantile (`table_quantile`), evaluated too.
-        train: the set the thresholds come from.
+        reference: the set the thresholds come from ("val": held-out pairs of the training
+            side; "train": the training pairs, the paper's protocol).
 
     Returns:
-        Columns set, in_table (whether the row is the score's Table I row), and those of
+        Columns set, in_table (whether the row is the score's Table I row), thresholds_from
+        (`reference`), and those of
         `rejection_row`; ordered by score, test set, quantile. The test sets are those of
         `TEST_SETS` that are present, then every other set with "corrupted" flags (extra
         evaluation sets, e.g. `mixed_set`), in their order.
@@ -294,11 +301,20 @@ def rejection_table(
             data = sets[test_set]
             for q in sorted(set(quantiles) | {table_q}):
                 row = rejection_row(
-                    score, q, sets[train][score.name], data[score.name], data["error"],
+                    score, q, sets[reference][score.name], data[score.name], data["error"],
                     data["corrupted"],
                 )  # fmt: skip
-                rows.append({"set": test_set, "in_table": q == table_q, **row})
+                rows.append({"set": test_set, "in_table": q == table_q,
+                             "thresholds_from": reference, **row})  # fmt: skip
     return pd.DataFrame(rows)
+
+
+def reference_set(frame: pd.DataFrame) -> str:
+    """The set whose scores gave `frame`'s thresholds (its thresholds_from column; "train" for
+    tables written before validation thresholds existed)."""
+    if "thresholds_from" in frame.columns and len(frame):
+        return str(frame["thresholds_from"].iloc[0])
+    return "train"
 
 
 def evaluate(
@@ -309,14 +325,15 @@ def evaluate(
     quantiles: Sequence[float],
     table: Mapping[str, float] | None = None,
     input_scores: Mapping[str, Callable[[Tensor], Tensor]] | None = None,
+    reference: str = "val",
 ) -> pd.DataFrame:
     """The OOD evaluation: `rejection_table(score_sets(...))` (see both for the arguments).
 
-    `loaders` needs "train" (the thresholds) and the test sets "clean" and / or "corrupted",
-    each with its `flags`.
+    `loaders` needs the `reference` set (the thresholds: "val" or "train") and the test sets
+    "clean" and / or "corrupted", each with its `flags`.
     """
     sets = score_sets(predict_fn, loaders, flags, scores, input_scores)
-    return rejection_table(sets, scores, quantiles, table)
+    return rejection_table(sets, scores, quantiles, table, reference)
 
 
 def calibrated_threshold(frame: pd.DataFrame, score: str = "dt") -> dict[str, Any] | None:

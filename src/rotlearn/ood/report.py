@@ -20,8 +20,13 @@ from torch import Tensor
 
 from rotlearn.checkpoint import THRESHOLDS_FILE
 from rotlearn.io import write_json_atomic, write_text_atomic
-from rotlearn.ood.evaluation import precision_recall_curve
+from rotlearn.ood.evaluation import precision_recall_curve, reference_set
 from rotlearn.ood.scores import Score
+
+REFERENCE_WORDS = {  # how ood.md names the set the thresholds come from
+    "val": "validation (held-out training-side pairs)",
+    "train": "training (the paper's protocol, section V-A)",
+}
 
 __all__ = [
     "SAMPLES_FILE",
@@ -117,7 +122,7 @@ def ood_markdown(rep: str, frame: pd.DataFrame) -> str:
         f"Test set: {n} pairs; the corrupted set erases the last {n_corrupted} of them "
         "(random erasing, as in the paper's Table I). Errors are mean angles in degrees over the "
         "kept pairs; precision and recall are of keeping clean pairs. Thresholds: quantile q of "
-        "the training scores (paper section V-A).",
+        f"the {REFERENCE_WORDS.get(reference_set(frame), reference_set(frame))} scores.",
         "## Table I",
         markdown_table(table_rows(rep, frame), TABLE_COLUMNS),
         "## Every score and quantile",
@@ -172,15 +177,16 @@ def scatter_figure(score: Score, sets: Mapping[str, Mapping[str, Tensor]], ax=No
 
 
 def box_groups(score: Score, sets: Mapping[str, Mapping[str, Tensor]]) -> dict[str, Tensor]:
-    """The score's values on training, test, erased, pure-noise and each extra set's OOD pairs
-    (those present), finite only: the groups of the box plots (paper Fig. 6c)."""
+    """The score's values on training, validation, test, erased, pure-noise and each extra set's
+    OOD pairs (those present), finite only: the groups of the box plots (paper Fig. 6c)."""
     groups = {}
-    if "train" in sets:
-        groups["train"] = sets["train"][score.name]
+    for name in ("train", "val"):
+        if name in sets:
+            groups[name] = sets[name][score.name]
     if "clean" in sets:
         groups["test"] = sets["clean"][score.name]
     for name, data in sets.items():
-        if name in ("train", "clean", "noise") or "corrupted" not in data:
+        if name in ("train", "val", "clean", "noise") or "corrupted" not in data:
             continue
         groups["erased" if name == "corrupted" else name] = data[score.name][data["corrupted"]]
     if "noise" in sets:
@@ -326,8 +332,9 @@ def log_tensorboard(
             if isinstance(value, (int, float)) and not math.isnan(value):
                 writer.add_scalar(f"{prefix}/{key}", value, step)
     flagged = [n for n, v in sets.items() if n != "clean" and "corrupted" in v]
+    reference = reference_set(frame)
     for score in scores:
-        curves = {name: precision_recall_curve(score, sets["train"][score.name], sets[name])
+        curves = {name: precision_recall_curve(score, sets[reference][score.name], sets[name])
                   for name in flagged}  # fmt: skip
         title = f"{score.name}: precision-recall over q"
         writer.add_figure(f"ood/{score.name}/precision_recall", pr_figure(score, curves,

@@ -4,10 +4,13 @@ A score maps a prediction to (B,) numbers. `keep_below` says which side is confi
 tr(Lambda) and the auto-encoder's reconstruction error keep LOW scores; the eigen-gap and the
 norm of the raw output keep HIGH scores (paper section V-A).
 
-Thresholds: for a quantile q, the threshold is set so that a fraction q of the TRAINING scores
-falls on the kept side: the q-quantile of the training scores for keep-below scores (the paper's
-rule, kept if score < threshold), the (1 - q)-quantile for keep-above scores (kept if score >
-threshold). A NaN score is never kept.
+Thresholds: for a quantile q, the threshold is set so that a fraction q of a reference set's
+scores falls on the kept side: the q-quantile of the reference scores for keep-below scores
+(kept if score < threshold), the (1 - q)-quantile for keep-above scores (kept if score >
+threshold). The reference set is the validation set by default (held-out pairs of the training
+side: on new data from the training distribution about q is kept); the paper's protocol takes
+the training scores (section V-A), which a model fits more closely than new data, so fewer than
+q of new clean pairs pass. A NaN score is never kept.
 """
 
 from __future__ import annotations
@@ -87,10 +90,10 @@ def available_scores(names: list[str], has_eigenvalues: bool, has_autoencoder: b
 
 
 def quantile_threshold(train_scores: Tensor, q: float, keep_below: bool) -> float:
-    """The threshold that keeps a fraction q of the (finite) training scores.
+    """The threshold that keeps a fraction q of the (finite) reference scores.
 
     Args:
-        train_scores: (N,) scores of the training set.
+        train_scores: (N,) scores of the reference set (validation, or training).
         q: in [0, 1]; the q-quantile (keep-below) or (1 - q)-quantile (keep-above), linear
             interpolation as numpy's default.
         keep_below: the score's direction.
@@ -102,7 +105,7 @@ def quantile_threshold(train_scores: Tensor, q: float, keep_below: bool) -> floa
         raise ValueError(f"quantile {q} outside [0, 1]")
     finite = train_scores[torch.isfinite(train_scores)].double()
     if finite.numel() == 0:
-        raise ValueError("no finite training score to take a quantile of")
+        raise ValueError("no finite reference score to take a quantile of")
     return float(torch.quantile(finite, q if keep_below else 1.0 - q))
 
 
