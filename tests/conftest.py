@@ -119,7 +119,7 @@ def demo_data(tmp_path_factory) -> dict[str, Path]:
 
     out = tmp_path_factory.mktemp("demo")
     roots = write_shapenet_demo(out, num_train=6, num_test=3, points=96)
-    roots["kitti"] = write_kitti_demo(out, sequences=("00", "02"), frames=6, width=62, height=19)
+    roots["kitti"] = write_kitti_demo(out, sequences=("00", "02"), frames=10, width=62, height=19)
     roots["mav"] = write_mav_demo(out, frames=40, width=64, height=52)
     return roots
 

@@ -95,7 +95,7 @@ def test_the_score_example_is_evaluated(cleanup):
     flags = {"clean": torch.zeros(64, dtype=torch.bool)}
     flags["clean"][32:] = True
     scores = available_scores(["dt", "gap_ratio"], True, False)
-    frame = evaluate(head, {"train": [batch], "clean": [batch]}, flags, scores, [0.5])
+    frame = evaluate(head, {"val": [batch], "clean": [batch]}, flags, scores, [0.5])
     rows = frame[frame["score"] == "gap_ratio"]
     assert len(rows) == 1 and rows["kept_pct"].iloc[0] == pytest.approx(50.0, abs=2.0)
     assert SCORES["gap_ratio"].keep_below is False

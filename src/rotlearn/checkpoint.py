@@ -9,15 +9,17 @@ The OOD evaluation's calibrated threshold lives beside the checkpoints, in
 `<run>/checkpoints/ood_thresholds.json` ({"score": str, "threshold": number, "q": number});
 `load_run` reads it (strictly: it is data from a run directory, not trusted) when present.
 
-The belief's post-hoc temperature (`calibrate=true`, `rotlearn.lit.calibration`) lives there too,
-in `<run>/checkpoints/temperature.json` ({"temperature": number > 0, "checkpoint": the file name
+The belief's post-hoc calibration (`calibrate`, `rotlearn.lit.calibration`) lives there too, in
+`<run>/checkpoints/temperature.json` ({"temperature": number > 0, "checkpoint": the file name
 of the checkpoint it was fitted for, "val_nll", "val_nll_uncalibrated": number or null,
-"num_val": int}); `load_run` reads it as strictly and applies it (`SavedRun.temperature`) only to
-the checkpoint it names.
+"num_val": int, and optionally "credible_masses": the recalibration of the credible levels, K + 1
+numbers rising from 0 to 1, `rotlearn.bingham.LevelMap`}); `load_run` reads it as strictly and
+applies it (`SavedRun.temperature`, `SavedRun.level_map`) only to the checkpoint it names.
 """
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 import math
@@ -123,6 +125,8 @@ class SavedRun:
         temperature: the belief's post-hoc temperature T (A -> A / T) fitted for this
             checkpoint (`TEMPERATURE_FILE`); 1.0 without one, or when the file names another
             checkpoint.
+        level_map: the recalibration of the tempered belief's credible levels fitted with it
+            (a `rotlearn.bingham.LevelMap`), or None.
     """
 
     path: Path
@@ -130,6 +134,7 @@ class SavedRun:
     state_dict: dict[str, Tensor]
     ood: dict[str, Any] | None = field(default=None)
     temperature: float = 1.0
+    level_map: Any = None
 
     @property
     def task(self) -> str:
@@ -217,6 +222,8 @@ def read_thresholds(path: str | os.PathLike) -> dict[str, Any] | None:
 
 
 _TEMPERATURE_KEYS = {"temperature", "checkpoint", "val_nll", "val_nll_uncalibrated", "num_val"}
+_OPTIONAL_TEMPERATURE_KEYS = {"credible_masses"}
+_MAX_MASSES = 101  # knots of a level map (rotlearn.bingham.calibration.LEVEL_KNOTS + 1 = 21)
 
 
 def read_temperature(path: str | os.PathLike) -> dict[str, Any] | None:
@@ -224,14 +231,16 @@ def read_temperature(path: str | os.PathLike) -> dict[str, Any] | None:
 
     Returns:
         {"temperature": float > 0, "checkpoint": str (a file name), "val_nll": float,
-        "val_nll_uncalibrated": float or None, "num_val": int >= 1}.
+        "val_nll_uncalibrated": float or None, "num_val": int >= 1, "credible_masses": list of
+        floats or None}.
 
     Raises:
         ValueError: the file is larger than 4096 bytes, not JSON, holds NaN or an infinity, lacks
             or adds a key, or holds a temperature that is not a finite number > 0 (with a finite
-            1 / T), a checkpoint that is not a plain file name, or a count that is not a positive
-            integer; the message names the file. Nothing is half-read: the record is checked
-            whole before it is returned.
+            1 / T), a checkpoint that is not a plain file name, a count that is not a positive
+            integer, or credible masses that are not 2 to 101 numbers rising from 0 to 1; the
+            message names the file. Nothing is half-read: the record is checked whole before it
+            is returned.
     """
     path = Path(path)
     if not path.is_file():
@@ -241,7 +250,9 @@ def read_temperature(path: str | os.PathLike) -> dict[str, Any] | None:
         "{temperature: number > 0, checkpoint: file name, val_nll: number, "
         "val_nll_uncalibrated: number or null, num_val: int}"
     )
-    if not isinstance(record, dict) or set(record) != _TEMPERATURE_KEYS:
+    if not isinstance(record, dict) or not (
+        _TEMPERATURE_KEYS <= set(record) <= _TEMPERATURE_KEYS | _OPTIONAL_TEMPERATURE_KEYS
+    ):
         keys = sorted(map(str, record)) if isinstance(record, dict) else type(record).__name__
         raise ValueError(f"{path}: the temperature record must be {expected}, got {keys}")
     t = record["temperature"]
@@ -257,6 +268,18 @@ def read_temperature(path: str | os.PathLike) -> dict[str, Any] | None:
     count = record["num_val"]
     if not isinstance(count, int) or isinstance(count, bool) or count < 1:
         raise ValueError(f"{path}: num_val must be a positive integer, got {count!r}")
+    masses = record.get("credible_masses")
+    if masses is not None:
+        ok = (
+            isinstance(masses, list) and 2 <= len(masses) <= _MAX_MASSES
+            and all(_number(m) for m in masses) and masses[0] == 0 and masses[-1] == 1
+            and all(b >= a for a, b in itertools.pairwise(masses))
+        )  # fmt: skip
+        if not ok:
+            raise ValueError(
+                f"{path}: credible_masses must be 2 to {_MAX_MASSES} numbers rising from 0 to 1"
+            )
+        masses = [float(m) for m in masses]
     before = record["val_nll_uncalibrated"]
     return {
         "temperature": float(t),
@@ -264,28 +287,35 @@ def read_temperature(path: str | os.PathLike) -> dict[str, Any] | None:
         "val_nll": float(record["val_nll"]),
         "val_nll_uncalibrated": None if before is None else float(before),
         "num_val": count,
+        "credible_masses": masses,
     }
 
 
-def checkpoint_temperature(ckpt: Path) -> float:
-    """The temperature fitted for the checkpoint file `ckpt` (`read_temperature` of the
-    `TEMPERATURE_FILE` beside it): 1.0 without one, and 1.0 with a logged warning when the file
-    was fitted for another checkpoint (e.g. best.ckpt's temperature while loading last.ckpt).
+def checkpoint_temperature(ckpt: Path) -> tuple[float, Any]:
+    """The calibration fitted for the checkpoint file `ckpt` (`read_temperature` of the
+    `TEMPERATURE_FILE` beside it): (temperature, level map or None); (1.0, None) without one, and
+    with a logged warning when the file was fitted for another checkpoint (e.g. best.ckpt's
+    temperature while loading last.ckpt).
 
     Raises:
         ValueError: as `read_temperature`.
     """
     record = read_temperature(ckpt.parent / TEMPERATURE_FILE)
     if record is None:
-        return 1.0
+        return 1.0, None
     if record["checkpoint"] != ckpt.name:
         log.warning(
             "%s: the temperature %.4g was fitted for %s, not %s; the belief is left untempered "
             "(T = 1)",
             ckpt.parent / TEMPERATURE_FILE, record["temperature"], record["checkpoint"], ckpt.name,
         )  # fmt: skip
-        return 1.0
-    return record["temperature"]
+        return 1.0, None
+    masses = record["credible_masses"]
+    if masses is None:
+        return record["temperature"], None
+    from rotlearn.bingham import LevelMap
+
+    return record["temperature"], LevelMap(torch.tensor(masses, dtype=torch.float64))
 
 
 def load_run(path: str | os.PathLike, task: str | None = None) -> SavedRun:
@@ -317,7 +347,7 @@ def load_run(path: str | os.PathLike, task: str | None = None) -> SavedRun:
     ood = read_thresholds(ckpt.parent / THRESHOLDS_FILE)
     if ood is None and checkpoint.get("rotlearn_ood") is not None:  # runs calibrated in place
         ood = _check_ood(checkpoint["rotlearn_ood"], ckpt, "rotlearn_ood")
-    run = SavedRun(ckpt, config, state_dict, ood, checkpoint_temperature(ckpt))
+    run = SavedRun(ckpt, config, state_dict, ood, *checkpoint_temperature(ckpt))
     if task is not None and run.task != task:
         raise ValueError(f"{ckpt} is a task={run.task!r} checkpoint, not task={task!r}")
     return run

@@ -14,17 +14,22 @@ matrix of the same density and whose `F` is carried too) is the Bingham density
 p(q; A) = exp(-q^T A q) / Z(A) over unit quaternions (x, y, z, w), antipodally symmetric, so also a
 density on SO(3). `log_prob` is w.r.t. the uniform probability measure (the Haar probability on
 SO(3), the uniform measure on S^3): a value > 0 means more likely than uniform. When the run was
-trained with `calibrate=true`, the checkpoint's temperature T (`checkpoints/temperature.json`) is
-applied: A, F, the dispersion and the DT score are those of the calibrated belief A / T (and the
-OOD keep flags compare that DT with the threshold calibrated on the same scale).
+calibrated (`calibrate`, on by default for heads with a belief), the checkpoint's temperature T
+(`checkpoints/temperature.json`) is applied: A, F, the dispersion and the DT score are those of
+the calibrated belief A / T (and the OOD keep flags compare that DT with the threshold
+calibrated on the same scale).
 
-Credible regions. The highest-density region of level a is {R : log p(R) >= c_a}, with c_a the
-(1 - a)-quantile of log p over the belief's own samples; it holds the fraction a of the belief's
-mass. Per estimate, by Monte Carlo (error ~ sqrt(a (1 - a) / n) in the level):
+Credible regions. The highest-density region of mass m is {R : log p(R) >= c_m}, with c_m the
+(1 - m)-quantile of log p over the belief's own samples. The calibrated credible region of level
+a (the one that holds the truth a fraction a of the time on data like the validation set) is the
+HPD region of mass m = `estimate.credible_mass(a)`: the checkpoint's recalibration of the levels
+(`rotlearn.bingham.LevelMap`), or m = a without one. Per estimate, by Monte Carlo (error
+~ sqrt(m (1 - m) / n) in the mass):
 
-    draws = estimate.sample(4096)                                # (B, 4096, 4)
-    c = estimate.log_prob(draws).quantile(1 - 0.9, dim=-1)       # (B,) the 90 % cut
-    inside = estimate.log_prob(R_candidate) >= c                 # (B,) bool: R in the region
+    draws = estimate.sample(4096)                                       # (B, 4096, 4)
+    m = estimate.credible_mass(0.9)                                     # the calibrated 90 %
+    c = estimate.log_prob(draws).quantile(1 - float(m), dim=-1)         # (B,) its cut
+    inside = estimate.log_prob(R_candidate) >= c                        # (B,) bool: R in the region
 
 The region's angular extent around the mode: `angle_deg(quat_to_rotmat(draws), estimate.R[:, None])`
 of the draws inside it.
@@ -72,6 +77,8 @@ class RotationEstimate:
         F: (B, 3, 3) the matrix Fisher parameter, p(R) ~ exp(tr(F^T R)), tempered (F / T), for
             the Fisher head, else None.
         temperature: the post-hoc temperature T applied (1.0: none).
+        level_map: the recalibration of the credible levels (`rotlearn.bingham.LevelMap`), or
+            None (`credible_mass`).
 
     dispersion and dt are those of the tempered belief A.
     """
@@ -84,6 +91,17 @@ class RotationEstimate:
     A: Tensor | None = None
     F: Tensor | None = None
     temperature: float = 1.0
+    level_map: bingham.LevelMap | None = None
+
+    def credible_mass(self, alpha: float) -> Tensor:
+        """The belief mass whose highest-density region is the calibrated credible region of
+        level alpha in [0, 1] (module docstring): `level_map.mass(alpha)`, or alpha itself
+        without a level map. A 0-dim float64 tensor."""
+        if not 0.0 <= float(alpha) <= 1.0:
+            raise ValueError(f"alpha must lie in [0, 1], got {alpha}")
+        if self.level_map is None:
+            return torch.tensor(float(alpha), dtype=torch.float64)
+        return self.level_map.mass(float(alpha))
 
     def _belief(self) -> Tensor:
         if self.A is None:
@@ -142,7 +160,8 @@ class Predictor:
         net: the backbone; head: the representation head.
         config: the run's resolved config (as saved in the checkpoint).
         ood: optional {"score": "dt", "threshold": float} calibrated on the training set.
-        temperature: the belief's post-hoc temperature T > 0 (A -> A / T; `calibrate=true`).
+        temperature: the belief's post-hoc temperature T > 0 (A -> A / T; `calibrate`).
+        level_map: the recalibration of the tempered belief's credible levels, or None.
         device: where to run.
         chunk_elements: input numbers per forward pass; larger batches are split into chunks
             of whole samples (at least one), so memory is bounded whatever the batch size.
@@ -157,13 +176,14 @@ class Predictor:
         device: str | torch.device = "cpu",
         chunk_elements: int = CHUNK_ELEMENTS,
         temperature: float = 1.0,
+        level_map: bingham.LevelMap | None = None,
     ) -> None:
         if int(chunk_elements) < 1:
             raise ValueError(f"chunk_elements must be a positive integer, got {chunk_elements}")
         temperature = float(temperature)
         if not (math.isfinite(temperature) and temperature > 0):
             raise ValueError(f"temperature must be a finite number > 0, got {temperature}")
-        self.temperature = temperature
+        self.temperature, self.level_map = temperature, level_map
         self.chunk_elements = int(chunk_elements)
         self.device = torch.device(device)
         self.net = net.to(self.device).eval()
@@ -238,7 +258,7 @@ class Predictor:
             keep = dt < float(self.ood["threshold"])
         return RotationEstimate(
             R=R, q=q, dispersion=dispersion, dt=dt, keep=keep, A=A, F=F,
-            temperature=self.temperature,
+            temperature=self.temperature, level_map=self.level_map if A is not None else None,
         )  # fmt: skip
 
     def _predict(self, x: Tensor) -> tuple[Tensor | None, ...]:
@@ -261,9 +281,9 @@ def load(
     Goes through `rotlearn.checkpoint.load_run`: the file is read with
     `torch.load(weights_only=True)` (pickled code is refused: `UnsafeCheckpointError`) and the
     saved config may only name allowlisted components (`UntrustedConfigError`, naming the key),
-    checked before the network and head are rebuilt from it. The belief's temperature fitted
-    for this checkpoint (`calibrate=true`: `checkpoints/temperature.json`, read strictly) is
-    applied to every estimate.
+    checked before the network and head are rebuilt from it. The belief's calibration fitted
+    for this checkpoint (`calibrate`: `checkpoints/temperature.json`, read strictly: its
+    temperature and level map) is applied to every estimate.
     """
     require("train", "rotlearn.load (it rebuilds the model from the checkpoint's Hydra config)")
     from omegaconf import OmegaConf
@@ -274,5 +294,5 @@ def load(
     config = OmegaConf.to_container(run.config)
     return Predictor(
         net, head, config, ood=run.ood, device=device, chunk_elements=chunk_elements,
-        temperature=run.temperature,
+        temperature=run.temperature, level_map=run.level_map,
     )  # fmt: skip

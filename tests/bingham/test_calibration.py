@@ -138,3 +138,56 @@ def test_bad_input_is_named():
         bh.coverage(torch.empty(0))
     with pytest.raises(ValueError, match=r"\[0, 1\]"):
         bh.coverage(torch.zeros(3), (0.5, 1.5))
+
+
+# -- recalibrating the credible levels (Kuleshov et al. 2018) ----------------------------------
+
+
+def test_a_level_map_fitted_on_held_out_targets_makes_new_levels_uniform():
+    """Targets from beliefs 3 times wider than the predicted ones, in a mixture with targets from
+    the beliefs themselves (a shape no temperature fixes): the levels are far from uniform, and
+    the map fitted on one half makes the other half's levels uniform. Both halves are i.i.d., so
+    each half's empirical CDF is within EPS_HALF of the common law (DKW, 2 exp(-2 (M/2) eps^2) =
+    1e-4 each), and the mapped levels are uniform up to 2 EPS_HALF plus the knots' resolution."""
+    A = beliefs(11, M)
+    g = gen(12)
+    wide = torch.rand(M, generator=g, dtype=F64) < 0.5
+    scale = torch.where(wide, 1.0 / 3.0, 1.0)[:, None, None]
+    q = bh.sample(A * scale, 1, generator=g)[:, 0]
+    levels = bh.hpd_level(A, q, N, generator=gen(13))
+    fit, held_out = levels[: M // 2], levels[M // 2 :]
+    assert bh.expected_calibration_error(held_out) > 0.1  # the control: uncalibrated
+    level_map = bh.fit_level_map(fit)
+    mapped = level_map(held_out)
+    eps_half = math.sqrt(math.log(2 / 1e-4) / M)  # 0.05: DKW at M / 2 samples
+    grid = torch.tensor(bh.CREDIBLE_LEVELS, dtype=F64)
+    assert (bh.coverage(mapped) - grid).abs().max() < 2 * eps_half
+    assert float(bh.expected_calibration_error(mapped)) < 2 * eps_half
+
+
+def test_a_level_map_is_monotone_and_its_mass_inverts_it():
+    level_map = bh.fit_level_map(torch.rand(500, generator=gen(0), dtype=F64).square())
+    masses = level_map.masses
+    assert masses[0] == 0 and masses[-1] == 1 and bool((masses.diff() >= 0).all())
+    u = torch.linspace(0, 1, 101, dtype=F64)
+    assert bool((level_map(u).diff() >= 0).all())
+    alphas = torch.tensor(bh.CREDIBLE_LEVELS, dtype=F64)
+    torch.testing.assert_close(level_map(level_map.mass(alphas)), alphas)
+    # the identity map leaves levels as they are
+    identity = bh.LevelMap(torch.linspace(0, 1, 21, dtype=F64))
+    torch.testing.assert_close(identity(u), u)
+
+
+@pytest.mark.parametrize(
+    "masses", [[0.0], [0.1, 1.0], [0.0, 0.9], [0.0, 0.6, 0.5, 1.0], [0.0, math.nan, 1.0]]
+)
+def test_a_level_map_refuses_masses_that_are_no_distribution(masses):
+    with pytest.raises(ValueError, match="masses"):
+        bh.LevelMap(torch.tensor(masses, dtype=F64))
+
+
+def test_fit_level_map_refuses_no_levels_and_levels_outside_0_1():
+    with pytest.raises(ValueError, match="no levels"):
+        bh.fit_level_map(torch.empty(0))
+    with pytest.raises(ValueError, match=r"\[0, 1\]"):
+        bh.fit_level_map(torch.tensor([0.5, 1.5]))

@@ -182,15 +182,16 @@ def test_test_ckpt_must_be_last_or_best(make_cfg):
         train(cfg)
 
 
-def test_calibrate_defaults_off_and_adds_the_temperature_fit(make_cfg):
-    from rotlearn.lit import TemperatureScaling
+def test_calibrate_defaults_to_auto_and_adds_the_calibration(make_cfg):
+    from rotlearn.lit import PostHocCalibration
 
     def scaling(trainer: Trainer) -> list[Callback]:
-        return [cb for cb in trainer.callbacks if isinstance(cb, TemperatureScaling)]
+        return [cb for cb in trainer.callbacks if isinstance(cb, PostHocCalibration)]
 
     cfg = make_cfg(["data=tiny"])
-    assert cfg.calibrate is False
-    assert not scaling(build(cfg)[2])
+    assert cfg.calibrate == "auto"
+    assert len(scaling(build(cfg)[2])) == 1  # the A head has a belief
+    assert not scaling(build(make_cfg(["data=tiny", "calibrate=false"]))[2])
     on = make_cfg(["data=tiny", "calibrate=true"])
     assert on.calibrate is True and len(scaling(build(on)[2])) == 1
     with pytest.raises(ConfigError, match="config key calibrate"):

@@ -36,7 +36,7 @@ def _sets(separation: float, extra: bool) -> dict[str, dict[str, torch.Tensor]]:
     ood = torch.arange(20) >= 10
     err = torch.rand(20, generator=g, dtype=torch.float64) + 1
     sets = {
-        "train": {"error": torch.ones(40, dtype=torch.float64), "dt": train},
+        "val": {"error": torch.ones(40, dtype=torch.float64), "dt": train},
         "clean": {"error": err, "dt": clean, "corrupted": torch.zeros(20, dtype=torch.bool)},
         "corrupted": {"error": torch.where(ood, 4 * err, err), "dt": clean + separation * ood,
                       "corrupted": ood},

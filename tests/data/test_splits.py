@@ -53,7 +53,8 @@ def test_kitti_validation_is_the_tail_of_each_training_sequence(tmp_path):
                  "02": yaw_sequence(30, -1.0)}  # fmt: skip
     root = write_kitti(tmp_path, sequences, size=(12, 8))
     dm = KittiOdometryDataModule(str(root), train_sequences=["01", "02"], test_sequences=["00"],
-                                 image_size=8, num_workers=0, deltas=[1, 3], val_fraction=0.2)  # fmt: skip
+                                 image_size=8, num_workers=0, deltas=[1, 3],
+                                 val_fraction=0.2)  # fmt: skip
     dm.setup()
     train, val, test = (dm.sets[s].index for s in ("train", "val", "test"))
     assert_disjoint(train, val, test)

@@ -144,7 +144,8 @@ def test_evaluate_is_a_pure_function_of_predictions_and_flags():
     # the paper's protocol: thresholds from the training scores, one argument away
     train_loaders = {"train": loaders["val"], "corrupted": loaders["corrupted"]}
     paper = evaluate(predict, train_loaders, flags, scores, [0.75], reference="train")
-    assert paper.iloc[0]["threshold"] == row["threshold"] and paper.iloc[0]["thresholds_from"] == "train"
+    assert paper.iloc[0]["threshold"] == row["threshold"]
+    assert paper.iloc[0]["thresholds_from"] == "train"
     with pytest.raises(ValueError, match=r"flags\['corrupted'\] has shape \(2,\)"):
         score_sets(predict, loaders, {"corrupted": torch.zeros(2, dtype=torch.bool)}, scores)
     assert pr_quantiles()[:2] == [0.05, 0.07] and pr_quantiles()[-1] == 0.97

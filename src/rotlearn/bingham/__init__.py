@@ -69,8 +69,10 @@ index.
 
 from rotlearn.bingham.calibration import (
     CREDIBLE_LEVELS,
+    LevelMap,
     coverage,
     expected_calibration_error,
+    fit_level_map,
     hpd_level,
 )
 from rotlearn.bingham.descriptors import (
@@ -93,6 +95,7 @@ __all__ = [
     "CREDIBLE_LEVELS",
     "LOG_AREA_S3",
     "MAX_DISPERSION",
+    "LevelMap",
     "TemperatureFit",
     "bingham_parameters",
     "coverage",
@@ -103,6 +106,7 @@ __all__ = [
     "eigengap",
     "eigengap_from_eigenvalues",
     "expected_calibration_error",
+    "fit_level_map",
     "fit_temperature",
     "hpd_level",
     "log_normalizer",

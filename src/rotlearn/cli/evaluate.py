@@ -3,9 +3,9 @@
 The run's own config (saved in the checkpoint) rebuilds the data, net and head; the non-null keys
 of conf/eval.yaml's `ood`, `data` and `trainer` are merged into it. Results go to a new directory
 (`outputs/eval/<time>`): metrics.json, ood.csv, ood.md and TensorBoard events. Nothing in the
-trained run's directory is touched. The belief's temperature fitted for the checkpoint
-(`calibrate=true` in training: `checkpoints/temperature.json`) is applied (`temperature` in
-metrics.json); it is never refitted here.
+trained run's directory is touched. The belief's calibration fitted for the checkpoint
+(`calibrate` in training: `checkpoints/temperature.json`, its temperature and level map) is
+applied (`temperature` in metrics.json); it is never refitted here.
 """
 
 from __future__ import annotations
@@ -86,6 +86,7 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     model, datamodule, trainer = build(run)
     model.load_state_dict(saved.state_dict)
     model.belief_temperature = saved.temperature  # the test metrics and OOD scores use it
+    model.belief_levels = saved.level_map
     trainer.test(model, datamodule=datamodule, verbose=False)
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
     metrics.update(

@@ -468,7 +468,8 @@ def _ood_sections(frames, ood, layout, done, out, files) -> list[str]:
     md += ["## OOD scores on each test set", "",
            "Per head and score: AUROC (OOD vs clean pairs), and at each quantile q of the "
            "reference scores (each run's thresholds_from: validation pairs by default, "
-           "training pairs in the paper's protocol) the kept %, the mean and median error (deg) of the kept pairs, "
+           "training pairs in the paper's protocol) the kept %, the mean and median error "
+           "(deg) of the kept pairs, "
            "precision (kept pairs that are clean) and the % of OOD pairs rejected.", "",
            score_table(frames, quantiles, set_names), ""]  # fmt: skip
     if any(set(f["set"]) - {"clean", "corrupted"} for _, f in frames):

@@ -152,7 +152,7 @@ TOP_LEVEL: dict[str, Any] = {
     "ckpt_path": str | None,
     "seed": int,
     "test_ckpt": Literal["last", "best"],
-    "calibrate": bool,
+    "calibrate": bool | Literal["auto"],
     "float32_matmul_precision": Literal["highest", "high", "medium"],
     "trial": int,
     "trials": int,
@@ -287,7 +287,7 @@ def validate(cfg: DictConfig) -> None:
         head = make_head(cfg.rep.name, cfg.rep.out_dim, cfg.rep.get("solver"))
     except ConfigError as exc:
         raise exc.within("rep") from None
-    if _resolved(cfg, "calibrate") and not head.defines_belief:  # refused before any run dir
+    if _resolved(cfg, "calibrate") is True and not head.defines_belief:  # before any run dir
         raise ConfigError(
             "calibrate", f"fits the temperature of a belief; rep={head.name} has none"
         )

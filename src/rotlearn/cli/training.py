@@ -34,8 +34,8 @@ from rotlearn.lit import (
     EpochLosses,
     InterruptRecorder,
     ModelSummary,
+    PostHocCalibration,
     RunRecords,
-    TemperatureScaling,
 )
 
 __all__ = ["ConfigError", "RunInterrupted", "build", "report", "train"]
@@ -111,10 +111,11 @@ def build(cfg: DictConfig) -> tuple[pl.LightningModule, pl.LightningDataModule, 
     `instantiate(cfg.model)` is the whole model (`model=regressor`: net, head, loss, optimizer
     and scheduler from their groups; `model=autoencoder`: the OOD baseline). The trainer gets
     the configured callbacks plus the run's record keeping (`RunRecords`, `InterruptRecorder`,
-    `EpochLosses`), whatever `callbacks=` says, `calibrate: true` adds the post-hoc temperature
-    fit (`rotlearn.lit.calibration.TemperatureScaling`; refused with a `ConfigError` naming
-    `calibrate` for a head without a belief), and `trainer.enable_model_summary` gives
-    rotlearn's `ModelSummary`."""
+    `EpochLosses`), whatever `callbacks=` says, `calibrate` adds the post-hoc calibration of the
+    belief on the validation set (`rotlearn.lit.calibration.PostHocCalibration`): `auto` (the
+    default) for a head with a belief, `true` always (refused with a `ConfigError` naming
+    `calibrate` for a head without a belief, and an error without a validation set), and
+    `trainer.enable_model_summary` gives rotlearn's `ModelSummary`."""
     validate(cfg)
     pl.seed_everything(cfg.seed, workers=True, verbose=False)
     datamodule = _instantiate(cfg, "data")
@@ -122,12 +123,14 @@ def build(cfg: DictConfig) -> tuple[pl.LightningModule, pl.LightningDataModule, 
     model.run_config = OmegaConf.to_container(cfg, resolve=True)
     callbacks = _instantiate_all(cfg, "callbacks")
     callbacks += [RunRecords(cfg.paths.output_dir), InterruptRecorder(), EpochLosses()]
-    if OmegaConf.select(cfg, "calibrate", default=False):
+    calibrate = OmegaConf.select(cfg, "calibrate", default="auto")
+    has_belief = getattr(getattr(model, "head", None), "defines_belief", False)
+    if calibrate is True and not has_belief:
         head = getattr(model, "head", None)
-        if not getattr(head, "defines_belief", False):
-            what = f"rep={head.name}" if head is not None else f"the {type(model).__name__}"
-            raise ConfigError("calibrate", f"fits the temperature of a belief; {what} has none")
-        callbacks.append(TemperatureScaling(cfg.paths.output_dir))
+        what = f"rep={head.name}" if head is not None else f"the {type(model).__name__}"
+        raise ConfigError("calibrate", f"fits the temperature of a belief; {what} has none")
+    if calibrate is True or (calibrate == "auto" and has_belief):
+        callbacks.append(PostHocCalibration(cfg.paths.output_dir, required=calibrate is True))
     if OmegaConf.select(cfg, "trainer.enable_model_summary", default=True):
         callbacks.append(ModelSummary())  # Lightning's, without its column of zero FLOPs
     trainer = _instantiate(

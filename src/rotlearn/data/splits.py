@@ -4,9 +4,9 @@
 by time: the frames at the end of the source form its validation region, a gap of at least the
 pair distance separates it from the frames that stay for training, and a pair straddling the two
 is dropped. So no frame is both trained on and validated on, and no validation frame lies within
-a pair distance of a training frame. Validation pairs that share a frame with a test pair (`exclude`:
-a frame of the same cache) are dropped too (MAV, whose test pairs are a random part of the
-training scene's pairs), so no test pair and no test frame is ever in validation.
+a pair distance of a training frame. Validation pairs that share a frame with a test pair
+(`exclude`: a frame of the same cache) are dropped too (MAV, whose test pairs are a random part
+of the training scene's pairs), so no test pair and no test frame is ever in validation.
 
 Frames are identified by (cache file, frame index): two sources reading the same cache (MAV's
 scenes share the flea3 cache) share frames.
@@ -17,7 +17,6 @@ from __future__ import annotations
 import logging
 import math
 from pathlib import Path
-
 from typing import TYPE_CHECKING
 
 import numpy as np

@@ -5,7 +5,7 @@ from rotlearn.extras import require
 require("train", "rotlearn.lit")
 
 from rotlearn.lit.autoencoder import AutoEncoderModule, load_autoencoder
-from rotlearn.lit.calibration import TemperatureScaling
+from rotlearn.lit.calibration import PostHocCalibration
 from rotlearn.lit.callbacks import EpochLosses, EpochTimer, InterruptRecorder, ModelSummary
 from rotlearn.lit.records import RunRecords, barely_learned, divergence
 from rotlearn.lit.regressor import RotationRegressor
@@ -16,9 +16,9 @@ __all__ = [
     "EpochTimer",
     "InterruptRecorder",
     "ModelSummary",
+    "PostHocCalibration",
     "RotationRegressor",
     "RunRecords",
-    "TemperatureScaling",
     "barely_learned",
     "divergence",
     "load_autoencoder",

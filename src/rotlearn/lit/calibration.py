@@ -1,21 +1,35 @@
-"""`calibrate=true`: post-hoc temperature scaling of the belief when testing starts (issue 17).
+"""`calibrate` (default `auto`: on for every head with a belief): post-hoc calibration of the
+belief on the validation set when testing starts.
 
-`TemperatureScaling` runs when the test loop starts, after Lightning has loaded the tested weights
-(`test_ckpt`: the last epoch's, or best.ckpt's). It predicts the VALIDATION set with those weights,
-fits one scalar temperature T on the beliefs A and the targets q by mean NLL
-(`rotlearn.bingham.fit_temperature`; A -> A / T, the mode unchanged), and
+`PostHocCalibration` runs when the test loop starts, after Lightning has loaded the tested weights
+(`test_ckpt`: the last epoch's, or best.ckpt's). It predicts the VALIDATION set (held out from
+the training side, data/README.md) with those weights and fits, in two steps:
 
-* sets `pl_module.belief_temperature = T`, which the regressor applies in `forward` and its test
-  step: every test metric, and the OOD evaluation (`callbacks=ood`, which runs at the test's END
-  and predicts through `forward`), see the tempered belief, whatever the callbacks' order;
+1. one scalar temperature T on the beliefs A and the targets q by mean NLL
+   (`rotlearn.bingham.fit_temperature`; A -> A / T, the mode unchanged): the belief's scale;
+2. the recalibration of the tempered belief's credible levels (`rotlearn.bingham.fit_level_map`,
+   Kuleshov et al. 2018): its shape, where the errors are heavier- or lighter-tailed than the
+   Bingham belief, which no temperature can fix. The level-alpha region becomes the tempered
+   belief's HPD region of mass `LevelMap.mass(alpha)`; the density, its mode, its NLL and the
+   DT ranking are unchanged.
+
+Then it
+
+* sets `pl_module.belief_temperature = T` and `pl_module.belief_levels`, which the regressor
+  applies in `forward` (T) and its test metrics (both): every test metric, and the OOD evaluation
+  (`callbacks=ood`, which runs at the test's END and predicts through `forward`), see the
+  calibrated belief, whatever the callbacks' order;
 * logs `calibration/temperature`, `calibration/val_nll` and `calibration/val_nll_uncalibrated`
   (nats, w.r.t. the uniform measure on SO(3)), which reach metrics.json;
 * writes `<run>/checkpoints/temperature.json` beside the tested checkpoint (`TEMPERATURE_FILE`,
   read by `rotlearn.load` and `rotlearn-eval`): {"temperature", "checkpoint" (the tested file's
-  name), "val_nll", "val_nll_uncalibrated" (null where not computable), "num_val"}.
+  name), "val_nll", "val_nll_uncalibrated" (null where not computable), "num_val",
+  "credible_masses" (the level map)}.
 
-The fit always starts from the untempered belief (the net and head, not `forward`), so testing
-twice fits the same T. Quaternions are scalar LAST (x, y, z, w).
+Cost: one more pass over the validation set and `belief_samples` draws of each validation
+belief (for the levels), at test start only (about a second for 1000 validation samples on a
+CPU core). The fit always starts from the untempered belief (the net and head, not `forward`),
+so testing twice fits the same T and map. Quaternions are scalar LAST (x, y, z, w).
 """
 
 from __future__ import annotations
@@ -28,13 +42,15 @@ from typing import Any
 import lightning.pytorch as pl
 import torch
 
-from rotlearn.bingham import fit_temperature
+from rotlearn.bingham import LevelMap, fit_level_map, fit_temperature, hpd_level
 from rotlearn.checkpoint import TEMPERATURE_FILE
 from rotlearn.errors import ConfigError
 from rotlearn.geometry import rotmat_to_quat
 from rotlearn.io import write_json_atomic
 
-__all__ = ["TemperatureScaling", "validation_beliefs"]
+__all__ = ["PostHocCalibration", "validation_beliefs"]
+
+LEVEL_SEED = 1  # the draws of the validation levels (the test metric's draws use seed 0)
 
 log = logging.getLogger("rotlearn")
 
@@ -50,9 +66,10 @@ def _finish(datamodule: Any, batch: Any, module: pl.LightningModule) -> Any:
 
 def validation_beliefs(
     module: pl.LightningModule, datamodule: Any
-) -> tuple[torch.Tensor, torch.Tensor]:
+) -> tuple[torch.Tensor, torch.Tensor] | None:
     """The untempered beliefs A (N, 4, 4) and targets q (N, 4) of the validation set, float64 on
-    the CPU, predicted by `module.head(module.net(...))` in eval mode without gradients."""
+    the CPU, predicted by `module.head(module.net(...))` in eval mode without gradients; None
+    where the datamodule has no validation samples."""
     was_training = module.training
     module.eval()
     beliefs, targets = [], []
@@ -67,25 +84,30 @@ def validation_beliefs(
     finally:
         module.train(was_training)
     if not beliefs:
-        raise ConfigError("calibrate", "needs a validation set, but the datamodule has none")
+        return None
     return torch.cat(beliefs), torch.cat(targets)
 
 
-class TemperatureScaling(pl.Callback):
-    """Fit the belief's temperature on the validation set when testing starts (module docstring).
+class PostHocCalibration(pl.Callback):
+    """Fit the belief's temperature and level map on the validation set when testing starts
+    (module docstring).
 
-    `rotlearn.cli.training.build` adds it when the config says `calibrate: true`.
+    `rotlearn.cli.training.build` adds it when the config says `calibrate: true`, or `auto` (the
+    default) for a head with a belief.
 
     Args:
         dirpath: the run directory; temperature.json is written only below it (never into
             another run's checkpoints).
+        required: without validation samples, raise (`calibrate: true`) rather than test the
+            belief uncalibrated with a warning (`auto`).
 
     Attributes:
         record: what was written to temperature.json (None before the test starts).
     """
 
-    def __init__(self, dirpath: str | Path) -> None:
+    def __init__(self, dirpath: str | Path, required: bool = True) -> None:
         self.dirpath = Path(dirpath)
+        self.required = bool(required)
         self.record: dict[str, Any] | None = None
 
     def setup(self, trainer: pl.Trainer, pl_module: pl.LightningModule, stage: str) -> None:
@@ -97,10 +119,23 @@ class TemperatureScaling(pl.Callback):
             )
 
     def on_test_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
-        A, q = validation_beliefs(pl_module, trainer.datamodule)
+        validation = validation_beliefs(pl_module, trainer.datamodule)
+        if validation is None:
+            if self.required:
+                raise ConfigError(
+                    "calibrate", "needs a validation set, but the datamodule has none"
+                )
+            log.warning("calibration: no validation samples; the belief is tested uncalibrated")
+            return
+        A, q = validation
         fit = fit_temperature(A, q)
         temperature = float(fit.temperature)
         pl_module.belief_temperature = temperature
+        samples = getattr(getattr(pl_module, "test_belief", None), "num_samples", 1000)
+        generator = torch.Generator().manual_seed(LEVEL_SEED)
+        levels = fit_level_map(hpd_level(A / temperature, q, samples, generator))
+        levels = LevelMap(levels.masses.mul(1e6).round().div(1e6))  # as temperature.json has it
+        pl_module.belief_levels = levels
         if fit.at_bound is not None:
             log.warning(
                 "calibration: the validation NLL still falls at the %s end of the temperature "
@@ -124,6 +159,7 @@ class TemperatureScaling(pl.Callback):
             "val_nll": fit.nll_after,
             "val_nll_uncalibrated": fit.nll_before if math.isfinite(fit.nll_before) else None,
             "num_val": fit.num,
+            "credible_masses": levels.masses.tolist(),
         }
         if not trainer.is_global_zero:
             return

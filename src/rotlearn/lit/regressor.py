@@ -11,6 +11,7 @@ from lightning.pytorch.loggers import TensorBoardLogger
 from torch import Tensor, nn
 from torchmetrics import MeanMetric
 
+from rotlearn.bingham import LevelMap
 from rotlearn.errors import ConfigValueError
 from rotlearn.geometry import angle_deg, rotmat_to_quat
 from rotlearn.heads import RotationHead, RotationPrediction
@@ -95,6 +96,9 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
             with_temperature`), applied by `forward` and every step; 1 (untempered) until a
             post-hoc calibration sets it after fitting. A plain float: neither a parameter nor a
             buffer.
+        belief_levels: the recalibration of the tempered belief's credible levels
+            (`rotlearn.bingham.LevelMap`), set by the post-hoc calibration; None: the belief's
+            own HPD levels. It changes only which HPD region is called the level-alpha region.
     """
 
     task = "rotation"
@@ -134,6 +138,7 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
         self.test_belief = BeliefCalibration(belief_samples)
         self.test_untempered_belief = BeliefCalibration(belief_samples)
         self.belief_temperature: float = 1.0
+        self.belief_levels: LevelMap | None = None
         self.run_config: dict[str, Any] | None = None  # stored in checkpoints when set
         self.test_errors: Tensor | None = None  # per-sample test errors (degrees) of the last test
 
@@ -261,15 +266,24 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
 
     def _log_beliefs(self) -> None:
         """test/nll, test/ece, test/coverage_<alpha> of the belief as used, the untempered
-        belief's where it differs, and the reliability diagram (class docstring)."""
+        belief's where it differs, the tempered belief's own levels where a level map
+        recalibrates them, and the reliability diagram (class docstring)."""
         if not self.test_belief.update_count:
             return
-        curves = {"belief": self.test_belief.compute()}
+        self.test_belief.level_map = self.belief_levels
+        belief = self.test_belief.compute()
+        curves = {"belief": {k: v for k, v in belief.items() if not k.startswith("unmapped_")}}
+        if self.belief_levels is not None:
+            curves["tempered"] = {k.removeprefix("unmapped_"): v for k, v in belief.items()
+                                  if k.startswith("unmapped_")}  # fmt: skip
         if self.test_untempered_belief.update_count:
             curves["uncalibrated"] = self.test_untempered_belief.compute()
         logged = {f"test/{k}": v for k, v in curves["belief"].items()}
+        if "tempered" in curves:
+            logged.update({f"test/tempered_{k}": v for k, v in curves["tempered"].items()})
         if "uncalibrated" in curves:
             logged.update({f"test/uncalibrated_{k}": v for k, v in curves["uncalibrated"].items()})
+        if self.belief_temperature != 1 or self.belief_levels is not None:
             logged["test/temperature"] = float(self.belief_temperature)
         self.log_dict(logged, on_step=False, on_epoch=True)
         for metric in (self.test_belief, self.test_untempered_belief):
@@ -284,8 +298,12 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
         from rotlearn.plots import reliability_figure
 
         temperature, alphas = float(self.belief_temperature), self.test_belief.alphas
-        labels = {"belief": f"T = {temperature:g}" if temperature != 1 else "belief",
-                  "uncalibrated": "untempered (T = 1)"}  # fmt: skip
+        tempered = f"T = {temperature:g}" if temperature != 1 else "belief"
+        labels = {
+            "belief": f"{tempered} + level map" if self.belief_levels is not None else tempered,
+            "tempered": f"{tempered} (its own levels)",
+            "uncalibrated": "untempered (T = 1)",
+        }
         figure = reliability_figure(
             [
                 {
@@ -293,7 +311,7 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
                     "alphas": alphas,
                     "coverage": [float(metrics[f"coverage_{a:g}"]) for a in alphas],
                     "ece": float(metrics["ece"]),
-                    "dashed": name == "uncalibrated",
+                    "dashed": name != "belief",
                 }
                 for name, metrics in curves.items()
             ]

@@ -1,4 +1,4 @@
-"""`calibrate=true`: the temperature fitted on the validation set at test start (issue 17)."""
+"""`calibrate`: the temperature and the level map fitted on the validation set at test start."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ import lightning.pytorch as pl
 import pytest
 import torch
 
-from rotlearn.bingham import fit_temperature
+from rotlearn.bingham import LevelMap, fit_temperature
 from rotlearn.checkpoint import TEMPERATURE_FILE, read_temperature
 from rotlearn.cli.train import ConfigError, build, train
-from rotlearn.lit.calibration import TemperatureScaling, validation_beliefs
+from rotlearn.lit.calibration import PostHocCalibration, validation_beliefs
 from tests.conftest import FAST
 
 RUN = ["rep=a", *FAST, "trainer.max_epochs=1", "logger=csv", "calibrate=true"]
@@ -36,7 +36,7 @@ def test_a_calibrated_run_writes_logs_and_sets_the_temperature(make_cfg):
     cfg = make_cfg(RUN)
     model, datamodule, trainer = build(cfg)
     spy = _SeesTheTemperature()
-    trainer.callbacks.insert(0, spy)  # before TemperatureScaling: the hook order still holds
+    trainer.callbacks.insert(0, spy)  # before PostHocCalibration: the hook order still holds
     trainer.fit(model, datamodule=datamodule)
     trainer.test(model, datamodule=datamodule, verbose=False)
     run = Path(cfg.paths.output_dir)
@@ -56,9 +56,15 @@ def test_a_calibrated_run_writes_logs_and_sets_the_temperature(make_cfg):
     assert float(metrics["calibration/temperature"]) == pytest.approx(t, rel=1e-6)
     assert float(metrics["calibration/val_nll"]) == pytest.approx(record["val_nll"], rel=1e-6)
     assert "calibration/temperature" in (run / "csv" / "metrics.csv").read_text()
-    # testing again fits again from the untempered belief: the same T, not T^2
+    # the level map: fitted with T, saved with it, used by the test metrics
+    assert isinstance(model.belief_levels, LevelMap)
+    assert model.belief_levels.masses.tolist() == record["credible_masses"]
+    assert len(record["credible_masses"]) == 21
+    assert {"test/ece", "test/tempered_ece", "test/uncalibrated_ece"} <= set(metrics)
+    # testing again fits again from the untempered belief: the same T, not T^2, the same map
     trainer.test(model, datamodule=datamodule, verbose=False)
     assert model.belief_temperature == pytest.approx(t, rel=1e-12)
+    assert model.belief_levels.masses.tolist() == record["credible_masses"]
 
 
 def test_the_record_names_the_tested_checkpoint_and_reaches_metrics_json(make_cfg):
@@ -68,7 +74,7 @@ def test_the_record_names_the_tested_checkpoint_and_reaches_metrics_json(make_cf
     record = json.loads((run / "checkpoints" / TEMPERATURE_FILE).read_text())
     assert record["checkpoint"] == "best.ckpt"
     assert set(record) == {"temperature", "checkpoint", "val_nll", "val_nll_uncalibrated",
-                           "num_val"}  # fmt: skip
+                           "num_val", "credible_masses"}  # fmt: skip
     on_disk = json.loads((run / "metrics.json").read_text())
     assert on_disk["calibration/temperature"] == pytest.approx(record["temperature"], rel=1e-6)
     assert metrics["tested_weights"] == "best"
@@ -86,18 +92,51 @@ def test_calibration_is_refused_for_a_head_without_a_belief(make_cfg, tmp_path):
     with pytest.raises(ConfigError, match=r"calibrate: .*AutoEncoderModule has none"):
         build(make_cfg(["experiment=kitti_autoencoder", "calibrate=true"]))
     with pytest.raises(ConfigError, match="calibrate"):
-        TemperatureScaling("x").setup(None, torch.nn.Module(), "test")
+        PostHocCalibration("x").setup(None, torch.nn.Module(), "test")
 
 
-def test_calibrate_must_be_a_boolean(make_cfg):
+def test_calibrate_must_be_a_boolean_or_auto(make_cfg):
     with pytest.raises(ConfigError, match="calibrate"):
         build(make_cfg(["rep=a", *FAST, "calibrate=maybe"]))
+
+
+def _calibrates(trainer) -> list[PostHocCalibration]:
+    return [cb for cb in trainer.callbacks if isinstance(cb, PostHocCalibration)]
+
+
+def test_auto_calibrates_every_belief_head_and_nothing_else(make_cfg):
+    """No flag: a belief head (chordal or likelihood loss) is calibrated, a 6D head is not."""
+    for overrides, expected in ((["rep=a"], 1), (["rep=a", "loss=bingham"], 1),
+                                (["rep=fisher", "loss=fisher_nll"], 1), (["rep=sixd"], 0),
+                                (["rep=a", "calibrate=false"], 0)):  # fmt: skip
+        _, _, trainer = build(make_cfg([*FAST, *overrides]))
+        found = _calibrates(trainer)
+        assert len(found) == expected, overrides
+        assert all(not cb.required for cb in found)  # auto: never required
+
+
+def test_auto_without_a_validation_set_tests_uncalibrated_and_true_refuses(make_cfg, caplog):
+    from rotlearn.lit.regressor import RotationRegressor
+
+    class NoValidation(pl.LightningDataModule):
+        def val_dataloader(self):
+            return []
+
+    module = RotationRegressor.__new__(RotationRegressor)
+    pl.LightningModule.__init__(module)
+    trainer = pl.Trainer(logger=False, enable_progress_bar=False, enable_checkpointing=False)
+    trainer.datamodule = NoValidation()  # what on_test_start reads
+    with caplog.at_level("WARNING", logger="rotlearn"):
+        PostHocCalibration("x", required=False).on_test_start(trainer, module)
+    assert "tested uncalibrated" in caplog.text
+    with pytest.raises(ConfigError, match="needs a validation set"):
+        PostHocCalibration("x", required=True).on_test_start(trainer, module)
 
 
 def test_records_are_never_written_outside_the_run(make_cfg, tmp_path):
     cfg = make_cfg(RUN)
     model, datamodule, trainer = build(cfg)
-    scaling = next(cb for cb in trainer.callbacks if isinstance(cb, TemperatureScaling))
+    scaling = next(cb for cb in trainer.callbacks if isinstance(cb, PostHocCalibration))
     other = tmp_path / "another_run"
     scaling.dirpath = other  # as if this run's checkpoints lay in another run's directory
     trainer.fit(model, datamodule=datamodule)
@@ -146,4 +185,5 @@ def test_an_image_pair_run_calibrates_before_its_ood_evaluation_and_eval_reuses_
     result = evaluate(cfg)
     assert result["temperature"] == record["temperature"]
     assert "calibration/temperature" not in result  # applied, not refitted
+    assert "test/tempered_ece" in result  # the level map too
     assert sorted(p.name for p in (run / "checkpoints").iterdir()) == before
