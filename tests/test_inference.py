@@ -17,7 +17,7 @@ from rotlearn.checkpoint import UnsafeCheckpointError, load_checkpoint
 from rotlearn.cli.predict import main as predict_main
 from rotlearn.cli.predict import read_point_pairs
 from rotlearn.cli.train import build, train
-from rotlearn.geometry import quat_to_rotmat
+from rotlearn.geometry import quat_to_rotmat, so3_exp
 from tests.conftest import SMALL_NET
 
 FAST = ["data=tiny", "trainer=cpu", "trainer.enable_progress_bar=false", *SMALL_NET]
@@ -396,3 +396,27 @@ def test_predict_command_reports_the_temperature(calibrated_run, tmp_path, capsy
     assert json.loads(capsys.readouterr().out)["temperature"] == 2.5
     assert predict_main([str(calibrated_run), str(path)]) == 0
     assert "temperature 2.5" in capsys.readouterr().out
+
+
+def test_load_of_several_runs_is_their_ensemble_and_calibrates_on_held_out_data(trained_runs):
+    """rotlearn.load([run, run]): the product of two identical beliefs (A doubled, the same
+    rotation, no disagreement); Predictor.calibrate fits its temperature and level map."""
+    x = _points(64)
+    single = rotlearn.load(trained_runs["a"])(x)
+    ensemble = rotlearn.load([trained_runs["a"], trained_runs["a"]])
+    estimate = ensemble(x)
+    torch.testing.assert_close(estimate.A, 2 * single.A)
+    torch.testing.assert_close(estimate.R, single.R)
+    assert estimate.disagreement.shape == (64,) and float(estimate.disagreement.max()) < 1e-2
+    assert single.disagreement is None
+    # held-out data: the truth is the single model's rotation, jittered
+    jitter = 0.05 * torch.randn(64, 3, generator=torch.Generator().manual_seed(0))
+    targets = single.R @ so3_exp(jitter)
+    fit = ensemble.calibrate(x, targets)
+    assert fit["nll_after"] <= fit["nll_before"] + 1e-9
+    assert ensemble.temperature == fit["temperature"] and ensemble.level_map is not None
+    calibrated = ensemble(x)
+    torch.testing.assert_close(calibrated.A, estimate.A / fit["temperature"])
+    assert 0.0 <= float(calibrated.credible_mass(0.9)) <= 1.0
+    with pytest.raises(ValueError, match="no belief"):
+        rotlearn.load([trained_runs["a"], trained_runs["sixd"]])

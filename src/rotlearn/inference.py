@@ -9,6 +9,11 @@ estimate.A, estimate.temperature    # the belief p(q) ~ exp(-q^T A q), (B, 4, 4)
 estimate.sample(100)                # (B, 100, 4) quaternions drawn from each belief
 estimate.log_prob(R_or_q)           # (B,) or (B, n) log densities of rotations / quaternions
 
+ensemble = rotlearn.load([run_0, run_1, run_2])    # K separately trained runs (belief heads)
+ensemble.calibrate(val_inputs, val_R)              # its temperature and level map, held-out data
+estimate = ensemble(points)         # A = sum of the members' A (the product of their beliefs)
+estimate.disagreement               # (B,) largest angle (deg) between a member and the ensemble
+
 The belief (heads that define one: `rep=a`, and the matrix Fisher head, whose `A` is the Bingham
 matrix of the same density and whose `F` is carried too) is the Bingham density
 p(q; A) = exp(-q^T A q) / Z(A) over unit quaternions (x, y, z, w), antipodally symmetric, so also a
@@ -39,6 +44,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -50,9 +56,9 @@ from rotlearn import bingham
 from rotlearn.checkpoint import load_run
 from rotlearn.extras import require
 from rotlearn.geometry import rotmat_to_quat
-from rotlearn.heads import RotationHead
+from rotlearn.heads import RotationHead, RotationPrediction
 
-__all__ = ["CHUNK_ELEMENTS", "Predictor", "RotationEstimate", "load"]
+__all__ = ["CHUNK_ELEMENTS", "Predictor", "RotationEstimate", "ensemble_members", "load"]
 
 # Input numbers sent through the network at once: the Predictor splits larger batches into
 # chunks of about this many (at least one sample), so its memory stays bounded for any batch.
@@ -79,6 +85,8 @@ class RotationEstimate:
         temperature: the post-hoc temperature T applied (1.0: none).
         level_map: the recalibration of the credible levels (`rotlearn.bingham.LevelMap`), or
             None (`credible_mass`).
+        disagreement: (B,) for an ensemble, the largest angle in degrees between a member's
+            rotation and the ensemble's (`rotlearn.bingham.disagreement`), else None.
 
     dispersion and dt are those of the tempered belief A.
     """
@@ -92,6 +100,7 @@ class RotationEstimate:
     F: Tensor | None = None
     temperature: float = 1.0
     level_map: bingham.LevelMap | None = None
+    disagreement: Tensor | None = None
 
     def credible_mass(self, alpha: float) -> Tensor:
         """The belief mass whose highest-density region is the calibrated credible region of
@@ -249,7 +258,7 @@ class Predictor:
         per_sample = max(1, x[:1].numel())
         size = max(1, self.chunk_elements // per_sample)
         parts = [self._predict(chunk) for chunk in x.split(size)]
-        R, q, dispersion, dt, A, F = (
+        R, q, dispersion, dt, A, F, disagreement = (
             torch.cat(values) if values[0] is not None else None
             for values in zip(*parts, strict=True)
         )
@@ -259,24 +268,65 @@ class Predictor:
         return RotationEstimate(
             R=R, q=q, dispersion=dispersion, dt=dt, keep=keep, A=A, F=F,
             temperature=self.temperature, level_map=self.level_map if A is not None else None,
+            disagreement=disagreement,
         )  # fmt: skip
 
     def _predict(self, x: Tensor) -> tuple[Tensor | None, ...]:
-        """R (b, 3, 3), q (b, 4), dispersion (b, 3), DT (b,), A (b, 4, 4) and F (b, 3, 3) of one
-        chunk of inputs, the belief tempered by `temperature` (None where the head has none)."""
+        """R (b, 3, 3), q (b, 4), dispersion (b, 3), DT (b,), A (b, 4, 4), F (b, 3, 3) and the
+        disagreement (b,) of one chunk of inputs, the belief tempered by `temperature` (None
+        where the head has none)."""
+        p = self._untempered(x).with_temperature(self.temperature)
+        return p.R, p.q, p.dispersion, p.dt, p.A, p.F, p.disagreement
+
+    def _untempered(self, x: Tensor) -> RotationPrediction:
         raw = self.net(x.to(self.device, self.dtype))
         if not bool(torch.isfinite(raw).all()):
             raise FloatingPointError("the network output is not finite for these inputs")
-        p = self.head(raw).with_temperature(self.temperature)
-        return p.R, p.q, p.dispersion, p.dt, p.A, getattr(p, "F", None)
+        return self.head(raw)
+
+    @torch.no_grad()
+    def calibrate(self, inputs: Any, targets: Tensor) -> dict[str, float]:
+        """Fit this predictor's belief calibration on held-out data, replacing the one it has:
+        the temperature T (`rotlearn.bingham.fit_temperature`) and the map of the tempered
+        belief's credible levels (`rotlearn.bingham.fit_level_map`), as `calibrate` does after
+        training (`rotlearn.lit.calibration`). For an ensemble (`load([run, ...])`), whose
+        product belief is over-confident, this is the step that makes it calibrated.
+
+        Args:
+            inputs: held-out inputs as `__call__` takes them (not the test data).
+            targets: their true rotations (B, 3, 3) or quaternions (B, 4) (x, y, z, w).
+
+        Returns:
+            {"temperature", "nll_before", "nll_after", "num"}.
+        """
+        x = self._validate(inputs)
+        x = x.unsqueeze(0) if x.ndim == (3 if self.image_size is not None else 2) else x
+        size = max(1, self.chunk_elements // max(1, x[:1].numel()))
+        A = torch.cat([self._untempered(c).A.double().cpu() for c in x.split(size)])
+        q = targets if targets.shape[-1] == 4 else rotmat_to_quat(targets)
+        q = q.to(torch.float64).cpu()
+        fit = bingham.fit_temperature(A, q)
+        self.temperature = float(fit.temperature)
+        levels = bingham.hpd_level(A / self.temperature, q, 1000, torch.Generator().manual_seed(1))
+        self.level_map = bingham.fit_level_map(levels)
+        return {"temperature": self.temperature, "nll_before": fit.nll_before,
+                "nll_after": fit.nll_after, "num": fit.num}  # fmt: skip
 
 
 def load(
-    ckpt_path: str | os.PathLike,
+    ckpt_path: str | os.PathLike | Sequence[str | os.PathLike],
     device: str | torch.device = "cpu",
     chunk_elements: int = CHUNK_ELEMENTS,
 ) -> Predictor:
-    """Load a rotlearn checkpoint (or a run directory's last one) as a `Predictor`.
+    """Load a rotlearn checkpoint (or a run directory's last one) as a `Predictor`; a list of
+    them as the `Predictor` of their ensemble.
+
+    An ensemble (K runs with belief heads, trained on the same kind of input, e.g. with other
+    seeds) predicts with every member and multiplies their beliefs: A = sum_k A_k / T_k, each
+    member tempered by its own calibration (`rotlearn.heads.EnsembleHead`,
+    `rotlearn.bingham.product`); estimates carry the members' `disagreement`. The ensemble's own
+    temperature starts at 1: fit it on held-out data with `Predictor.calibrate`. The OOD
+    thresholds of the members are not used (an ensemble's DT has its own scale).
 
     Goes through `rotlearn.checkpoint.load_run`: the file is read with
     `torch.load(weights_only=True)` (pickled code is refused: `UnsafeCheckpointError`) and the
@@ -288,6 +338,8 @@ def load(
     require("train", "rotlearn.load (it rebuilds the model from the checkpoint's Hydra config)")
     from omegaconf import OmegaConf
 
+    if not isinstance(ckpt_path, str | os.PathLike):
+        return _load_ensemble(list(ckpt_path), device, chunk_elements)
     run = load_run(ckpt_path, task="rotation")
     net, head = run.build("net"), run.build("rep")
     net.load_state_dict(run.weights("net"))
@@ -296,3 +348,38 @@ def load(
         net, head, config, ood=run.ood, device=device, chunk_elements=chunk_elements,
         temperature=run.temperature, level_map=run.level_map,
     )  # fmt: skip
+
+
+def ensemble_members(paths: Sequence[str | os.PathLike]) -> tuple[nn.Module, RotationHead, Any]:
+    """(EnsembleNet, EnsembleHead, the first member's `SavedRun`) of K runs, each loaded through
+    `load_run` (the same checks as `load`), weights and temperatures applied.
+
+    Raises:
+        ValueError: no runs, or a member whose head has no belief.
+    """
+    from rotlearn.heads import EnsembleHead
+    from rotlearn.nets import EnsembleNet
+
+    if not paths:
+        raise ValueError("an ensemble needs at least one run")
+    runs = [load_run(p, task="rotation") for p in paths]
+    nets, heads = [], []
+    for run in runs:
+        net, head = run.build("net"), run.build("rep")
+        if not head.defines_belief:
+            raise ValueError(f"{run.path}: rep={head.name} has no belief; an ensemble needs one")
+        net.load_state_dict(run.weights("net"))
+        nets.append(net.eval())
+        heads.append(head)
+    head = EnsembleHead(heads, [run.temperature for run in runs])
+    return EnsembleNet(nets), head, runs[0]
+
+
+def _load_ensemble(
+    paths: list[str | os.PathLike], device: str | torch.device, chunk_elements: int
+) -> Predictor:
+    from omegaconf import OmegaConf
+
+    net, head, first = ensemble_members(paths)
+    config = OmegaConf.to_container(first.config)
+    return Predictor(net, head, config, device=device, chunk_elements=chunk_elements)

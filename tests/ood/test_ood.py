@@ -224,6 +224,25 @@ def test_rotlearn_eval_reproduces_the_test_error(trained_run, tmp_path):
     assert not (run_dir / "ood.csv").stat().st_mtime > (out / "ood.csv").stat().st_mtime
 
 
+def test_rotlearn_eval_of_several_runs_scores_their_ensemble(trained_run, tiny_kitti, make_cfg,
+                                                             tmp_path):  # fmt: skip
+    """ckpt=[run, run]: the ensemble's own calibration is fitted on validation, and its DT and
+    the members' disagreement are OOD scores."""
+    from rotlearn.cli.evaluate import evaluate
+
+    run_dir, _ = trained_run
+    other = tmp_path / "seed1"
+    train(make_cfg([*TINY_PAIRS, f"data.root={tiny_kitti}", "seed=1"], run_dir=other))
+    out = tmp_path / "eval"
+    result = evaluate(_eval_cfg([f"ckpt=[{run_dir},{other}]", "ood.quantiles=[0.5]"], out))
+    assert result["rep"] == "ensemble" and len(result["members"]) == 2
+    assert result["calibration/temperature"] == pytest.approx(result["temperature"], rel=1e-6)
+    assert "test/disagreement_spearman" in result and "test/ece" in result
+    frame = pd.read_csv(out / "ood.csv")
+    assert {"dt", "eigengap", "raw_norm", "disagreement"} <= set(frame["score"])
+    assert (frame[frame["score"] == "disagreement"]["nan_scores"] == 0).all()
+
+
 def test_rotlearn_eval_refuses_bad_input(trained_run, tmp_path):
     from rotlearn.cli.evaluate import evaluate
 

@@ -88,6 +88,7 @@ from rotlearn.bingham.descriptors import (
     mode,
 )
 from rotlearn.bingham.normalizer import log_normalizer, log_prob, moments, nll, normalizer
+from rotlearn.bingham.product import disagreement, product_belief
 from rotlearn.bingham.sampling import sample
 from rotlearn.bingham.temperature import TemperatureFit, fit_temperature
 
@@ -99,6 +100,7 @@ __all__ = [
     "TemperatureFit",
     "bingham_parameters",
     "coverage",
+    "disagreement",
     "dispersion",
     "dispersion_from_eigenvalues",
     "dt_from_eigenvalues",
@@ -115,5 +117,6 @@ __all__ = [
     "moments",
     "nll",
     "normalizer",
+    "product_belief",
     "sample",
 ]

@@ -1,4 +1,7 @@
-"""`rotlearn-eval ckpt=<run>`: test a trained checkpoint again, with the OOD evaluation.
+"""`rotlearn-eval ckpt=<run>`: test a trained checkpoint again, with the OOD evaluation;
+`rotlearn-eval ckpt=[<run>,<run>,...]`: test the ensemble of several (`rotlearn.heads.
+EnsembleHead`: the product of the members' beliefs), its calibration fitted on the validation
+set first (the members' own temperatures are applied inside it).
 
 The run's own config (saved in the checkpoint) rebuilds the data, net and head; the non-null keys
 of conf/eval.yaml's `ood`, `data` and `trainer` are merged into it. Results go to a new directory
@@ -17,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import hydra
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from rotlearn.checkpoint import SavedRun, load_run
 from rotlearn.errors import ConfigError
@@ -74,24 +77,36 @@ def evaluation_config(cfg: DictConfig, saved: SavedRun) -> DictConfig:
 
 
 def evaluate(cfg: DictConfig) -> dict[str, Any]:
-    """Test the checkpoint `cfg.ckpt` with the OOD callback; writes metrics.json; returns it."""
+    """Test the checkpoint `cfg.ckpt` (or the ensemble of a list of them) with the OOD callback;
+    writes metrics.json; returns it."""
     from rotlearn.cli.train import build
+    from rotlearn.inference import ensemble_members
 
+    paths = list(cfg.ckpt) if isinstance(cfg.ckpt, ListConfig) else None
     try:
-        saved = load_run(cfg.ckpt)
+        if paths is None:
+            saved = load_run(cfg.ckpt)
+        else:
+            net, head, saved = ensemble_members(paths)
     except (FileNotFoundError, ValueError) as exc:  # unsafe file, untrusted config, other task
         raise ConfigError("ckpt", f"{cfg.ckpt}: {exc}") from None
     ckpt = saved.path
     run = evaluation_config(cfg, saved)
+    if paths is not None:
+        run.calibrate = True  # the ensemble's own temperature and level map, on validation
     model, datamodule, trainer = build(run)
-    model.load_state_dict(saved.state_dict)
-    model.belief_temperature = saved.temperature  # the test metrics and OOD scores use it
-    model.belief_levels = saved.level_map
+    if paths is None:
+        model.load_state_dict(saved.state_dict)
+        model.belief_temperature = saved.temperature  # the test metrics and OOD scores use it
+        model.belief_levels = saved.level_map
+    else:
+        model.net, model.head = net, head
     trainer.test(model, datamodule=datamodule, verbose=False)
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
-    metrics.update(
-        {"ckpt": str(ckpt.resolve()), "rep": run.rep.name, "temperature": saved.temperature}
-    )
+    metrics.update({"ckpt": str(ckpt.resolve()), "rep": run.rep.name,
+                    "temperature": float(model.belief_temperature)})  # fmt: skip
+    if paths is not None:
+        metrics.update({"members": [str(Path(p).resolve()) for p in paths], "rep": "ensemble"})
     write_json_atomic(Path(cfg.paths.output_dir) / "metrics.json", metrics)
     return metrics
 

@@ -14,6 +14,7 @@ from rotlearn.heads.base import (
     make_head,
     register_head,
 )
+from rotlearn.heads.ensemble import EnsembleHead
 from rotlearn.heads.fisher import FisherHead
 from rotlearn.heads.quat import QuatHead
 from rotlearn.heads.sixd import SixDHead
@@ -23,6 +24,7 @@ from rotlearn.heads.symmetric import AHead, a_min_eigvec
 __all__ = [
     "HEADS",
     "AHead",
+    "EnsembleHead",
     "FisherHead",
     "QuatHead",
     "RotationHead",

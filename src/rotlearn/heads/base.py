@@ -9,6 +9,7 @@ from rotlearn.bingham.descriptors import (
     dt_from_eigenvalues,
     eigengap_from_eigenvalues,
 )
+from rotlearn.bingham.product import disagreement
 from rotlearn.errors import ConfigError
 from rotlearn.geometry import rotmat_to_quat
 from rotlearn.trust import config_target
@@ -28,12 +29,15 @@ class RotationPrediction:
         eigenvalues: (..., 4) ascending eigenvalues of A (belief heads only), else None.
         F: (..., 3, 3) matrix Fisher parameter, p(R) ~ exp(tr(F^T R)) (Fisher head only), else
             None.
+        members: (K, ..., 4) the members' quaternions (x, y, z, w) of an ensemble
+            (`rotlearn.heads.ensemble.EnsembleHead`: A is the sum of the members' A), else None.
 
     Heads with a belief also give its uncertainty (`dispersion`, `dt`, `eigengap`; None for the
-    others), each from the one definition in `rotlearn.bingham.descriptors`.
+    others), each from the one definition in `rotlearn.bingham.descriptors`; an ensemble also
+    its members' `disagreement`.
     """
 
-    __slots__ = ("A", "F", "R", "_q", "eigenvalues", "raw")
+    __slots__ = ("A", "F", "R", "_q", "eigenvalues", "members", "raw")
 
     def __init__(
         self,
@@ -43,9 +47,10 @@ class RotationPrediction:
         A: Tensor | None = None,
         eigenvalues: Tensor | None = None,
         F: Tensor | None = None,
+        members: Tensor | None = None,
     ) -> None:
         self.R, self.raw, self._q, self.A, self.eigenvalues = R, raw, q, A, eigenvalues
-        self.F = F
+        self.F, self.members = F, members
 
     @property
     def q(self) -> Tensor:
@@ -72,6 +77,12 @@ class RotationPrediction:
         belief."""
         return None if self.eigenvalues is None else eigengap_from_eigenvalues(self.eigenvalues)
 
+    @property
+    def disagreement(self) -> Tensor | None:
+        """(...,) the largest angle in degrees between an ensemble member's rotation and the
+        ensemble's (`rotlearn.bingham.disagreement`); None for a single model."""
+        return None if self.members is None else disagreement(self.members, self.q)
+
     def detach(self) -> RotationPrediction:
         """The same prediction cut from the autograd graph."""
 
@@ -85,6 +96,7 @@ class RotationPrediction:
             cut(self.A),
             cut(self.eigenvalues),
             cut(self.F),
+            cut(self.members),
         )
 
     def with_temperature(self, temperature: float | Tensor) -> RotationPrediction:
@@ -101,8 +113,9 @@ class RotationPrediction:
         if self.A is None or (not isinstance(temperature, Tensor) and temperature == 1):
             return self
         return RotationPrediction(
-            self.R, self.raw, self._q, scale(self.A), scale(self.eigenvalues), scale(self.F)
-        )
+            self.R, self.raw, self._q, scale(self.A), scale(self.eigenvalues), scale(self.F),
+            self.members,
+        )  # fmt: skip
 
 
 class RotationHead(nn.Module):
@@ -112,6 +125,7 @@ class RotationHead(nn.Module):
     out_dim: int = 0
     defines_belief: bool = False  # True where the output parameterises a Bingham density
     defines_fisher: bool = False  # True where it also gives a matrix Fisher parameter (F)
+    defines_members: bool = False  # True for an ensemble: its members' rotations (`members`)
 
     def forward(self, raw: Tensor) -> RotationPrediction:  # pragma: no cover - interface
         raise NotImplementedError

@@ -199,8 +199,10 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
         identity = torch.eye(3, dtype=batch["R"].dtype, device=batch["R"].device)
         self.test_identity_err.update(identity.expand_as(batch["R"]), batch["R"])
         has_eigenvalues = prediction.eigenvalues is not None
+        has_members = prediction.members is not None
         values = {name: score.fn(prediction) for name, score in self._scores.items()
-                  if has_eigenvalues or not score.needs_eigenvalues}  # fmt: skip
+                  if (has_eigenvalues or not score.needs_eigenvalues)
+                  and (has_members or not score.needs_members)}  # fmt: skip
         values["error"] = angle_deg(prediction.R, batch["R"])
         if "difficulty" in batch:
             values["difficulty"] = batch["difficulty"]

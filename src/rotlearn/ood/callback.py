@@ -89,8 +89,9 @@ class OODEvaluation(pl.Callback):
             so about q of new clean pairs pass) or "train" (the training pairs: the paper's
             protocol, section V-A; a model fits them more closely than new pairs, so fewer
             than q of new clean pairs pass).
-        scores: among dt, eigengap, raw_norm, autoencoder; those the head cannot give (dt and
-            eigengap need the A head) or that lack a checkpoint (autoencoder) are skipped.
+        scores: among dt, eigengap, raw_norm, autoencoder, disagreement; those the head cannot
+            give (dt and eigengap need a belief, disagreement an ensemble) or that lack a
+            checkpoint (autoencoder) are skipped.
         autoencoder_ckpt: checkpoint of `rotlearn-train experiment=<data>_autoencoder`.
         autoencoder_train: without a checkpoint, train an auto-encoder here first (a Lightning
             Trainer, `rotlearn.lit.autoencoder.fit_autoencoder`), on the same training pairs:
@@ -119,7 +120,7 @@ class OODEvaluation(pl.Callback):
     def __init__(
         self,
         quantiles: list[float] = (0.25, 0.5, 0.75, 1.0),
-        scores: list[str] = ("dt", "eigengap", "raw_norm", "autoencoder"),
+        scores: list[str] = ("dt", "eigengap", "raw_norm", "autoencoder", "disagreement"),
         autoencoder_ckpt: str | None = None,
         autoencoder_train: dict[str, Any] | None = None,
         corrupt_fraction: float = 0.5,
@@ -272,8 +273,9 @@ class OODEvaluation(pl.Callback):
             return
         autoencoder = self._autoencoder(trainer, pl_module.device, pl_module.head)
         scores = available_scores(
-            self.score_names, pl_module.head.defines_belief, autoencoder is not None
-        )
+            self.score_names, pl_module.head.defines_belief, autoencoder is not None,
+            pl_module.head.defines_members,
+        )  # fmt: skip
         input_scores = {"autoencoder": autoencoder.score} if autoencoder is not None else {}
         loaders, flags = self._loaders(source, pl_module.device, pl_module.dtype)
         was_training = pl_module.training

@@ -1,8 +1,8 @@
 """OOD scores of a prediction, each with its direction, and the one quantile-threshold rule.
 
 A score maps a prediction to (B,) numbers. `keep_below` says which side is confident: DT's
-tr(Lambda) and the auto-encoder's reconstruction error keep LOW scores; the eigen-gap and the
-norm of the raw output keep HIGH scores (paper section V-A).
+tr(Lambda), the auto-encoder's reconstruction error and an ensemble's disagreement keep LOW
+scores; the eigen-gap and the norm of the raw output keep HIGH scores (paper section V-A).
 
 Thresholds: for a quantile q, the threshold is set so that a fraction q of a reference set's
 scores falls on the kept side: the q-quantile of the reference scores for keep-below scores
@@ -42,6 +42,7 @@ class Score:
     fn: Callable[[RotationPrediction], Tensor] | None
     needs_eigenvalues: bool = False
     description: str = ""
+    needs_members: bool = False
 
 
 def dt(prediction: RotationPrediction) -> Tensor:
@@ -59,11 +60,24 @@ def raw_norm(prediction: RotationPrediction) -> Tensor:
     return torch.linalg.vector_norm(prediction.raw, dim=-1)
 
 
+def disagreement(prediction: RotationPrediction) -> Tensor:
+    """The largest angle (degrees) between an ensemble member's rotation and the ensemble's."""
+    return prediction.disagreement
+
+
 SCORES: dict[str, Score] = {
     "dt": Score("dt", True, dt, True, "tr(Lambda), dispersion thresholding (A + DT)"),
     "eigengap": Score("eigengap", False, first_eigengap, True, "first eigen-gap l2 - l1"),
     "raw_norm": Score("raw_norm", False, raw_norm, False, "norm of the raw network output"),
     "autoencoder": Score("autoencoder", True, None, False, "auto-encoder L1 reconstruction error"),
+    "disagreement": Score(
+        "disagreement",
+        True,
+        disagreement,
+        True,
+        "largest angle between an ensemble member and the ensemble (deg)",
+        needs_members=True,
+    ),
 }
 
 
@@ -75,9 +89,11 @@ def register_score(score: Score) -> Score:
     return score
 
 
-def available_scores(names: list[str], has_eigenvalues: bool, has_autoencoder: bool) -> list[Score]:
-    """The scores among `names` that a head (with or without eigenvalues) and an optional
-    auto-encoder can give."""
+def available_scores(
+    names: list[str], has_eigenvalues: bool, has_autoencoder: bool, has_members: bool = False
+) -> list[Score]:
+    """The scores among `names` that a head (with or without eigenvalues; an ensemble's, with
+    members) and an optional auto-encoder can give."""
     unknown = sorted(set(names) - set(SCORES))
     if unknown:
         raise ValueError(f"unknown OOD score(s) {unknown}; choose from {sorted(SCORES)}")
@@ -85,6 +101,7 @@ def available_scores(names: list[str], has_eigenvalues: bool, has_autoencoder: b
         SCORES[n]
         for n in names
         if (has_eigenvalues or not SCORES[n].needs_eigenvalues)
+        and (has_members or not SCORES[n].needs_members)
         and (has_autoencoder or n != "autoencoder")
     ]
 
