@@ -284,3 +284,42 @@ def test_report_layout_comes_from_the_report_node(tmp_path):
     assert "| cnn | 4 |" in text and "| mlp | 4 |" in text and "noise 0.1 | noise 0.2" in text
     runs = collect_runs(sweep)
     assert runs.loc[runs["job"] == "9", "setting"].item() == "all" and len(runs) == 9
+
+
+def test_the_paper_scale_experiment_runs_at_small_size(make_cfg, demo_data, tmp_path):
+    """experiment=kitti_ood_paper_scale composes to the paper's setting (224 x 224, the pair CNN,
+    50 epochs, A with chordal and Bingham losses; ~16k training pairs in the world it names) and
+    runs end to end (fast_dev_run) on the small demo copy."""
+    from hydra import compose
+
+    from rotlearn.cli.train import train
+    from rotlearn.data.kitti_demo import KITTI_SCALES, KITTI_SEQUENCES
+
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        full = compose("train", ["experiment=kitti_ood_paper_scale"], return_hydra_config=True)
+    assert full.data.image_size == 224 and full.net._target_.endswith("PairCNN")
+    assert full.trainer.max_epochs == 50 and full.optim.lr == 5e-4 and full.data.batch_size == 32
+    assert dict(full.hydra.sweeper.params) == {"rep": "a", "loss": "chordal,bingham"}
+    train_sequences = [s for s in KITTI_SEQUENCES if s not in ("00", "11")]  # test 00; 11 unused
+    pairs = len(train_sequences) * (KITTI_SCALES["paper"]["frames"] - 1)
+    assert 15_000 < pairs * (1 - full.data.val_fraction) < 17_000
+    run = tmp_path / "run"
+    overrides = ["experiment=kitti_ood_paper_scale", "loss=bingham",
+                 f"data.root={demo_data['kitti']}", "data.train_sequences=[02]",
+                 "data.num_workers=0", "data.batch_size=4", "data.eval_batch_size=4", "trainer=cpu",
+                 "trainer.fast_dev_run=true", "callbacks.ood.noise_pairs=4",
+                 "callbacks.ood.examples=0", "logger=none"]  # fmt: skip
+    metrics = train(make_cfg(overrides, run_dir=run))
+    assert math.isfinite(metrics["test/err_mean"]) and (run / "ood.csv").is_file()
+
+
+def test_make_demo_data_offers_the_paper_scale_only_where_a_writer_has_it(tmp_path, capsys):
+    from rotlearn.cli.make_demo_data import main
+
+    with pytest.raises(SystemExit):
+        main(["--out", str(tmp_path), "--only", "mav", "--scale", "paper"])
+    assert "only the demo size" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--out", str(tmp_path), "--only", "kitti", "--scale", "huge"])
+    assert "scale must be one of" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())

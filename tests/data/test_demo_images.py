@@ -359,3 +359,18 @@ def test_too_few_mav_frames_for_the_gaps_are_refused_before_writing(tmp_path):
     with pytest.raises(ValueError, match="gaps"):
         write_mav_demo(tmp_path, frames=40, width=32, height=26, gaps=(0, 2))
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_kitti_writer_writes_the_same_files_with_several_workers(tmp_path):
+    import hashlib
+
+    from rotlearn.data.kitti_demo import write_kitti_demo
+
+    def digest(root):
+        return {p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+                for p in sorted(root.rglob("*")) if p.is_file()}  # fmt: skip
+
+    kw = {"sequences": ("00", "02"), "frames": 3, "width": 40, "height": 12}
+    one = write_kitti_demo(tmp_path / "one", **kw)
+    two = write_kitti_demo(tmp_path / "two", workers=2, **kw)
+    assert digest(one) == digest(two) and len(digest(one)) > 6

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import inspect
 import pkgutil
 import time
 from collections.abc import Callable
@@ -50,6 +51,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default="data/demo", help="where to write (default data/demo)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
+        "--scale",
+        default="demo",
+        help="size of the datasets whose writer has sizes (kitti: demo, or paper for "
+        "experiment=kitti_ood_paper_scale: ~16k training pairs); default demo",
+    )
+    parser.add_argument(
+        "--workers", type=int, default=1, help="processes per writer that takes them (kitti)"
+    )
+    parser.add_argument(
         "--only",
         type=dataset_list,
         default=list(writers),
@@ -57,8 +67,15 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     for name in (n for n in writers if n in args.only):
+        options = {k: v for k, v in (("scale", args.scale), ("workers", args.workers))
+                   if k in inspect.signature(writers[name]).parameters}  # fmt: skip
+        if args.scale != "demo" and "scale" not in options:
+            parser.error(f"--scale {args.scale}: the {name} writer has only the demo size")
         start = time.perf_counter()
-        roots = writers[name](args.out, seed=args.seed)
+        try:
+            roots = writers[name](args.out, seed=args.seed, **options)
+        except ValueError as exc:
+            parser.error(f"{name}: {exc}")
         seconds = time.perf_counter() - start
         print(f"{name}: {', '.join(map(str, roots))} ({seconds:.1f} s)")
     return 0
