@@ -16,6 +16,7 @@ from rotlearn.data.mav import (
 )
 from rotlearn.data.pairs import ImagePairDataModule, ImagePairs, PairIndex
 from rotlearn.data.shapenet import ShapeNetDataModule, read_point_file, sample_meshes
+from rotlearn.data.splits import hold_out_tail
 from rotlearn.data.synthetic import SyntheticWahbaDataModule, wahba_batch
 
 __all__ = [
@@ -31,6 +32,7 @@ __all__ = [
     "draw_erasing_boxes",
     "draw_seed",
     "erase_boxes",
+    "hold_out_tail",
     "match_poses",
     "read_frame_list",
     "read_kitti_poses",
