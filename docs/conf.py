@@ -103,8 +103,9 @@ def command_help(command: str) -> str:
 
     if command == "rotlearn-train":
         from rotlearn.cli.train import usage
+        from rotlearn.paths import config_dir
 
-        return usage()
+        return usage().replace(str(config_dir()), "conf")  # not the building machine's path
     module = {"rotlearn-predict": "predict", "rotlearn-report": "report",
               "rotlearn-make-demo-data": "make_demo_data"}[command]  # fmt: skip
     main = importlib.import_module(f"rotlearn.cli.{module}").main
