@@ -33,6 +33,7 @@ PLUMBING = ("hydra", "paths", "logger", "callbacks", "ckpt_path", "report")
 # Shown in every run's HPARAMS record, set or not: what it trained (groups by their option).
 HEADLINE_KEYS = ("rep", "loss", "net", "data", "optim.lr", "seed")
 MAX_NAME_LENGTH = 120  # characters of a run's name (a directory name); longer ones end in a hash
+_ABSENT = object()
 
 
 def parse_override(text: str) -> tuple[str, str] | None:
@@ -82,9 +83,6 @@ def _value(
     if key in overrides:
         return overrides[key]
     return None
-
-
-_ABSENT = object()
 
 
 def short_value(value: Any) -> str:

@@ -101,6 +101,8 @@ _RESULT_ROWS = [
     ("test/temperature", "temperature T"),
     ("test/uncalibrated_nll", "NLL at T = 1"),
     ("test/uncalibrated_ece", "ECE at T = 1"),
+    ("calibration/val_nll", "validation NLL, calibrated (nats)"),
+    ("calibration/val_nll_uncalibrated", "validation NLL at T = 1 (nats)"),
 ]
 
 
@@ -194,6 +196,8 @@ BELIEF_COLUMNS = [
     ("test/temperature", "T"),
     ("test/uncalibrated_nll", "NLL at T = 1"),
     ("test/uncalibrated_ece", "ECE at T = 1"),
+    ("calibration/val_nll", "validation NLL, calibrated (nats)"),
+    ("calibration/val_nll_uncalibrated", "validation NLL at T = 1 (nats)"),
 ]
 
 
