@@ -165,6 +165,7 @@ def test_report_on_an_empty_directory_says_so(tmp_path, capsys):
     assert "no runs under" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # 6 jobs; tests/report/test_sweep.py checks a sweep's own report in make test
 def test_an_experiment_sweep_ends_with_its_report(tmp_path):
     sweep = tmp_path / "sweep"
     args = ["-m", "experiment=synthetic_phi_max_cpu", "hydra.sweeper.params.rep='a,quat'",

@@ -206,6 +206,7 @@ def test_a_failing_job_keeps_the_others_and_is_listed(tmp_path):
         assert json.loads((sweep / str(num) / "status.json").read_text())["status"] == "COMPLETED"
 
 
+@pytest.mark.slow  # 25 s; make test-full (make test's budget: issue 24 added the TensorBoard runs)
 def test_a_head_learns_the_wahba_problem(make_cfg):
     """A short real training (paper settings, 30 epochs, about 20 s): A's median error < 5 degrees.
 
