@@ -1,18 +1,20 @@
 """The inference API: `rotlearn.load(ckpt)` -> a `Predictor` giving rotations and their uncertainty.
 
-import rotlearn
-predictor = rotlearn.load("outputs/runs/<run>/checkpoints/best.ckpt")  # or the run directory
-estimate = predictor(points)        # (B, N, 6) matched pairs (u_i, v_i) for the point network
-estimate.R, estimate.q              # (B, 3, 3) and (B, 4) quaternions (x, y, z, w), w >= 0
-estimate.dispersion, estimate.dt    # belief heads (A, Fisher): dispersion (B, 3), DT score (B,)
-estimate.A, estimate.temperature    # the belief p(q) ~ exp(-q^T A q), (B, 4, 4), tempered by T
-estimate.sample(100)                # (B, 100, 4) quaternions drawn from each belief
-estimate.log_prob(R_or_q)           # (B,) or (B, n) log densities of rotations / quaternions
+Example::
 
-ensemble = rotlearn.load([run_0, run_1, run_2])    # K separately trained runs (belief heads)
-ensemble.calibrate(val_inputs, val_R)              # its temperature and level map, held-out data
-estimate = ensemble(points)         # A = sum of the members' A (the product of their beliefs)
-estimate.disagreement               # (B,) largest angle (deg) between a member and the ensemble
+    import rotlearn
+    predictor = rotlearn.load("outputs/runs/<run>/checkpoints/best.ckpt")  # or the run directory
+    estimate = predictor(points)        # (B, N, 6) matched pairs (u_i, v_i) for the point network
+    estimate.R, estimate.q              # (B, 3, 3) and (B, 4) quaternions (x, y, z, w), w >= 0
+    estimate.dispersion, estimate.dt    # belief heads (A, Fisher): dispersion (B, 3), DT (B,)
+    estimate.A, estimate.temperature    # the belief p(q) ~ exp(-q^T A q), (B, 4, 4), tempered by T
+    estimate.sample(100)                # (B, 100, 4) quaternions drawn from each belief
+    estimate.log_prob(R_or_q)           # (B,) or (B, n) log densities of rotations / quaternions
+
+    ensemble = rotlearn.load([run_0, run_1, run_2])   # K separately trained runs (belief heads)
+    ensemble.calibrate(val_inputs, val_R)             # its temperature and level map (held out)
+    estimate = ensemble(points)         # A = sum of the members' A (the product of their beliefs)
+    estimate.disagreement               # (B,) largest angle (deg), a member to the ensemble
 
 The belief (heads that define one: `rep=a`, and the matrix Fisher head, whose `A` is the Bingham
 matrix of the same density and whose `F` is carried too) is the Bingham density
@@ -29,15 +31,17 @@ Credible regions. The highest-density region of mass m is {R : log p(R) >= c_m},
 a (the one that holds the truth a fraction a of the time on data like the validation set) is the
 HPD region of mass m = `estimate.credible_mass(a)`: the checkpoint's recalibration of the levels
 (`rotlearn.bingham.LevelMap`), or m = a without one. Per estimate, by Monte Carlo (error
-~ sqrt(m (1 - m) / n) in the mass):
+~ sqrt(m (1 - m) / n) in the mass)::
 
     draws = estimate.sample(4096)                                       # (B, 4096, 4)
     m = estimate.credible_mass(0.9)                                     # the calibrated 90 %
     c = estimate.log_prob(draws).quantile(1 - float(m), dim=-1)         # (B,) its cut
     inside = estimate.log_prob(R_candidate) >= c                        # (B,) bool: R in the region
 
-The region's angular extent around the mode: `angle_deg(quat_to_rotmat(draws), estimate.R[:, None])`
-of the draws inside it.
+The radius of the smallest ball around the mode holding the mass m, in degrees ("m of the belief
+lies within r of the rotation"), is `rotlearn.bingham.credible_radius_deg(estimate.A, m)`; with
+m = `estimate.credible_mass(a)` it is the calibrated level-a ball (exact where the belief is
+isotropic, when balls are its HPD regions; `rotlearn-predict` reports it for a = 0.9).
 """
 
 from __future__ import annotations
