@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 from rotlearn.data import KittiOdometryDataModule
-from rotlearn.data.kitti_demo import write_kitti_demo
+from rotlearn.data.demo.kitti import write_kitti_demo
 from rotlearn.io import write_json_atomic
 
 RESULTS = Path(__file__).resolve().parent / "results"

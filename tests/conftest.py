@@ -147,9 +147,9 @@ def make_cfg(tmp_path: Path) -> Callable[..., DictConfig]:
 def demo_data(tmp_path_factory) -> dict[str, Path]:
     """Small demo datasets in the real layouts, written once per test session: "pts" and "mesh"
     (ShapeNet), "kitti" (sequences 00 and 02) and "mav"."""
-    from rotlearn.data.kitti_demo import write_kitti_demo
-    from rotlearn.data.mav_demo import write_mav_demo
-    from rotlearn.data.shapenet_demo import write_shapenet_demo
+    from rotlearn.data.demo.kitti import write_kitti_demo
+    from rotlearn.data.demo.mav import write_mav_demo
+    from rotlearn.data.demo.shapenet import write_shapenet_demo
 
     out = tmp_path_factory.mktemp("demo")
     roots = write_shapenet_demo(out, num_train=6, num_test=3, points=96)
@@ -244,3 +244,22 @@ def write_mav(root: Path, frames: int = 12, pose_gap_after: int | None = None) -
         pairs = "\n".join(f"{i},{i + 1}" for i in range(lo, hi - 1))
         (root / "pairs" / f"{scene}.csv").write_text(pairs + "\n")
     return root
+
+
+def train_tiny_autoencoder(kitti_root: Path, run_dir: Path, image_size: int = 16) -> Path:
+    """A 1-epoch auto-encoder run on a tiny KITTI layout (training sequence 01, test 00), as
+    `experiment=kitti_autoencoder` trains it: its run directory, for `callbacks.ood.
+    autoencoder_ckpt`."""
+    from rotlearn.cli.train import train
+
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        cfg = compose("train", [
+            f"paths.output_dir={run_dir}", "experiment=kitti_autoencoder",
+            f"data.root={kitti_root}",
+            "data.train_sequences=[01]", "data.test_sequences=[00]", "data.num_workers=0",
+            "data.batch_size=64", f"data.image_size={image_size}", "net.channels=[4,4,4,4]",
+            "net.hidden=8", "net.latent=4", "trainer=cpu", "trainer.max_epochs=1",
+            "trainer.enable_progress_bar=false", "logger=none",
+        ])  # fmt: skip
+    train(cfg)
+    return run_dir

@@ -26,6 +26,7 @@ def examples(name: str) -> list[tuple[str, str]]:
 def load_module(name: str, code: str, tmp_path: Path):
     """Import `code` as the module `name` (as if it were a file of the package)."""
     path = tmp_path / f"{name.rsplit('.', 1)[-1]}.py"
+    path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(code)
     spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
@@ -37,7 +38,7 @@ def load_module(name: str, code: str, tmp_path: Path):
 @pytest.fixture
 def cleanup():
     from rotlearn.heads import HEADS
-    from rotlearn.ood.scores import SCORES
+    from rotlearn.scores import SCORES
 
     before = (dict(HEADS), dict(SCORES), set(sys.modules))
     yield
@@ -68,9 +69,10 @@ def test_the_head_example_trains(make_cfg, tmp_path, cleanup):
 def test_the_dataset_example_writes_its_demo_and_trains(make_cfg, tmp_path, cleanup):
     from rotlearn.trust import is_trusted_target
 
-    (_, code), (_, yaml) = examples("dataset")
+    (_, code), (_, writer), (_, yaml) = examples("dataset")
     module = load_module("rotlearn.data.npz_pairs", code, tmp_path)
-    (root,) = module.write_demo(tmp_path, seed=0)
+    demo = load_module("rotlearn.data.demo.npz_pairs", writer, tmp_path / "demo")
+    (root,) = demo.write_demo(tmp_path, seed=0)
     assert root == tmp_path / "npz_pairs" and len(list(root.glob("*/*.npz"))) == 24
     assert is_trusted_target("rotlearn.data.npz_pairs.NpzPairsDataModule")
     with pytest.raises(FileNotFoundError, match=r"no \.npz files"):
@@ -85,7 +87,7 @@ def test_the_score_example_is_evaluated(cleanup):
     from rotlearn.heads import make_head
     from rotlearn.ood import OODEvaluation
     from rotlearn.ood.evaluation import evaluate
-    from rotlearn.ood.scores import SCORES, available_scores
+    from rotlearn.scores import SCORES, available_scores
 
     ((_, code),) = examples("score")
     exec(compile(code, str(DOC), "exec"), {})

@@ -152,7 +152,7 @@ def _run(line: list[str], cwd: Path) -> str:
 
 @pytest.mark.slow
 def test_the_guide_runs_from_its_first_page_to_its_last(tmp_path):
-    from rotlearn.data.kitti_demo import write_kitti_demo
+    from rotlearn.data.demo.kitti import write_kitti_demo
 
     # what `rotlearn-make-demo-data --only kitti` writes, smaller
     write_kitti_demo(tmp_path / "data" / "demo", sequences=("00", "02"), frames=6, width=62,

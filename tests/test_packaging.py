@@ -132,7 +132,11 @@ def test_load_names_the_train_extra(tmp_path):
 
 def test_data_writers_name_the_data_extra():
     result = subprocess.run(
-        [sys.executable, "-c", "import sys; sys.modules['cv2'] = None; import rotlearn.data.synth"],
+        [
+            sys.executable,
+            "-c",
+            "import sys; sys.modules['cv2'] = None; import rotlearn.data.demo.synth",
+        ],
         capture_output=True,
         text=True,
         env={**os.environ, "PYTHONPATH": str(SRC)},
@@ -190,3 +194,28 @@ def test_the_dev_environment_is_pinned_by_constraints():
 
 def test_py_typed_is_shipped():
     assert (Path(rotlearn.__file__).parent / "py.typed").is_file()
+
+
+def _imported_modules(package: str) -> set[str]:
+    """Every rotlearn module a package's (or module's) source files import, at any depth of
+    the code."""
+    import ast
+
+    root = Path(__file__).resolve().parents[1] / "src" / "rotlearn" / package
+    names: set[str] = set()
+    for path in root.rglob("*.py") if root.is_dir() else [root]:
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module:
+                names.add(node.module)
+            elif isinstance(node, ast.Import):
+                names.update(alias.name for alias in node.names)
+    return {n for n in names if n.startswith("rotlearn")}
+
+
+def test_lit_and_ood_never_import_each_other_and_scores_import_neither():
+    """The house's one-way rule: the OOD evaluation and the training glue meet only below them
+    (`rotlearn.scores`, the data protocol), never in each other's code."""
+    assert not {n for n in _imported_modules("lit") if n.startswith("rotlearn.ood")}
+    assert not {n for n in _imported_modules("ood") if n.startswith("rotlearn.lit")}
+    below = _imported_modules("scores.py")
+    assert below and not {n for n in below if n.startswith(("rotlearn.lit", "rotlearn.ood"))}

@@ -306,7 +306,7 @@ def test_the_paper_scale_experiment_runs_at_small_size(make_cfg, demo_data, tmp_
     from hydra import compose
 
     from rotlearn.cli.train import train
-    from rotlearn.data.kitti_demo import KITTI_SCALES, KITTI_SEQUENCES
+    from rotlearn.data.demo.kitti import KITTI_SCALES, KITTI_SEQUENCES
 
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         full = compose("train", ["experiment=kitti_ood_paper_scale"], return_hydra_config=True)

@@ -11,9 +11,10 @@ import torch
 import yaml
 
 from rotlearn.cli.report import main as report_main
-from rotlearn.ood import SCORES, mixed_set, rejection_table
+from rotlearn.ood import mixed_set, rejection_table
 from rotlearn.ood.records import write_samples
 from rotlearn.report import make_report
+from rotlearn.scores import SCORES
 
 PAPER = {
     "source": "paper Table I, sequence 00",

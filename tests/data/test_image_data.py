@@ -316,7 +316,7 @@ def test_the_kitti_demo_learner_beats_half_the_identity_error(tmp_path, make_cfg
     the KITTI-format demo written here reaches under half the error of "predict identity" on the
     held-out sequence, for the model and data seeds 0 and 1 (issue 15; docs/results.md)."""
     from rotlearn.cli.train import train
-    from rotlearn.data.kitti_demo import write_kitti_demo
+    from rotlearn.data.demo.kitti import write_kitti_demo
 
     root = write_kitti_demo(tmp_path)
     overrides = [

@@ -3,11 +3,9 @@
 from __future__ import annotations
 
 import csv
-import logging
 import re
 from pathlib import Path
 
-import lightning.pytorch as pl
 import numpy as np
 import pytest
 import torch
@@ -16,7 +14,6 @@ from torch import nn
 
 from rotlearn.cli.train import ConfigError, build, train
 from rotlearn.lit import AutoEncoderModule, load_autoencoder
-from rotlearn.lit.autoencoder import fit_autoencoder
 from rotlearn.nets import ConvAutoEncoder
 from tests.conftest import SMALL_NET, write_kitti
 
@@ -168,22 +165,3 @@ def test_a_rotation_checkpoint_is_refused(make_cfg):
         ValueError, match=rf"{re.escape(str(ckpt))} is not an auto-encoder.*'rotation'"
     ):
         load_autoencoder(ckpt)
-
-
-class _RandomPairs(pl.LightningDataModule):
-    def train_dataloader(self):
-        pairs = [{"input": torch.rand(4, 6, 16, 16, generator=torch.Generator().manual_seed(i))}
-                 for i in range(2)]  # fmt: skip
-        return torch.utils.data.DataLoader(pairs, batch_size=None)
-
-
-def test_fit_autoencoder_trains_without_repeating_lightnings_info_lines(tmp_path, caplog):
-    """The nested trainer of the OOD evaluation keeps quiet: the run's trainer said it all."""
-    net = {"_target_": "rotlearn.nets.ConvAutoEncoder", "pair_channels": 6, "image_size": 16,
-           "channels": [4, 8, 8], "hidden": 8, "latent": 4}  # fmt: skip
-    with caplog.at_level(logging.INFO):
-        module = fit_autoencoder(_RandomPairs(), net, epochs=1, root_dir=tmp_path)
-    assert not module.training and module.score(torch.rand(3, 6, 16, 16)).shape == (3,)
-    lightning = [r.getMessage() for r in caplog.records if r.name.startswith("lightning")]
-    assert not any("GPU available" in m or "stopped" in m for m in lightning), lightning
-    assert logging.getLogger("lightning.pytorch.utilities.rank_zero").level == logging.NOTSET

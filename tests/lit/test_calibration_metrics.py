@@ -14,7 +14,7 @@ import torch
 from rotlearn.bingham import CREDIBLE_LEVELS
 from rotlearn.cli.train import build
 from rotlearn.lit.regressor import noisiest
-from rotlearn.ood.scores import SCORES, Score, register_score
+from rotlearn.scores import SCORES, Score, register_score
 from tests.conftest import FAST, tensorboard_events
 
 COVERAGE = [f"test/coverage_{a:g}" for a in CREDIBLE_LEVELS]

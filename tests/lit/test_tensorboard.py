@@ -17,6 +17,7 @@ from tests.conftest import (
     run_cli,
     scalar_tags,
     tensorboard_events,
+    train_tiny_autoencoder,
     write_kitti,
     yaw_sequence,
 )
@@ -107,8 +108,8 @@ def test_an_ood_run_adds_each_scores_auroc_and_nothing_per_quantile(tmp_path):
             "data.eval_batch_size=4", "net.channels=[8,8,8,8]", "net.hidden=16", "trainer=cpu",
             "trainer.max_epochs=2", "trainer.enable_progress_bar=false", "callbacks=ood",
             "callbacks.ood.noise_pairs=4", "calibrate=true",
-            "callbacks.ood.autoencoder_train={epochs: 1, channels: [4, 4, 4, 4], hidden: 8, "
-            "latent: 4}", f"hydra.run.dir={run}"]  # fmt: skip
+            f"callbacks.ood.autoencoder_ckpt={train_tiny_autoencoder(kitti, tmp_path / 'ae')}",
+            f"hydra.run.dir={run}"]  # fmt: skip
     result = run_cli(args, tmp_path, umask=0o022)
     assert result.returncode == 0, result.stderr[-3000:]
     aurocs = {f"ood/auroc_{s}" for s in ("dt", "eigengap", "raw_norm", "autoencoder")}
@@ -132,6 +133,6 @@ def test_an_ood_run_adds_each_scores_auroc_and_nothing_per_quantile(tmp_path):
         wrong = {p: oct(m) for p, m in written.items()
                  if m != (0o755 if (root / p).is_dir() else 0o644)}  # fmt: skip
         assert written and not wrong, wrong
-    assert {"ood.csv", "ood.md", "ood_samples.csv", "ood_examples.png", "autoencoder.ckpt"} <= {
+    assert {"ood.csv", "ood.md", "ood_samples.csv", "ood_examples.png"} <= {
         p.name for p in run.iterdir()}  # fmt: skip
     assert (run / "checkpoints" / "temperature.json").is_file()

@@ -13,9 +13,7 @@ import torch
 
 from rotlearn.errors import ConfigValueError
 from rotlearn.ood import (
-    SCORES,
     OODEvaluation,
-    auroc,
     mixed_set,
     precision_recall_curve,
     rejection_row,
@@ -23,6 +21,7 @@ from rotlearn.ood import (
 )
 from rotlearn.ood.records import read_samples, write_samples
 from rotlearn.report.figures import box_groups, examples_figure
+from rotlearn.scores import SCORES, auroc
 
 DT, GAP = SCORES["dt"], SCORES["eigengap"]
 
@@ -175,7 +174,13 @@ def test_the_reproduction_configs_compose_and_validate(make_cfg):
         ("quat", None), ("sixd", None), ("sixd", "autoencoder"), ("a", None), ("a", "dt"),
     ]  # fmt: skip
     assert rows[4].precision == 99.0 and kitti.callbacks.ood.table.dt == 0.75
-    assert list(kitti.callbacks.ood.autoencoder_train.reps) == ["sixd"]
+    assert kitti.callbacks.ood.autoencoder_ckpt is None  # its own run: kitti_autoencoder_demo
+    for data in ("kitti", "mav"):
+        ae = make_cfg([f"experiment={data}_autoencoder_demo"])
+        validate(ae)
+        ood = make_cfg([f"experiment={data}_ood_demo"])
+        assert ae.model._target_.endswith("AutoEncoderModule")
+        assert ae.data.image_size == ood.data.image_size and ae.data.mean == ood.data.mean
     bingham = make_cfg(["experiment=kitti_ood_demo", "rep=a", "loss=bingham"])
     validate(bingham)
     assert bingham.loss._target_.endswith("BinghamNLLLoss")

@@ -11,57 +11,19 @@ import pandas as pd
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 from rotlearn.cli.schemas import ConfigError
 from rotlearn.cli.train import train
-from rotlearn.heads import make_head
-from rotlearn.ood import (
-    SCORES,
-    auroc,
-    available_scores,
-    keep_mask,
-    quantile_threshold,
-    rejection_row,
-    spearman,
-)
+from rotlearn.ood import rejection_row
 from rotlearn.paths import config_dir
-from tests.conftest import tensorboard_events, write_kitti, write_mav, yaw_sequence
-
-# -- thresholds --------------------------------------------------------------------------------
-
-
-def test_threshold_direction_and_quantile_semantics():
-    train = torch.arange(1.0, 101.0)  # 1 .. 100
-    dt = SCORES["dt"]  # keep below
-    gap = SCORES["eigengap"]  # keep above
-    assert quantile_threshold(train, 0.75, dt.keep_below) == pytest.approx(75.25)
-    assert quantile_threshold(train, 0.75, gap.keep_below) == pytest.approx(25.75)
-    test = torch.tensor([10.0, 50.0, 80.0, 100.0])
-    assert keep_mask(test, 75.25, True).tolist() == [True, True, False, False]
-    assert keep_mask(test, 25.75, False).tolist() == [False, True, True, True]
-    # q = 1 keeps below the training maximum; q = 0 keeps nothing of the training set
-    assert quantile_threshold(train, 1.0, True) == 100.0
-    assert not keep_mask(train, quantile_threshold(train, 0.0, True), True).any()
-
-
-@settings(max_examples=40, deadline=None)
-@given(q=st.floats(0.05, 0.95), seed=st.integers(0, 1000), below=st.booleans())
-def test_a_quantile_keeps_that_fraction_of_the_training_scores(q, seed, below):
-    train = torch.randn(2001, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
-    kept = keep_mask(train, quantile_threshold(train, q, below), below).double().mean()
-    assert abs(float(kept) - q) <= 1.0 / 2001 + 1e-12
-
-
-def test_nan_scores_are_never_kept_and_ignored_by_the_threshold():
-    train = torch.tensor([1.0, 2.0, math.nan, 3.0])
-    assert quantile_threshold(train, 1.0, True) == 3.0
-    assert not keep_mask(torch.tensor([math.nan]), 10.0, True).any()
-    assert not keep_mask(torch.tensor([math.nan]), -10.0, False).any()
-    with pytest.raises(ValueError, match="outside"):
-        quantile_threshold(train, 1.5, True)
-
+from rotlearn.scores import SCORES
+from tests.conftest import (
+    tensorboard_events,
+    train_tiny_autoencoder,
+    write_kitti,
+    write_mav,
+    yaw_sequence,
+)
 
 # -- statistics --------------------------------------------------------------------------------
 
@@ -81,35 +43,6 @@ def test_precision_recall_against_a_hand_computed_example():
     assert row["err_mean_kept"] == pytest.approx((1 + 2 + 4 + 5) / 4)
     assert row["err_mean_all"] == pytest.approx(4.5)
     assert row["nan_scores"] == 1 and row["n_corrupted"] == 4
-
-
-def test_auroc_and_spearman_by_hand():
-    clean_low = torch.tensor([0.1, 0.2, 0.3, 0.9, 0.8, 0.7])
-    corrupted = torch.tensor([False, False, False, True, True, True])
-    assert auroc(clean_low, corrupted, keep_below=True) == 1.0
-    assert auroc(clean_low, corrupted, keep_below=False) == 0.0
-    ties = torch.tensor([0.5, 0.5, 0.5, 0.5])
-    assert auroc(ties, torch.tensor([False, True, False, True]), True) == 0.5
-    # one swapped pair out of 3 x 3
-    swapped = torch.tensor([0.1, 0.2, 0.75, 0.9, 0.8, 0.7])
-    assert auroc(swapped, corrupted, True) == pytest.approx(8 / 9)
-    x = torch.tensor([1.0, 2.0, 3.0, 4.0])
-    assert spearman(x, x**3) == pytest.approx(1.0)
-    assert spearman(x, -x) == pytest.approx(-1.0)
-    assert math.isnan(auroc(x, torch.zeros(4, dtype=torch.bool), True))
-
-
-def test_scores_follow_the_head():
-    names = ["dt", "eigengap", "raw_norm", "autoencoder"]
-    assert [s.name for s in available_scores(names, True, False)] == ["dt", "eigengap", "raw_norm"]
-    assert [s.name for s in available_scores(names, False, True)] == ["raw_norm", "autoencoder"]
-    raw = torch.randn(5, 10, dtype=torch.float64)
-    prediction = make_head("a")(raw)
-    dt = SCORES["dt"].fn(prediction)
-    ev = torch.linalg.eigvalsh(prediction.A)
-    torch.testing.assert_close(dt, 3 * ev[:, 0] - ev[:, 1:].sum(-1))
-    assert (dt <= 0).all()
-    torch.testing.assert_close(SCORES["raw_norm"].fn(prediction), raw.norm(dim=-1))
 
 
 def test_evaluate_is_a_pure_function_of_predictions_and_flags():
@@ -261,7 +194,7 @@ def test_rotlearn_eval_refuses_bad_input(trained_run, tmp_path):
 
 def test_nan_scores_are_counted_in_the_csv(tiny_kitti, make_cfg, tmp_path, monkeypatch):
     """A score that is NaN for some samples is reported in nan_scores and never kept."""
-    from rotlearn.ood import scores as scores_module
+    from rotlearn import scores as scores_module
 
     def raw_norm_with_nans(prediction):
         values = torch.linalg.vector_norm(prediction.raw, dim=-1)
@@ -279,22 +212,24 @@ def test_nan_scores_are_counted_in_the_csv(tiny_kitti, make_cfg, tmp_path, monke
     assert np.isfinite(rows["threshold"]).all()
 
 
-def test_an_autoencoder_trained_on_the_fly_scores_the_pairs(tiny_kitti, make_cfg, tmp_path):
+def test_an_autoencoder_trained_as_its_own_run_scores_the_pairs(tiny_kitti, make_cfg, tmp_path):
+    """The auto-encoder trains as its own run (`experiment=kitti_autoencoder`); the OOD
+    evaluation only reads its checkpoint, and trains nothing inside the test."""
+    ae_run = train_tiny_autoencoder(tiny_kitti, tmp_path / "ae")
     run_dir = tmp_path / "run"
-    overrides = [
-        *TINY_PAIRS,
-        f"data.root={tiny_kitti}",
-        "rep=sixd",
-        "trainer.max_epochs=1",
-        "callbacks.ood.autoencoder_train={epochs: 1, channels: [4, 4, 4, 4], hidden: 8, latent: 4}",
-    ]
+    overrides = [*TINY_PAIRS, f"data.root={tiny_kitti}", "rep=sixd", "trainer.max_epochs=1",
+                 f"callbacks.ood.autoencoder_ckpt={ae_run}"]  # fmt: skip
     train(make_cfg(overrides, run_dir=run_dir))
     frame = pd.read_csv(run_dir / "ood.csv")
     assert set(frame["score"]) == {"raw_norm", "autoencoder"}  # no eigenvalues for 6D
     ae = frame[frame["score"] == "autoencoder"]
     assert set(ae["q"]) == {0.25, 0.5, 0.75, 1.0} and (ae["nan_scores"] == 0).all()
-    assert (run_dir / "autoencoder.ckpt").is_file()
+    assert not (run_dir / "autoencoder.ckpt").exists()  # nothing trained here
     assert "| sixd + AE | 1.00 |" in (run_dir / "ood.md").read_text()
+    # a rotation run's checkpoint is no auto-encoder: refused, naming it
+    with pytest.raises(ValueError, match="not an auto-encoder checkpoint"):
+        train(make_cfg([*overrides[:-1], f"callbacks.ood.autoencoder_ckpt={run_dir}"],
+                       run_dir=tmp_path / "again"))  # fmt: skip
 
 
 def test_the_report_collects_table_one(trained_run, make_cfg, tmp_path):

@@ -1,9 +1,9 @@
 """`rotlearn-make-demo-data`: small datasets in the real on-disk layouts, for tests and demos.
 
-Each module of `rotlearn.data` that defines `write_demo(out, seed) -> list[Path]` (the reader's
-own module, or a `<name>_demo` module beside it) writes the dataset `<name>` under `<out>/<name>`
-in the layout its reader (`rotlearn.data.<name>`) expects; see that module for the layout. The
-same seed writes the same files. Each dataset appears under its final name only when complete.
+Each module `rotlearn.data.demo.<name>` that defines `write_demo(out, seed) -> list[Path]` writes
+the dataset `<name>` under `<out>/<name>` in the layout its reader (`rotlearn.data.<name>`)
+expects; see that module for the layout. The same seed writes the same files. Each dataset
+appears under its final name only when complete.
 """
 
 from __future__ import annotations
@@ -16,20 +16,19 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-import rotlearn.data
+import rotlearn.data.demo
 
 __all__ = ["demo_writers", "main"]
 
-SUFFIX = "_demo"
-
 
 def demo_writers() -> dict[str, Callable[..., list[Path]]]:
-    """{dataset name: write_demo} of every `rotlearn.data` module that defines one, by name."""
+    """{dataset name: write_demo} of every `rotlearn.data.demo` module that defines one, by
+    name."""
     writers = {}
-    for info in sorted(pkgutil.iter_modules(rotlearn.data.__path__), key=lambda m: m.name):
-        module = importlib.import_module(f"rotlearn.data.{info.name}")
+    for info in sorted(pkgutil.iter_modules(rotlearn.data.demo.__path__), key=lambda m: m.name):
+        module = importlib.import_module(f"rotlearn.data.demo.{info.name}")
         if callable(getattr(module, "write_demo", None)):
-            writers[info.name.removesuffix(SUFFIX)] = module.write_demo
+            writers[info.name] = module.write_demo
     return writers
 
 

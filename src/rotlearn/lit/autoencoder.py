@@ -1,12 +1,11 @@
 """AutoEncoderModule: the auto-encoder OOD baseline of the paper's Table I ("AE"), trained on the
-first image of each pair; `fit_autoencoder` trains one with a Lightning Trainer."""
+first image of each pair as its own run (`model=autoencoder`, `experiment=<data>_autoencoder`);
+the OOD evaluation reads its checkpoint (`callbacks.ood.autoencoder_ckpt`)."""
 
 from __future__ import annotations
 
-import functools
 import os
 from collections.abc import Callable, Iterable
-from pathlib import Path
 from typing import Any
 
 import lightning.pytorch as pl
@@ -16,14 +15,12 @@ from torchmetrics import MeanMetric
 
 from rotlearn.checkpoint import load_run
 from rotlearn.errors import ConfigValueError
-from rotlearn.io import atomic_write
 from rotlearn.lit.finite import FINITE_CHECK_EVERY, FiniteChecks
 from rotlearn.lit.state import RunStateHooks
-from rotlearn.logs import logger_at_least
-from rotlearn.nets.autoencoder import ConvAutoEncoder
+from rotlearn.nets.autoencoder import ConvAutoEncoder, load_autoencoder_net
 from rotlearn.trust import config_target
 
-__all__ = ["AutoEncoderModule", "fit_autoencoder", "load_autoencoder", "save_autoencoder"]
+__all__ = ["AutoEncoderModule", "load_autoencoder"]
 
 OptimizerFactory = Callable[[Iterable[nn.Parameter]], torch.optim.Optimizer]
 
@@ -73,8 +70,7 @@ class AutoEncoderModule(FiniteChecks, RunStateHooks, pl.LightningModule):
     def errors(self, pairs: Tensor) -> Tensor:
         """(B, 2C, S, S) stacked pairs -> (B,) mean absolute reconstruction error of the first
         image of each pair (differentiable; the second image is never looked at)."""
-        images = self.net.first_image(pairs)
-        return (self.net(images) - images).abs().flatten(1).mean(1)
+        return self.net.reconstruction_error(pairs)
 
     @torch.no_grad()
     def score(self, pairs: Tensor) -> Tensor:
@@ -142,71 +138,6 @@ def load_autoencoder(
             f"{run.path} is not an auto-encoder checkpoint: its run has task={run.task!r} "
             "(train one with model=autoencoder, e.g. experiment=kitti_autoencoder)"
         )
-    module = AutoEncoderModule(run.build("net"))
-    module.load_state_dict(run.state_dict)
+    module = AutoEncoderModule(load_autoencoder_net(run.path))
     module.run_config = OmegaConf.to_container(run.config)
     return module.to(device).eval()
-
-
-def fit_autoencoder(
-    datamodule: pl.LightningDataModule,
-    net_config: dict[str, Any],
-    epochs: int = 20,
-    lr: float = 5e-4,
-    device: str | torch.device = "cpu",
-    root_dir: str | os.PathLike = ".",
-) -> AutoEncoderModule:
-    """Train an auto-encoder on `datamodule`'s training loader with a Lightning Trainer (Adam on
-    the mean L1 error, no validation, no checkpoints, no logger); returns it in eval mode.
-
-    Args:
-        datamodule: set up; its `train_dataloader` and batch hooks feed the training.
-        net_config: the `rotlearn.nets.ConvAutoEncoder` config node (plain data, `_target_`);
-            it is built here and kept as the module's `run_config`.
-        epochs, lr: the paper's 20 epochs and 5e-4 by default.
-        device: where to train (one device).
-        root_dir: the Trainer's `default_root_dir`.
-    """
-    from hydra.utils import instantiate
-
-    device = torch.device(device)
-    module = AutoEncoderModule(
-        instantiate(net_config), optimizer=functools.partial(torch.optim.Adam, lr=float(lr))
-    )
-    module.run_config = {"task": "autoencoder", "net": dict(net_config)}
-    accelerator = {"cuda": "gpu"}.get(device.type, device.type)
-    # the run's own trainer has said it: GPU available, ...
-    with logger_at_least("lightning.pytorch.utilities.rank_zero"):
-        trainer = _nested_trainer(accelerator, device, epochs, root_dir)
-        outer = datamodule.trainer  # fit attaches the datamodule to its own trainer: give it back
-        try:
-            trainer.fit(module, datamodule=datamodule)
-        finally:
-            datamodule.trainer = outer
-    return module.eval()
-
-
-def _nested_trainer(
-    accelerator: str, device: torch.device, epochs: int, root_dir: str | os.PathLike
-) -> pl.Trainer:
-    return pl.Trainer(
-        accelerator=accelerator,
-        devices=[device.index or 0] if device.type == "cuda" else 1,
-        max_epochs=int(epochs),
-        limit_val_batches=0,
-        num_sanity_val_steps=0,
-        logger=False,
-        enable_checkpointing=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-        default_root_dir=str(Path(root_dir)),
-    )
-
-
-def save_autoencoder(module: AutoEncoderModule, path: str | os.PathLike) -> Path:
-    """Write `module`'s weights and `run_config` as a checkpoint that `load_autoencoder` reads
-    (tensors and plain data only), atomically; returns the path."""
-    path = Path(path)
-    with atomic_write(path) as tmp:
-        torch.save({"state_dict": module.state_dict(), "rotlearn_config": module.run_config}, tmp)
-    return path

@@ -19,8 +19,7 @@ from rotlearn.lit.finite import FINITE_CHECK_EVERY, FiniteChecks
 from rotlearn.lit.state import RunStateHooks
 from rotlearn.metrics import AngularError, BeliefCalibration, SampleValues
 from rotlearn.nets.autoencoder import ConvAutoEncoder
-from rotlearn.ood.evaluation import auroc, spearman
-from rotlearn.ood.scores import SCORES
+from rotlearn.scores import SCORES, auroc, spearman
 from rotlearn.trust import config_target
 
 __all__ = ["NOISIEST_FRACTION", "RotationRegressor", "compile_modules", "noisiest"]
@@ -59,7 +58,7 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
     kept in `trainer.callback_metrics` (and so in metrics.json, `rotlearn.lit.RunRecords`), never
     logged as a scalar series; the records pick the headline ones for TensorBoard. They are
     test/err_* and the "predict identity" baseline test/identity_err_{mean,median}.
-    At test time also, for every OOD score the head gives (`rotlearn.ood.scores.SCORES`: raw_norm
+    At test time also, for every OOD score the head gives (`rotlearn.scores.SCORES`: raw_norm
     for every head, dt and eigengap with a belief): test/<score>_spearman, its Spearman rank
     correlation with the error (positive for dt, whose low values are confident; negative for
     the keep-above eigengap and raw_norm where they work), and, where the test batches carry a

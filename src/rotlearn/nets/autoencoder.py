@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import itertools
+import os
 from collections.abc import Sequence
 
+import torch
 from torch import Tensor, nn
 
 from rotlearn.errors import ConfigValueError, require_positive_ints
@@ -105,6 +107,13 @@ class ConvAutoEncoder(nn.Module):
         """(B, C, S, S) images -> (B, C, S, S) reconstructions."""
         return self.decode(self.encode(images))
 
+    def reconstruction_error(self, pairs: Tensor) -> Tensor:
+        """(B, 2C, S, S) stacked pairs -> (B,) mean absolute reconstruction error of the first
+        image of each pair (differentiable; the second image is never looked at): the
+        auto-encoder's OOD score, >= 0, lower = more in-distribution (eval mode: BatchNorm)."""
+        images = self.first_image(pairs)
+        return (self(images) - images).abs().flatten(1).mean(1)
+
     def first_image(self, pairs: Tensor) -> Tensor:
         """The first image (B, C, S, S) of each stacked pair (B, 2C, S, S)."""
         if pairs.ndim != 4 or pairs.shape[1] != self.pair_channels:
@@ -112,3 +121,30 @@ class ConvAutoEncoder(nn.Module):
                 f"pairs must have shape (B, {self.pair_channels}, S, S), got {tuple(pairs.shape)}"
             )
         return pairs[:, : self.in_channels]
+
+
+def load_autoencoder_net(
+    ckpt_path: str | os.PathLike, device: str | torch.device = "cpu"
+) -> ConvAutoEncoder:
+    """The `ConvAutoEncoder` of a `model=autoencoder` run's checkpoint (or a run directory's last
+    one), in eval mode on `device`, read through `rotlearn.checkpoint.load_run` (weights only; the
+    saved config may name allowlisted components only). The OOD evaluation's `autoencoder`
+    score is its `reconstruction_error`.
+
+    Raises:
+        FileNotFoundError: no such checkpoint.
+        UnsafeCheckpointError, UntrustedConfigError: see `load_run`.
+        ValueError: the checkpoint's net is not an auto-encoder (the message names the path).
+    """
+    from rotlearn.checkpoint import load_run
+
+    run = load_run(ckpt_path)
+    target = str(run.config.get("net", {}).get("_target_", ""))
+    if not target.endswith("ConvAutoEncoder"):
+        raise ValueError(
+            f"{run.path} is not an auto-encoder checkpoint: its net is {target or 'missing'!r} "
+            "(train one with model=autoencoder, e.g. experiment=kitti_autoencoder)"
+        )
+    net = run.build("net")
+    net.load_state_dict(run.weights("net"))
+    return net.to(device).eval()

@@ -43,8 +43,8 @@ from rotlearn.ood.evaluation import (
     rejection_table,
     score_sets,
 )
-from rotlearn.ood.scores import SCORES, available_scores
 from rotlearn.ood.source import OODDataSource
+from rotlearn.scores import SCORES, available_scores
 from rotlearn.trust import config_target
 
 __all__ = ["OODEvaluation", "extra_source"]
@@ -102,13 +102,10 @@ class OODEvaluation(pl.Callback):
         scores: among dt, eigengap, raw_norm, autoencoder, disagreement; those the head cannot
             give (dt and eigengap need a belief, disagreement an ensemble) or that lack a
             checkpoint (autoencoder) are skipped.
-        autoencoder_ckpt: checkpoint of `rotlearn-train experiment=<data>_autoencoder`.
-        autoencoder_train: without a checkpoint, train an auto-encoder here first (a Lightning
-            Trainer, `rotlearn.lit.autoencoder.fit_autoencoder`), on the same training pairs:
-            {epochs, lr, and ConvAutoEncoder's channels, hidden, latent; reps: the heads whose
-            runs train it (paper Table I: [sixd]; absent: every head)}; it is saved as
-            `<run>/autoencoder.ckpt` (reusable as `autoencoder_ckpt`). For demos; on real data
-            train it once with its experiment instead.
+        autoencoder_ckpt: checkpoint (or run directory) of an auto-encoder trained as its own
+            run, `rotlearn-train experiment=<data>_autoencoder` (the demos:
+            `experiment=kitti_autoencoder_demo`, `mav_autoencoder_demo`); without it the
+            `autoencoder` score is skipped. It is never trained here, inside a test.
         corrupt_fraction: the last fraction of the test set that is erased for the corrupted set.
         table: score -> quantile shown in `ood.md`'s Table I (others: the largest quantile <= 0.75);
             these quantiles are evaluated too.
@@ -132,7 +129,6 @@ class OODEvaluation(pl.Callback):
         quantiles: list[float] = (0.25, 0.5, 0.75, 1.0),
         scores: list[str] = ("dt", "eigengap", "raw_norm", "autoencoder", "disagreement"),
         autoencoder_ckpt: str | None = None,
-        autoencoder_train: dict[str, Any] | None = None,
         corrupt_fraction: float = 0.5,
         table: dict[str, float] | None = None,
         noise_pairs: int = 64,
@@ -163,9 +159,6 @@ class OODEvaluation(pl.Callback):
             )
         self.score_names = list(scores)
         self.autoencoder_ckpt = autoencoder_ckpt
-        if isinstance(autoencoder_train, DictConfig):  # plain data: it goes into a checkpoint
-            autoencoder_train = OmegaConf.to_container(autoencoder_train, resolve=True)
-        self.autoencoder_train = dict(autoencoder_train or {})
         self.corrupt_fraction = float(corrupt_fraction)
         self.table = {"autoencoder": 1.0, **(table or {})}
         self.noise_pairs, self.max_train_pairs = int(noise_pairs), max_train_pairs
@@ -185,33 +178,13 @@ class OODEvaluation(pl.Callback):
         self.examples = int(examples)
         self.results: dict[str, float] = {}  # the run's one-shot results (RunRecords)
 
-    def _autoencoder(self, trainer: pl.Trainer, device: torch.device, head: Any = None):
-        """The auto-encoder of the `autoencoder` score: loaded, trained here on the datamodule's
-        training pairs, or None."""
-        from rotlearn.lit.autoencoder import fit_autoencoder, load_autoencoder, save_autoencoder
+    def _autoencoder(self, device: torch.device) -> Any:
+        """The auto-encoder net of the `autoencoder` score, from `autoencoder_ckpt`, or None."""
+        from rotlearn.nets.autoencoder import load_autoencoder_net
 
-        if "autoencoder" not in self.score_names:
+        if "autoencoder" not in self.score_names or not self.autoencoder_ckpt:
             return None
-        if self.autoencoder_ckpt:
-            return load_autoencoder(self.autoencoder_ckpt, device=device)
-        if not self.autoencoder_train:
-            return None
-        spec = dict(self.autoencoder_train)
-        reps = spec.pop("reps", None)
-        if reps is not None and getattr(head, "name", None) not in list(reps):
-            return None
-        source: OODDataSource = trainer.datamodule
-        epochs, lr = int(spec.pop("epochs", 20)), float(spec.pop("lr", 5e-4))
-        channels, size = source.pair_shape()[0], source.pair_shape()[-1]
-        net = {"_target_": "rotlearn.nets.ConvAutoEncoder", "pair_channels": channels,
-               "image_size": size, **spec}  # fmt: skip
-        log.info("OOD evaluation: training an auto-encoder for %d epochs", epochs)
-        run_dir = Path(trainer.default_root_dir)
-        # the test loop runs in inference mode; training needs autograd
-        with torch.inference_mode(False), torch.enable_grad():
-            module = fit_autoencoder(source, net, epochs, lr, device, run_dir)
-        path = save_autoencoder(module, run_dir / "autoencoder.ckpt")
-        return load_autoencoder(path, device=device)
+        return load_autoencoder_net(self.autoencoder_ckpt, device=device)
 
     def _loaders(
         self, source: OODDataSource, device: torch.device, dtype: torch.dtype
@@ -282,12 +255,16 @@ class OODEvaluation(pl.Callback):
             )
         if not trainer.is_global_zero:
             return
-        autoencoder = self._autoencoder(trainer, pl_module.device, pl_module.head)
+        autoencoder = self._autoencoder(pl_module.device)
         scores = available_scores(
             self.score_names, pl_module.head.defines_belief, autoencoder is not None,
             pl_module.head.defines_members,
         )  # fmt: skip
-        input_scores = {"autoencoder": autoencoder.score} if autoencoder is not None else {}
+        input_scores = {}
+        if autoencoder is not None:
+            input_scores["autoencoder"] = lambda x: autoencoder.reconstruction_error(
+                x.to(pl_module.device, next(autoencoder.parameters()).dtype)
+            )
         loaders, flags = self._loaders(source, pl_module.device, pl_module.dtype)
         loaders = {
             name: _progress(batches, f"OOD scoring: {name.removeprefix('extra:')}")

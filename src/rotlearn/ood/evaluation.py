@@ -25,7 +25,7 @@ from torch import Tensor
 
 from rotlearn.geometry import angle_deg
 from rotlearn.heads import RotationPrediction
-from rotlearn.ood.scores import Score, keep_mask, quantile_threshold
+from rotlearn.scores import Score, auroc, keep_mask, quantile_threshold, spearman
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -33,18 +33,15 @@ if TYPE_CHECKING:
 __all__ = [
     "REFERENCE_SETS",
     "TEST_SETS",
-    "auroc",
     "calibrated_threshold",
     "evaluate",
     "mixed_set",
     "pr_quantiles",
     "precision_recall_curve",
-    "rank",
     "reference_set",
     "rejection_row",
     "rejection_table",
     "score_sets",
-    "spearman",
     "table_quantile",
 ]
 
@@ -52,46 +49,6 @@ log = logging.getLogger("rotlearn")
 
 TEST_SETS = ("clean", "corrupted")
 REFERENCE_SETS = ("val", "train")  # where quantile thresholds may come from (default first)
-
-
-def rank(x: Tensor) -> Tensor:
-    """Average ranks (1-based, ties share their mean rank) of a (N,) tensor, float64."""
-    x = x.double()
-    order = torch.argsort(x, stable=True)
-    sorted_x = x[order]
-    ranks = torch.empty_like(x)
-    ranks[order] = torch.arange(1, len(x) + 1, dtype=torch.float64)
-    _, inverse, counts = torch.unique_consecutive(sorted_x, return_inverse=True, return_counts=True)
-    ends = torch.cumsum(counts, 0).double()
-    mean_rank = ends - (counts.double() - 1) / 2  # mean of the ranks of each tie group
-    ranks[order] = mean_rank[inverse]
-    return ranks
-
-
-def auroc(scores: Tensor, positive: Tensor, keep_below: bool) -> float:
-    """Probability that a random positive (corrupted) sample looks LESS confident than a random
-    negative (clean) one (ties count 1/2): 1 is a perfect detector, 0.5 chance. NaN if either
-    class is empty. Non-finite scores are dropped."""
-    finite = torch.isfinite(scores)
-    s, p = scores[finite].double(), positive[finite]
-    if not keep_below:
-        s = -s
-    n_pos, n_neg = int(p.sum()), int((~p).sum())
-    if n_pos == 0 or n_neg == 0:
-        return math.nan
-    r = rank(s)
-    return float((r[p].sum() - n_pos * (n_pos + 1) / 2) / (n_pos * n_neg))
-
-
-def spearman(x: Tensor, y: Tensor) -> float:
-    """Spearman rank correlation of finite pairs; NaN for fewer than 3 or constant inputs."""
-    finite = torch.isfinite(x) & torch.isfinite(y)
-    if int(finite.sum()) < 3:
-        return math.nan
-    rx, ry = rank(x[finite]), rank(y[finite])
-    rx, ry = rx - rx.mean(), ry - ry.mean()
-    denominator = (rx.square().sum() * ry.square().sum()).sqrt()
-    return float((rx * ry).sum() / denominator) if denominator > 0 else math.nan
 
 
 def _stats(errors: Tensor) -> tuple[float, float]:

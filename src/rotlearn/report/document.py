@@ -238,7 +238,7 @@ def _coverage_columns(done: pd.DataFrame, prefix: str) -> list[tuple[float, str]
 
 
 def _score_order() -> list[str]:
-    from rotlearn.ood.scores import SCORES
+    from rotlearn.scores import SCORES
 
     return list(SCORES)
 
@@ -389,7 +389,7 @@ def _ood_samples(frames) -> list[tuple[str, dict, list, dict]]:
     readable (the reference: the set its thresholds come from)."""
     from rotlearn.ood.evaluation import reference_set
     from rotlearn.ood.records import SAMPLES_FILE, read_samples
-    from rotlearn.ood.scores import SCORES
+    from rotlearn.scores import SCORES
 
     runs = []
     for run, frame in frames:

@@ -1,4 +1,4 @@
-"""Shared synthesis for the demo datasets (`rotlearn.data.<name>_demo`, `rotlearn-make-demo-data`).
+"""Shared synthesis for the demo datasets (`rotlearn.data.demo.<name>`, `rotlearn-make-demo-data`).
 
 - staging: `staged` writes a dataset in a hidden folder beside its final one and renames it into
   place only when complete, so an interrupted run never leaves a partial dataset under the final
@@ -6,7 +6,7 @@
 - shapes: `airplane_mesh`, a random airplane with no rotational symmetry;
 - rotations: float64 numpy wrappers of `rotlearn.geometry` (quaternions x y z w);
 - `render`, the pinhole view of a panorama at infinity (an equirectangular texture, drawn by
-  `rotlearn.data.natural`) under pure camera rotation, so that the written orientations are
+  `rotlearn.data.demo.natural`) under pure camera rotation, so that the written orientations are
   exactly the rotations between the images (up to the renderer's 1/32-pixel interpolation grid);
 - `smooth_series`, a smooth random process for trajectories.
 """

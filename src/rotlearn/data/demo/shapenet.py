@@ -1,8 +1,8 @@
 """Demo ShapeNet airplanes in both layouts that `rotlearn.data.shapenet` reads
 (`rotlearn-make-demo-data`, tests).
 
-Random "airplanes" (`rotlearn.data.synth.airplane_mesh`: fuselage, wings, tail fin of random sizes,
-no rotational symmetry) written as ShapeNetCore v2 meshes
+Random "airplanes" (`rotlearn.data.demo.synth.airplane_mesh`: fuselage, wings, tail fin of random
+sizes, no rotational symmetry) written as ShapeNetCore v2 meshes
 `<out>/shapenet/02691156/<id>/models/model_normalized.obj` and as the 6D paper's clouds
 `<out>/shapenet/{train,test}/<id>.pts` ("x y z" lines).
 """
@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from rotlearn.data.demo.synth import airplane_mesh, staged
 from rotlearn.data.shapenet import AIRPLANE_SYNSET
-from rotlearn.data.synth import airplane_mesh, staged
 from rotlearn.extras import import_extra
 
 __all__ = ["write_demo", "write_shapenet_demo"]

@@ -1,8 +1,9 @@
 """Photo-textured panoramas with natural-image statistics for the KITTI and MAV demo worlds.
 
-A panorama here is an equirectangular BGR uint8 image (width // 2, width) at infinity, the input of
-`rotlearn.data.synth.render` (column j is longitude 2 pi j / width about world y, row i latitude
-pi ((i + 0.5) / height - 0.5) towards world +y, i.e. down; the horizon is the middle row).
+A panorama here is an equirectangular BGR uint8 image (width // 2, width) at infinity, the input
+of `rotlearn.data.demo.synth.render` (column j is longitude 2 pi j / width about world y, row i
+latitude pi ((i + 0.5) / height - 0.5) towards world +y, i.e. down; the horizon is the middle
+row).
 
 - `street_panorama`: a street-level outdoor scene: a sky of soft 1/f clouds over facades built
   from real photographs (brick, stone, plaster; tinted, shaded, with windows and posters, of

@@ -1,4 +1,8 @@
-"""OOD scores of a prediction, each with its direction, and the one quantile-threshold rule.
+"""Floor 2: uncertainty scores of a prediction, each with its direction, the one quantile-threshold
+rule, and the rank statistics of scores (AUROC, Spearman; through torchmetrics).
+
+Below both the training glue (`rotlearn.lit`, which logs each score's rank statistics at test
+time) and the OOD evaluation (`rotlearn.ood`, which thresholds them): neither imports the other.
 
 A score maps a prediction to (B,) numbers. `keep_below` says which side is confident: DT's
 tr(Lambda), the auto-encoder's reconstruction error and an ensemble's disagreement keep LOW
@@ -15,21 +19,30 @@ q of new clean pairs pass. A NaN score is never kept.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
+from rotlearn.extras import require
 from rotlearn.heads import RotationPrediction
+
+require("train", "rotlearn.scores (rank statistics through torchmetrics)")
+
+from torchmetrics.functional import spearman_corrcoef
+from torchmetrics.functional.classification import binary_auroc
 
 __all__ = [
     "SCORES",
     "Score",
+    "auroc",
     "available_scores",
     "keep_mask",
     "quantile_threshold",
     "register_score",
+    "spearman",
 ]
 
 
@@ -129,3 +142,33 @@ def quantile_threshold(train_scores: Tensor, q: float, keep_below: bool) -> floa
 def keep_mask(scores: Tensor, threshold: float, keep_below: bool) -> Tensor:
     """(N,) bool: score < threshold (keep-below) or score > threshold (keep-above); NaN never."""
     return scores < threshold if keep_below else scores > threshold
+
+
+def auroc(scores: Tensor, positive: Tensor, keep_below: bool) -> float:
+    """Probability that a random positive (e.g. corrupted) sample looks LESS confident than a
+    random negative (clean) one, ties counting 1/2 (`torchmetrics`' binary AUROC): 1 is a perfect
+    detector, 0.5 chance, below 0.5 the score is inverted. NaN if either class is empty.
+    Non-finite scores are dropped.
+
+    Args:
+        scores: (N,) a score's values.
+        positive: (N,) bool, the samples to detect.
+        keep_below: the score's direction (`Score.keep_below`): low values confident.
+    """
+    finite = torch.isfinite(scores)
+    s, p = scores[finite].double(), positive[finite].bool()
+    if not bool(p.any()) or bool(p.all()):
+        return math.nan
+    return float(binary_auroc(s if keep_below else -s, p.long()))
+
+
+def spearman(x: Tensor, y: Tensor) -> float:
+    """Spearman rank correlation of the finite pairs (ties get their mean rank; `torchmetrics`);
+    NaN for fewer than 3 pairs or a constant input."""
+    finite = torch.isfinite(x) & torch.isfinite(y)
+    if int(finite.sum()) < 3:
+        return math.nan
+    x, y = x[finite].double(), y[finite].double()
+    if bool((x == x[0]).all()) or bool((y == y[0]).all()):
+        return math.nan
+    return float(spearman_corrcoef(x, y))

@@ -8,9 +8,9 @@ tests). `write_kitti_demo(out)` writes `<out>/kitti/`:
                                           world (p_w = R p_c + t), the first one the identity
 Camera axes as in KITTI: x right, y down, z forward.
 
-The images are rendered and the folder written as `rotlearn.data.synth` says: the orientations
+The images are rendered and the folder written as `rotlearn.data.demo.synth` says: the orientations
 are exactly the rotations between the images; the dataset appears only when complete. The scenes
-are photo-textured street panoramas (`rotlearn.data.natural.street_panorama`: real textures,
+are photo-textured street panoramas (`rotlearn.data.demo.natural.street_panorama`: real textures,
 1/f spectra, occlusion, shading); each sequence views its own scene, so whichever sequence is
 tested on shows a street never seen in training, except the revisits (by default sequence 11
 drives a new trajectory through sequence 02's street: a seen scene to compare with).
@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rotlearn.data.synth import (
+from rotlearn.data.demo.synth import (
     camera_matrix,
     exp_rotvec,
     panorama_width,
@@ -110,7 +110,7 @@ def _write_kitti_sequence(
     street panorama of `scene` (a sequence name; drawn from the stream (seed, scene number)),
     from its own starting heading (a roll of the panorama) and with its own motion, from
     separate streams of (seed, sequence number)."""
-    from rotlearn.data.natural import street_panorama
+    from rotlearn.data.demo.natural import street_panorama
 
     world = street_panorama(np.random.default_rng([seed, 1, 2, int(scene)]), panorama_width(K))
     heading = np.random.default_rng([seed, 1, int(name), 0]).integers(world.shape[1])
@@ -140,7 +140,7 @@ def write_kitti_demo(
     """Write a demo KITTI odometry dataset (layout in the module docstring); returns `<out>/kitti`.
 
     Scenes (what is seen, for "unseen scene" tests): every sequence views its own street, a
-    photo-textured panorama at infinity (`rotlearn.data.natural.street_panorama`) drawn from
+    photo-textured panorama at infinity (`rotlearn.data.demo.natural.street_panorama`) drawn from
     (seed, sequence number), so a test sequence (conf/data/kitti.yaml and experiment=
     kitti_ood_demo test on 00 and train on 02, 05-10) shows a street never seen in training;
     a sequence listed in `revisits` instead views the street of the sequence it maps to, on its

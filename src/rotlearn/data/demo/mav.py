@@ -10,9 +10,9 @@ tests). `write_mav_demo(out)` writes `<out>/mav/`:
                           flea3/data.csv) a few apart (`MAV_PAIR_GAPS`) inside one scene
 Frame timestamps are jittered off the pose clock: match them to the nearest pose (within 30 ms).
 
-The images are rendered and the folder written as `rotlearn.data.synth` says: the orientations
+The images are rendered and the folder written as `rotlearn.data.demo.synth` says: the orientations
 are exactly the rotations between the images; the dataset appears only when complete. The outdoor
-scene is a photo-textured street (`rotlearn.data.natural.street_panorama`), the indoor one a
+scene is a photo-textured street (`rotlearn.data.demo.natural.street_panorama`), the indoor one a
 darker room (`room_panorama`: plaster and wood, framed pictures, doors, ceiling lights, tiles).
 """
 
@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rotlearn.data.synth import (
+from rotlearn.data.demo.synth import (
     camera_matrix,
     euler_quat,
     panorama_width,
@@ -183,7 +183,7 @@ def write_mav_demo(
         seed: content seed; the same seed writes the same files.
         gaps: frame gaps of the pairs (positive integers).
     """
-    from rotlearn.data.natural import room_panorama, street_panorama
+    from rotlearn.data.demo.natural import room_panorama, street_panorama
 
     gaps = sorted({int(g) for g in gaps})
     if not gaps or gaps[0] < 1:

@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 
 from rotlearn.cli.make_demo_data import demo_writers, main
-from rotlearn.data import kitti_demo, mav_demo
-from rotlearn.data.kitti_demo import write_kitti_demo
-from rotlearn.data.mav_demo import MAV_PAIR_GAPS, MAV_POSE_HEADER, write_mav_demo
-from rotlearn.data.synth import camera_matrix, exp_rotvec
+from rotlearn.data.demo import kitti as kitti_demo
+from rotlearn.data.demo import mav as mav_demo
+from rotlearn.data.demo.kitti import write_kitti_demo
+from rotlearn.data.demo.mav import MAV_PAIR_GAPS, MAV_POSE_HEADER, write_mav_demo
+from rotlearn.data.demo.synth import camera_matrix, exp_rotvec
 
 KITTI = {"sequences": ("00", "01"), "frames": 6, "width": 248, "height": 76}  # 1 degree: 2.6 px
 MAV = {"frames": 40, "width": 64, "height": 52}
@@ -172,7 +173,7 @@ def test_kitti_test_sequence_views_a_street_unseen_in_training_and_11_revisits_0
     """Each sequence views its own street (so the default test sequence 00 is a scene never
     trained on), except the revisit 11, which views 02's street on its own trajectory; a
     street depends only on (seed, its sequence), not on which others are written."""
-    from rotlearn.data import natural
+    from rotlearn.data.demo import natural
 
     drawn, real = [], natural.street_panorama
     monkeypatch.setattr(
@@ -364,7 +365,7 @@ def test_too_few_mav_frames_for_the_gaps_are_refused_before_writing(tmp_path):
 def test_the_kitti_writer_writes_the_same_files_with_several_workers(tmp_path):
     import hashlib
 
-    from rotlearn.data.kitti_demo import write_kitti_demo
+    from rotlearn.data.demo.kitti import write_kitti_demo
 
     def digest(root):
         return {p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()

@@ -1,5 +1,6 @@
-"""Photo-textured demo panoramas (rotlearn.data.natural): natural-image statistics (a 1/f^2-like
-power spectrum, few flat regions), seamless longitude, determinism, bundled images only."""
+"""Photo-textured demo panoramas (rotlearn.data.demo.natural): natural-image statistics (a
+1/f^2-like power spectrum, few flat regions), seamless longitude, determinism, bundled images
+only."""
 
 from __future__ import annotations
 
@@ -10,8 +11,8 @@ import cv2
 import numpy as np
 import pytest
 
-from rotlearn.data import natural
-from rotlearn.data.natural import pink_noise, room_panorama, street_panorama
+from rotlearn.data.demo import natural
+from rotlearn.data.demo.natural import pink_noise, room_panorama, street_panorama
 
 WIDTH = 512  # panorama width: 1.4 pixels per degree
 
