@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed
 ARGS   ?=
 
 .DEFAULT_GOAL := help
-.PHONY: help venv train test test-full lint format bench reproduce-cpu reproduce-ood reproduce-beliefs demo-data tensorboard clean
+.PHONY: help venv train test test-full lint format bench reproduce-cpu reproduce-ood reproduce-ood-quick reproduce-ood-paper-scale reproduce-beliefs demo-data tensorboard clean
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-12s %s\n", $$1, $$2}'
@@ -61,18 +61,52 @@ reproduce-beliefs: $(STAMP) ## issue 17 beliefs on heteroscedastic data, CPU-siz
 	@echo "report: outputs/reproduce-beliefs/report.md"
 
 OOD := outputs/reproduce-ood
-reproduce-ood: $(STAMP) ## paper Table I (KITTI demo) and Fig. 8 (MAV demo), about 40 min, with reports
+QUIET := trainer.enable_progress_bar=false
+SEEDS := sweep=seeds
+# $(call a_seeds,<experiment>,<loss>,<dir>): the A head on seeds 0, 1, 2 (model and data, <dir>/0..2),
+# then their ensemble (the sum of the members' A; <dir>_ensemble)
+define a_seeds
+	$(BIN)/rotlearn-train -m experiment=$(1) rep=a loss=$(2) $(SEEDS) $(QUIET) hydra.sweep.dir=$(3)
+	$(BIN)/rotlearn-eval 'ckpt=[$(3)/0,$(3)/1,$(3)/2]' hydra.run.dir=$(3)_ensemble
+endef
+# $(call ae_run,<data>,<dir>): the auto-encoder OOD baseline as its own run (<dir>/<data>_ae)
+define ae_run
+	$(BIN)/rotlearn-train experiment=$(1)_autoencoder_demo $(QUIET) hydra.run.dir=$(2)/$(1)_ae
+endef
+# $(call head_run,<data>,<rep>,<dir>,<more overrides>): one head on seed 0 (<dir>/<data>_<rep>)
+define head_run
+	$(BIN)/rotlearn-train experiment=$(1)_ood_demo rep=$(2) hydra.mode=RUN $(QUIET) $(4) \
+		hydra.run.dir=$(3)/$(1)_$(2)
+endef
+
+reproduce-ood: $(STAMP) ## paper Table I (KITTI demo) and Fig. 8 (MAV demo), A rows on 3 seeds + ensembles, reports
 	@test -d data/demo/kitti || $(BIN)/rotlearn-make-demo-data --out data/demo --only kitti
 	@test -d data/demo/mav || $(BIN)/rotlearn-make-demo-data --out data/demo --only mav
-	$(BIN)/rotlearn-train -m experiment=kitti_ood_demo trainer.enable_progress_bar=false \
-		hydra.sweep.dir=$(OOD)/kitti_ood_demo
-	$(BIN)/rotlearn-train experiment=kitti_ood_demo rep=a loss=bingham hydra.mode=RUN \
-		trainer.enable_progress_bar=false hydra.run.dir=$(OOD)/kitti_ood_demo_bingham
-	$(BIN)/rotlearn-train -m experiment=mav_ood_demo trainer.enable_progress_bar=false \
-		hydra.sweep.dir=$(OOD)/mav_ood_demo
-	$(BIN)/rotlearn-report $(OOD)/kitti_ood_demo $(OOD)/kitti_ood_demo_bingham
-	$(BIN)/rotlearn-report $(OOD)/mav_ood_demo
-	@echo "reports: $(OOD)/kitti_ood_demo/report.md (Table I), $(OOD)/mav_ood_demo/report.md (Fig. 8)"
+	$(call ae_run,kitti,$(OOD))
+	$(call head_run,kitti,quat,$(OOD))
+	$(call head_run,kitti,sixd,$(OOD),callbacks.ood.autoencoder_ckpt=$(OOD)/kitti_ae)
+	$(call a_seeds,kitti_ood_demo,bingham,$(OOD)/kitti_a_bingham)
+	$(call a_seeds,kitti_ood_demo,chordal,$(OOD)/kitti_a_chordal)
+	$(call ae_run,mav,$(OOD))
+	$(call head_run,mav,sixd,$(OOD),callbacks.ood.autoencoder_ckpt=$(OOD)/mav_ae)
+	$(call a_seeds,mav_ood_demo,bingham,$(OOD)/mav_a_bingham)
+	$(call a_seeds,mav_ood_demo,chordal,$(OOD)/mav_a_chordal)
+	$(BIN)/rotlearn-report $(OOD)/kitti_quat $(OOD)/kitti_sixd $(OOD)/kitti_a_bingham $(OOD)/kitti_a_chordal \
+		--out $(OOD)/kitti
+	$(BIN)/rotlearn-report $(OOD)/mav_sixd $(OOD)/mav_a_bingham $(OOD)/mav_a_chordal --out $(OOD)/mav
+	@echo "reports: $(OOD)/kitti/report.md (Table I), $(OOD)/mav/report.md (Fig. 8); ensembles: $(OOD)/*_ensemble/ood.md"
+
+reproduce-ood-quick: $(STAMP) ## Table I's A rows only (KITTI demo, chordal and Bingham, 3 seeds + ensembles), with report
+	@test -d data/demo/kitti || $(BIN)/rotlearn-make-demo-data --out data/demo --only kitti
+	$(call a_seeds,kitti_ood_demo,bingham,$(OOD)_quick/kitti_a_bingham)
+	$(call a_seeds,kitti_ood_demo,chordal,$(OOD)_quick/kitti_a_chordal)
+	$(BIN)/rotlearn-report $(OOD)_quick/kitti_a_bingham $(OOD)_quick/kitti_a_chordal --out $(OOD)_quick/kitti
+	@echo "report: $(OOD)_quick/kitti/report.md; ensembles: $(OOD)_quick/*_ensemble/ood.md"
+
+reproduce-ood-paper-scale: $(STAMP) ## GPU: Table I's A head (chordal, Bingham) at the paper's scale, world written first (1.3 GB)
+	@test -d data/paper_scale/kitti || $(BIN)/rotlearn-make-demo-data --out data/paper_scale --only kitti --scale paper --workers 9
+	$(BIN)/rotlearn-train experiment=kitti_ood_paper_scale trainer=gpu $(QUIET) hydra.sweep.dir=$(OOD)_paper_scale
+	@echo "report: $(OOD)_paper_scale/report.md"
 
 demo-data: $(STAMP) ## write small datasets in the real layouts under data/demo
 	$(BIN)/rotlearn-make-demo-data --out data/demo

@@ -77,6 +77,16 @@ def test_every_sweep_composes(make_cfg, sweep):
     validate(make_cfg([f"sweep={sweep}"]))
 
 
+def test_the_seeds_sweep_gives_each_trial_its_model_and_data_seed(make_cfg):
+    """`sweep=seeds` (make reproduce-ood's A rows): trial t trains with seed t and data.seed t,
+    three trials by default, and the report pools them as trials."""
+    cfg = make_cfg(["experiment=kitti_ood_demo", "rep=a", "sweep=seeds", "trial=2"])
+    assert (cfg.trial, cfg.seed, cfg.data.seed) == (2, 2, 2)
+    swept = OmegaConf.load(CONFIG_DIR / "sweep" / "seeds.yaml").hydra.sweeper.params
+    assert swept.trial == "range(0,3)"
+    assert {"seed", "data.seed", "trial"} <= set(cfg.report.trial_keys)
+
+
 def test_cpu_variants_are_no_larger_than_the_paper_settings(make_cfg):
     for name in ("synthetic_lr", "synthetic_phi_max", "shapenet_lr"):
         paper, cpu = make_cfg([f"experiment={name}"]), make_cfg([f"experiment={name}_cpu"])

@@ -50,18 +50,21 @@ def _sets(separation: float, extra: bool) -> dict[str, dict[str, torch.Tensor]]:
     return sets
 
 
-def _fabricate_run(run: Path, rep: str, loss: str, report: dict, extra: bool = False) -> None:
+def _fabricate_run(run: Path, rep: str, loss: str, report: dict, extra: bool = False,
+                   seed: int = 0, separation: float | None = None) -> None:  # fmt: skip
     """A completed run directory as `rotlearn-train` with `callbacks=ood` leaves it."""
     (run / ".hydra").mkdir(parents=True)
     config = {"rep": {"name": rep}, "loss": {"_target_": f"rotlearn.losses.{loss}"},
-              "seed": 0, "report": report}  # fmt: skip
+              "seed": seed, "report": report}  # fmt: skip
     (run / ".hydra" / "config.yaml").write_text(yaml.safe_dump(config))
     choices = {"rep": rep, "loss": loss, "hydra/launcher": "basic"}
     (run / ".hydra" / "hydra.yaml").write_text(
         yaml.safe_dump({"hydra": {"runtime": {"choices": choices}}})
     )
-    (run / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump([f"rep={rep}"]))
-    sets = _sets(3.0 if rep == "a" else -3.0, extra)
+    (run / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump([f"rep={rep}", f"seed={seed}"]))
+    if separation is None:
+        separation = 3.0 if rep == "a" else -3.0
+    sets = _sets(separation, extra)
     scores = [SCORES["dt"]] if rep == "a" else [SCORES["raw_norm"]]
     if rep != "a":  # fabricate the raw norm as minus the DT values (keep-above)
         for data in sets.values():
@@ -109,6 +112,30 @@ def test_table_one_is_shown_beside_the_paper_and_pooled_runs_are_named(tmp_path)
     assert "Error per test set" not in text  # no extra sets
     summary = pd.read_csv(files["summary"])
     assert "group:loss" in summary and "group:hydra/launcher" not in summary
+
+
+def test_runs_differing_only_in_their_seeds_get_mean_and_range(tmp_path):
+    """Three seeds of one setting pool into one row of the seeds table: the mean and range of
+    each number over the seeds, beside the per-job rows (whose numbers they must match)."""
+    report = {"ood": {"quantiles": [0.75]}}
+    for seed, separation in enumerate((0.0, 1.0, 3.0)):  # chance, some, perfect separation
+        _fabricate_run(tmp_path / "a" / str(seed), "a", "bingham", report, seed=seed,
+                       separation=separation)  # fmt: skip
+    _fabricate_run(tmp_path / "quat", "quat", "bingham", report)
+    files = make_report([tmp_path / "a", tmp_path / "quat"])
+    table = pd.read_csv(files["ood_table"])
+    dt = table[table["method"] == "a + DT"]
+    assert len(dt) == 3 and dt["AUROC"].nunique() == 3
+    lines = files["report"].read_text().splitlines()
+    start = lines.index("### Over seeds: mean (min-max)")
+    row = next(line for line in lines[start:] if line.startswith("| a + DT |"))
+    cells = [c.strip() for c in row.split("|")[1:-1]]
+    assert cells[1] == "3"  # runs
+    auroc = dt["AUROC"].to_numpy()
+    assert cells[-1] == f"{auroc.mean():.2f} ({auroc.min():.2f}-{auroc.max():.2f})"
+    quat = next(line for line in lines[start:] if line.startswith("| quat |"))
+    assert quat.split("|")[2].strip() == "1"  # one run: its numbers alone, no range
+    assert "(" not in quat.split("|")[4]
 
 
 def test_extra_sets_give_the_error_per_test_set(tmp_path, capsys):

@@ -356,6 +356,11 @@ def _ood_sections(frames, layout, out: Path, files: dict[str, Path]) -> list[str
     files["ood_table"] = write_text_atomic(out / "ood_table.csv", ood.to_csv(index=False))
     md = ["## OOD rejection (paper Table I)", "", OOD_NOTE, "",
           tables.markdown_table(ood, ["job", *tables.TABLE_ONE_COLUMNS]), ""]  # fmt: skip
+    if ood["method"].duplicated().any():
+        md += ["### Over seeds: mean (min-max)", "",
+               "Runs that differ only in their trial keys (seeds: `report.trial_keys`) pooled: "
+               "per method the number of runs, and each number's mean and range over them.", "",
+               tables.seeds_table(ood), ""]  # fmt: skip
     options = layout.get("ood") if isinstance(layout.get("ood"), Mapping) else {}
     set_names = {"clean": "test", "corrupted": "test, half erased",
                  **{str(k): str(v) for k, v in (options.get("sets") or {}).items()}}  # fmt: skip

@@ -29,6 +29,7 @@ __all__ = [
     "percentile_table",
     "results_table",
     "score_table",
+    "seeds_table",
     "sets_table",
     "setting_order",
     "table_one_rows",
@@ -303,6 +304,32 @@ def table_one_rows(rep: str, frame: pd.DataFrame) -> list[dict[str, Any]]:
             }
         )
     return rows
+
+
+SEED_COLUMNS = TABLE_ONE_COLUMNS[2:]  # the numbers of a Table I row (method and q are its name)
+
+
+def seeds_table(rows: pd.DataFrame) -> str:
+    """Table I over trials (seeds): per method (a setting's label and its score; runs that
+    differ only in their trial keys share it), the number of runs and, for each number, its mean
+    and range over them as `mean (min-max)`; a single run shows its number alone.
+
+    Args:
+        rows: Table I rows of every run (`table_one_rows`, several runs per method).
+    """
+    records = []
+    for method, group in rows.groupby("method", sort=False):
+        record = {"method": method, "runs": len(group), "q": group["q"].iloc[0]}
+        for column in SEED_COLUMNS:
+            values = pd.to_numeric(group[column], errors="coerce").dropna().to_numpy(float)
+            if len(values) == 0:
+                record[column] = None
+            elif len(values) == 1 or np.ptp(values) == 0:
+                record[column] = f"{values.mean():.2f}"
+            else:
+                record[column] = f"{values.mean():.2f} ({values.min():.2f}-{values.max():.2f})"
+        records.append(record)
+    return markdown_table(records, ["method", "runs", "q", *SEED_COLUMNS])
 
 
 REFERENCE_WORDS = {  # how ood.md names the set the thresholds come from
