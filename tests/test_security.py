@@ -201,7 +201,7 @@ def _loaders(world: World, ckpt: Path, capsys) -> dict[str, Callable[[], str]]:
     def via_ood_autoencoder() -> str:
         callback = OODEvaluation(autoencoder_ckpt=str(ckpt))
         with pytest.raises(UntrustedConfigError) as info:
-            callback._autoencoder(None, torch.device("cpu"))
+            callback._autoencoder(torch.device("cpu"))
         return str(info.value)
 
     def via_load_autoencoder() -> str:

@@ -106,8 +106,9 @@ def test_kitti_pose_lines_are_checked(demo_data, tmp_path, column, word, pattern
 def test_kitti_too_few_pose_lines_name_the_file(demo_data, tmp_path):
     root, cache = copy_demo(demo_data, "kitti", tmp_path), tmp_path / "cache"
     poses = root / "poses" / "00.txt"
-    poses.write_text("\n".join(poses.read_text().splitlines()[:-1]) + "\n")
-    pattern = r"00\.txt: 5 poses, but .*image_2 holds 6 frames"
+    lines = poses.read_text().splitlines()
+    poses.write_text("\n".join(lines[:-1]) + "\n")
+    pattern = rf"00\.txt: {len(lines) - 1} poses, but .*image_2 holds {len(lines)} frames"
     refuses(lambda: kitti(root, cache), tmp_path, cache, ValueError, pattern)
 
 
