@@ -182,7 +182,8 @@ def test_the_reproduction_configs_compose_and_validate(make_cfg):
         assert ae.model._target_.endswith("AutoEncoderModule")
         assert ae.data.image_size == ood.data.image_size and ae.data.mean == ood.data.mean
         # the same split: the AE's thresholds come from validation pairs it never trained on
-        split = ("train_sequences", "test_sequences", "val_sequences", "val_fraction", "test_scenes")
+        split = ("train_sequences", "test_sequences", "val_sequences", "val_fraction",
+                 "test_scenes")  # fmt: skip
         assert [ae.data.get(k) for k in split] == [ood.data.get(k) for k in split]
     bingham = make_cfg(["experiment=kitti_ood_demo", "rep=a", "loss=bingham"])
     validate(bingham)
