@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 import pytest
+import torch
 
 from rotlearn.cli.resume import keep_earlier_records, resume_arguments
 from tests.conftest import RESUMABLE, SMALL_NET, checkpoint_epoch, start_cli
@@ -44,7 +45,7 @@ def test_sigkill_then_resume_matches_an_uninterrupted_run(tmp_path):
 def _fake_run(root: Path, name: str, overrides: list[str]) -> Path:
     run = root / name
     (run / "checkpoints").mkdir(parents=True)
-    (run / "checkpoints" / "last.ckpt").write_bytes(b"")
+    torch.save({"epoch": 0, "state_dict": {}}, run / "checkpoints" / "last.ckpt")
     (run / ".hydra").mkdir()
     (run / ".hydra" / "overrides.yaml").write_text("".join(f"- {o}\n" for o in overrides))
     return run
@@ -58,8 +59,8 @@ def test_resume_arguments_continue_the_run_with_its_own_overrides(tmp_path):
         "rep=quat",
         "optim.lr=0.001",
         "trainer.max_epochs=9",
-        f"ckpt_path={(new / 'checkpoints' / 'last.ckpt').resolve()}",
-        f"hydra.run.dir={new.resolve()}",
+        f"ckpt_path='{(new / 'checkpoints' / 'last.ckpt').resolve()}'",  # quoted for Hydra
+        f"hydra.run.dir='{new.resolve()}'",
     ]
     assert resume_arguments([f"ckpt_path={old}"])[0] == "rep=sixd"
     assert resume_arguments(["rep=a"]) == ["rep=a"]
@@ -161,7 +162,7 @@ def test_ckpt_path_last_skips_completed_runs_and_names_its_pick(tmp_path, capsys
     newer = _fake_run(tmp_path, "2026-01-02_00-00-00-000000", ["rep=quat"])
     (newer / "metrics.json").write_text(json.dumps({"epochs": 3}))
     args = resume_arguments(["ckpt_path=last"], runs_root=tmp_path)
-    assert args[-1] == f"hydra.run.dir={older.resolve()}" and args[0] == "rep=sixd"
+    assert args[-1] == f"hydra.run.dir='{older.resolve()}'" and args[0] == "rep=sixd"
     said = capsys.readouterr().err
     assert f"resuming {older}" in said and "skipped 1 newer COMPLETED" in said
 

@@ -56,7 +56,7 @@ import pandas as pd
 import yaml
 
 from rotlearn.cli.report_plots import draw_beliefs, draw_ood, draw_plots, setting_order
-from rotlearn.io import read_json, write_text_atomic
+from rotlearn.io import read_json, read_table, read_yaml, write_text_atomic
 from rotlearn.ood.report import LABELS, TABLE_COLUMNS, markdown_table, table_rows
 
 __all__ = ["DEFAULT_REPORT", "collect_runs", "main", "make_report"]
@@ -71,12 +71,24 @@ NOT_SETTINGS = ("hydra", "paths", "report")  # per-run paths, and the report lay
 _MISSING = "-"
 
 
-def _read_yaml(path: Path) -> Any:
-    """Plain data of a YAML file (never resolved, no tags); None if unreadable."""
+def _read_yaml(path: Path, kind: str = "YAML config") -> Any:
+    """Plain data of a YAML file of a run (never resolved, no tags, no aliases, size-capped:
+    `rotlearn.io.read_yaml`); None if missing or refused (a warning names the file)."""
     try:
-        return yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError):
+        return read_yaml(path, kind, root=path.parent.parent)
+    except FileNotFoundError:
         return None
+    except (OSError, ValueError) as exc:
+        log.warning("%s (ignored)", exc)
+        return None
+
+
+def _mapping(path: Path) -> dict[str, Any]:
+    """A JSON record of a run as a dict: {} where it is missing, refused or not an object."""
+    data = read_json(path, root=path.parent)
+    if data is not None and not isinstance(data, dict):
+        log.warning("%s: not a JSON object (ignored)", path)
+    return data if isinstance(data, dict) else {}
 
 
 def _flatten(tree: Any, prefix: str = "") -> dict[str, Any]:
@@ -143,10 +155,10 @@ def collect_runs(root: str | Path | list[str | Path]) -> pd.DataFrame:
     for sweep, run in runs:
         cfg = _read_yaml(run / ".hydra" / "config.yaml")
         cfg = cfg if isinstance(cfg, dict) else {}
-        overrides = _read_yaml(run / ".hydra" / "overrides.yaml")
+        overrides = _read_yaml(run / ".hydra" / "overrides.yaml", "overrides file")
         overrides = [str(o) for o in overrides] if isinstance(overrides, list) else []
-        metrics = read_json(run / "metrics.json") or {}
-        status = read_json(run / "status.json") or {}
+        metrics = _mapping(run / "metrics.json")
+        status = _mapping(run / "status.json")
         state = status.get("status") or ("COMPLETED" if metrics else "INCOMPLETE")
         rows.append(
             {
@@ -219,9 +231,11 @@ def _settings(
 def _unstarted_jobs(root: Path, seen: set[str]) -> list[dict[str, Any]]:
     """Rows for the jobs that `<root>/jobs.json` lists but that have no run directory (yet): those
     that never ran (PENDING), or died before Hydra wrote their config."""
-    summary = read_json(root / "jobs.json") or {}
+    jobs = _mapping(root / "jobs.json").get("jobs")
     rows = []
-    for job in summary.get("jobs", []):
+    for job in jobs if isinstance(jobs, list) else []:
+        if not isinstance(job, dict):
+            continue
         name = Path(job["dir"]).name if job.get("dir") else str(job.get("num"))
         if name in seen:
             continue
@@ -259,7 +273,7 @@ def _ood_frames(done: pd.DataFrame) -> list[tuple[pd.Series, pd.DataFrame]]:
     for _, run in done.iterrows():
         path = Path(run["dir"]) / "ood.csv"
         if path.is_file():
-            frames.append((run, pd.read_csv(path)))
+            frames.append((run, read_table(path, root=Path(run["dir"]))))
     return frames
 
 

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from rotlearn.io import read_json
+from rotlearn.io import MAX_BYTES, read_json, read_table
 
 __all__ = ["BELIEF_COLUMNS", "CURVE_METRICS", "draw_beliefs", "draw_ood", "draw_plots",
            "setting_order"]  # fmt: skip
@@ -39,18 +39,39 @@ def _curves(run: Path, tag: str) -> np.ndarray | None:
     """Per-epoch values of a scalar, from the run's CSV log or else its TensorBoard events."""
     csv = run / "csv" / "metrics.csv"
     if csv.is_file():
-        frame = pd.read_csv(csv)
+        frame = read_table(csv, root=run)
         if tag in frame:
             values = frame.dropna(subset=[tag]).groupby("epoch")[tag].last()
             return values.to_numpy(dtype=float)
     events = run / "tensorboard"
-    if events.is_dir():
+    if events.is_dir() and _readable_events(events, run):
         from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
         acc = EventAccumulator(str(events), size_guidance={"scalars": 0}).Reload()
         if tag in acc.Tags().get("scalars", []):
             return np.array([e.value for e in acc.Scalars(tag)], dtype=float)
     return None
+
+
+def _readable_events(folder: Path, run: Path) -> bool:
+    """Whether TensorBoard may read the event files in `folder`: regular files inside the run,
+    at most `MAX_BYTES["TensorBoard events"]` in all (TensorBoard reads them unbounded; a named
+    pipe would hang it). A warning names what is refused."""
+    total = 0
+    for path in folder.rglob("*"):
+        if path.is_dir() and not path.is_symlink():
+            continue
+        real = Path(os.path.realpath(path))
+        if not (path.is_file() and real.is_relative_to(os.path.realpath(run))):
+            log.warning("%s: not a regular file inside the run; its events are not read", path)
+            return False
+        total += path.stat().st_size
+    if total > MAX_BYTES["TensorBoard events"]:
+        log.warning(
+            "%s: over %d bytes of events; not read", folder, MAX_BYTES["TensorBoard events"]
+        )
+        return False
+    return True
 
 
 def setting_order(done: pd.DataFrame, column: str = "setting") -> list[Any]:
@@ -138,7 +159,9 @@ def _plot_box(done: pd.DataFrame, plot: Mapping[str, Any], path: Path) -> bool:
         for j, value in enumerate(values):
             errors = []
             for d in done[(done["setting"] == setting) & (done[x] == value)]["dir"]:
-                errors.extend(read_json(Path(d) / "test_errors.json") or [])
+                found = read_json(Path(d) / "test_errors.json", root=d)
+                if isinstance(found, list) and all(isinstance(e, int | float) for e in found):
+                    errors.extend(found)
             if errors:
                 data.append(np.log10(np.maximum(errors, 1e-6)))
                 positions.append(j + (i - (len(settings) - 1) / 2) * width)

@@ -5,6 +5,7 @@ from rotlearn.extras import require
 require("train", "rotlearn.lit")
 
 from rotlearn.lit.autoencoder import AutoEncoderModule, load_autoencoder
+from rotlearn.lit.boundary import CheckpointStateGuard, RunCheckpointIO
 from rotlearn.lit.calibration import TemperatureScaling
 from rotlearn.lit.callbacks import EpochLosses, EpochTimer, InterruptRecorder, ModelSummary
 from rotlearn.lit.records import RunRecords, barely_learned, divergence
@@ -12,11 +13,13 @@ from rotlearn.lit.regressor import RotationRegressor
 
 __all__ = [
     "AutoEncoderModule",
+    "CheckpointStateGuard",
     "EpochLosses",
     "EpochTimer",
     "InterruptRecorder",
     "ModelSummary",
     "RotationRegressor",
+    "RunCheckpointIO",
     "RunRecords",
     "TemperatureScaling",
     "barely_learned",
