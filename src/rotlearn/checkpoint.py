@@ -230,7 +230,8 @@ class SavedRun:
         with torch.device("meta"):
             module = self._instantiate(key)
         expected = module.state_dict() if isinstance(module, torch.nn.Module) else {}
-        check_weights(expected, self._stored(key, prefix), f"{self.path}: {key}")
+        named = key if prefix is None else prefix
+        check_weights(expected, self._stored(key, prefix), str(self.path), named)
 
     def build(self, key: str, prefix: str | None = None) -> Any:
         """Instantiate the config node `key` (e.g. "net", "rep"), after checking on the meta
@@ -263,22 +264,26 @@ def _listed(names: list[str], limit: int = 6) -> str:
     return ", ".join(names[:limit]) + more
 
 
-def check_weights(expected: dict[str, Tensor], stored: dict[str, Tensor], where: str) -> None:
+def check_weights(
+    expected: dict[str, Tensor], stored: dict[str, Tensor], where: str, prefix: str = ""
+) -> None:
     """Check stored weights against a module's state_dict (built on the meta device).
 
     Args:
         expected: name -> tensor of the module the weights are for (only shapes and dtypes
             are read).
         stored: name -> tensor read from a checkpoint.
-        where: the checkpoint and node, for messages.
+        where: the checkpoint, for messages.
+        prefix: the module's name in the checkpoint ("net"), prefixed to names in messages.
 
     Raises:
         ValueError: naming `where` and the first names at fault: missing or unexpected names,
             another shape, a floating tensor stored as integers or bools (or the reverse), or
             a floating weight that is NaN or infinite in the module's dtype.
     """
-    missing = sorted(set(expected) - set(stored))
-    unexpected = sorted(set(stored) - set(expected))
+    full = (lambda name: f"{prefix}.{name}") if prefix else (lambda name: name)
+    missing = sorted(map(full, set(expected) - set(stored)))
+    unexpected = sorted(map(full, set(stored) - set(expected)))
     if missing or unexpected:
         parts = [f"missing {_listed(missing)}" if missing else "",
                  f"unexpected {_listed(unexpected)}" if unexpected else ""]  # fmt: skip
@@ -290,15 +295,17 @@ def check_weights(expected: dict[str, Tensor], stored: dict[str, Tensor], where:
         have = stored[name]
         if tuple(have.shape) != tuple(want.shape):
             raise ValueError(
-                f"{where}: weight {name} is stored with shape {tuple(have.shape)}, but the saved "
-                f"config builds {tuple(want.shape)}"
+                f"{where}: weight {full(name)} is stored with shape {tuple(have.shape)}, but the "
+                f"saved config builds {tuple(want.shape)}"
             )
         if want.is_floating_point() != have.is_floating_point() or have.is_complex():
             kind = "floating point" if want.is_floating_point() else str(want.dtype)
-            raise ValueError(f"{where}: weight {name} is stored as {have.dtype}; it must be {kind}")
+            raise ValueError(
+                f"{where}: weight {full(name)} is stored as {have.dtype}; it must be {kind}"
+            )
         if want.is_floating_point() and not bool(torch.isfinite(have.to(want.dtype)).all()):
             raise ValueError(
-                f"{where}: weight {name} holds NaN or infinite values (in {want.dtype})"
+                f"{where}: weight {full(name)} holds NaN or infinite values (in {want.dtype})"
             )
 
 

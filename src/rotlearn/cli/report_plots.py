@@ -38,11 +38,15 @@ CURVE_METRICS = ["train/err_mean", "val/err_mean"]
 def _curves(run: Path, tag: str) -> np.ndarray | None:
     """Per-epoch values of a scalar, from the run's CSV log or else its TensorBoard events."""
     csv = run / "csv" / "metrics.csv"
-    if csv.is_file():
-        frame = read_table(csv, root=run)
-        if tag in frame:
-            values = frame.dropna(subset=[tag]).groupby("epoch")[tag].last()
-            return values.to_numpy(dtype=float)
+    frame = None
+    if os.path.lexists(csv):
+        try:
+            frame = read_table(csv, root=run)
+        except (OSError, ValueError) as exc:
+            log.warning("%s (ignored)", exc)
+    if frame is not None and tag in frame:
+        values = frame.dropna(subset=[tag]).groupby("epoch")[tag].last()
+        return values.to_numpy(dtype=float)
     events = run / "tensorboard"
     if events.is_dir() and _readable_events(events, run):
         from tensorboard.backend.event_processing.event_accumulator import EventAccumulator

@@ -34,7 +34,7 @@ from lightning.fabric.plugins.environments import SLURMEnvironment
 from omegaconf import DictConfig
 
 from rotlearn.checkpoint import UnsafeCheckpointError, load_checkpoint, resolve_checkpoint
-from rotlearn.cli.replay import quoted, saved_overrides
+from rotlearn.cli.replay import quoted, replayed_config, saved_overrides
 from rotlearn.cli.rundir import check_placement, check_run_tree, user_keys
 from rotlearn.errors import ConfigError
 from rotlearn.io import UnreadableFileError, read_bytes, read_record, write_bytes_atomic
@@ -188,7 +188,8 @@ def _checkpoint_of(value: str, runs_root: Path) -> Path:
 def _saved_overrides(run_dir: Path) -> list[str]:
     """The run's own command-line overrides, read from `<run_dir>/.hydra/overrides.yaml`
     (without its ckpt_path): the settings a resume continues with. The run directory is untrusted
-    data: they pass the allowlist gate (`rotlearn.cli.replay.saved_overrides`) first."""
+    data: they are read bounded and parsed (`rotlearn.cli.replay.saved_overrides`), and composed
+    and checked against the allowlist with the new overrides (`replay.replayed_config`)."""
     try:
         return [o for o in saved_overrides(run_dir) if not o.startswith("ckpt_path=")]
     except (FileNotFoundError, UntrustedConfigError) as exc:
@@ -219,25 +220,6 @@ def _refuse_rewriting_a_completed_run(run_dir: Path, previous: list[str], new: l
         raise _refuse(f"{head}{given}; {longer}, above {done}")
 
 
-def _compose(args: list[str], run_dir: Path) -> DictConfig:
-    """The config Hydra will run for `args` in `run_dir`: the same overrides (Hydra's own keys
-    aside), `paths.output_dir` resolved as Hydra resolves it (the run directory) unless an
-    override sets it."""
-    from hydra import compose, initialize_config_dir
-
-    import rotlearn.cli.resolvers  # noqa: F401  (the configs' own resolvers)
-    import rotlearn.cli.schemas  # noqa: F401  (registers the schemas the configs compose from)
-    from rotlearn.paths import config_dir
-
-    overrides = [a for a in args if not a.lstrip("+~").startswith(("hydra.", "hydra/"))]
-    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
-        cfg = compose("train", overrides)
-    node = cfg.paths._get_node("output_dir")
-    if node is not None and node._value() == "${hydra:runtime.output_dir}":
-        cfg.paths.output_dir = str(run_dir)
-    return cfg
-
-
 def _model_checkpoints(cfg: DictConfig) -> list:
     """The run's checkpoint callbacks, built from the (validated) config: they build nothing
     on disk, and know the state key and folder of their saved state."""
@@ -251,18 +233,22 @@ def _model_checkpoints(cfg: DictConfig) -> list:
 
 
 def _check_the_config_that_runs(run_dir: Path, args: list[str], new: list[str], ckpt: Path) -> None:
-    """Compose the resumed run's config exactly as Hydra will, then validate it, check that it
-    writes only inside the run, and that the checkpoint and its callbacks' states are sound."""
+    """Compose the resumed run's config exactly as Hydra will and check it against the allowlist
+    (`replay.replayed_config`), then validate it, check that it writes only inside the run, and
+    that the checkpoint and its callbacks' states are sound."""
     from rotlearn.cli.schemas import validate
     from rotlearn.lit.boundary import checked_checkpoint_states
 
     try:
-        cfg = _compose(args, run_dir)
+        cfg = replayed_config(args, run_dir)
+    except UntrustedConfigError as exc:
+        raise _refuse(f"ckpt_path: {exc}") from None
+    try:
         validate(cfg)
         check_placement(cfg, run_dir, trusted=user_keys(new))
         checkpoint = load_checkpoint(ckpt)
         checked_checkpoint_states(checkpoint, _model_checkpoints(cfg), run_dir, ckpt)
-    except (ConfigError, UnsafeCheckpointError) as exc:
+    except (ConfigError, UnsafeCheckpointError, UnreadableFileError) as exc:
         raise _refuse(f"refusing to resume {run_dir}: {exc}") from None
     except Exception as exc:  # a config that does not compose or build: nothing was written
         reason = str(exc).strip().splitlines()
@@ -299,6 +285,11 @@ def plan_resume(argv: list[str], runs_root: Path = Path("outputs/runs")) -> Resu
         raise _refuse("ckpt_path resumes one run; it cannot be used with -m")
     ckpt = _checkpoint_of(values[-1], runs_root)
     run_dir = run_of(ckpt).resolve()
+    if "${" in str(ckpt.resolve()):
+        raise _refuse(
+            f"cannot resume {run_dir}: Hydra reads '${{' in a run directory's path as an "
+            "interpolation, even quoted (its runtime.output_dir); rename the folder without '${'"
+        )
     new = [a for a in argv if not a.startswith("ckpt_path=")]
     try:
         check_run_tree(run_dir)

@@ -14,8 +14,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -175,10 +176,9 @@ def check_placement(
 def compose_command_line(argv: list[str], config_name: str) -> DictConfig | None:
     """The config of a command line with its Hydra node (`return_hydra_config`), sweeps left
     out, as Hydra would compose it; None where it does not compose (Hydra reports that itself,
-    before writing anything). `hydra:` interpolations resolve against it."""
+    before writing anything)."""
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
-    from hydra.core.hydra_config import HydraConfig
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
@@ -194,8 +194,22 @@ def compose_command_line(argv: list[str], config_name: str) -> DictConfig | None
             cfg = compose(config_name, overrides, return_hydra_config=True)
     except (HydraException, OmegaConfBaseException):
         return None
-    HydraConfig.instance().set_config(cfg)
     return cfg
+
+
+@contextlib.contextmanager
+def _hydra_config(cfg: DictConfig) -> Iterator[None]:
+    """`hydra:` interpolations resolve against `cfg` inside the block (Hydra's own global is
+    restored after it)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    holder = HydraConfig.instance()
+    previous = holder.cfg
+    holder.set_config(cfg)
+    try:
+        yield
+    finally:
+        holder.cfg = previous
 
 
 def _non_empty(path: Path) -> bool:
@@ -226,7 +240,8 @@ def refuse_an_existing_output_dir(
     if cfg is None:
         return None
     multirun = "-m" in argv or "--multirun" in argv or cfg.hydra.mode == RunMode.MULTIRUN
-    folder = Path(cfg.hydra.sweep.dir if multirun else cfg.hydra.run.dir)
+    with _hydra_config(cfg):
+        folder = Path(cfg.hydra.sweep.dir if multirun else cfg.hydra.run.dir)
     if _non_empty(folder) and not allow:
         what = "sweep" if multirun else "run"
         hint = "" if multirun else f" (to continue the run in it: {prog} ckpt_path={folder})"

@@ -150,8 +150,7 @@ def image_size(path: str | os.PathLike) -> tuple[int, int, str]:
                 return int(size[0]), int(size[1]), name
     known = ", ".join(_READERS)
     raise ValueError(
-        f"{path}: cannot be read as an image: no {known} header (empty, damaged, or another "
-        "format)"
+        f"{path}: cannot be read as an image: no {known} header (empty, damaged, or another format)"
     )
 
 

@@ -6,9 +6,11 @@ the "old best" file they name; its check that the file lies in the checkpoint fo
 normalise `..`. A checkpoint is data someone may have sent, so:
 
 - `checked_checkpoint_states` (called before anything is built, and again by `CheckpointStateGuard`
-  while the checkpoint is restored) accepts only paths that name a `.ckpt` file directly in the
-  folder the state was saved from, and rebases them into the callback's own folder (a copied or
-  moved run keeps its best checkpoint); any other path refuses the checkpoint, naming it.
+  while the checkpoint is restored) accepts only paths that name a file the callback itself
+  writes (its `filename` template, or `last` for `last_model_path`, with the `.ckpt` extension)
+  directly in the folder the state was saved from, and rebases them into the callback's own
+  folder (a copied or moved run keeps its best checkpoint); any other path refuses the
+  checkpoint, naming it.
 - `RunCheckpointIO`, the trainer's checkpoint I/O, writes checkpoints durably (a temporary file
   beside the target, fsynced, renamed: a full disk leaves the previous `last.ckpt` whole and
   loadable), reads them through rotlearn's bounded loader (`rotlearn.checkpoint.load_checkpoint`:
@@ -19,6 +21,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
@@ -49,8 +52,20 @@ def _score(value: Any) -> bool:
     return value is None or (isinstance(value, int | float) and not isinstance(value, bool))
 
 
-def _rebased(state: dict[str, Any], dirpath: Path, run: Path, where: str) -> dict[str, Any]:
-    """A `ModelCheckpoint` state whose paths name files in `dirpath` (see module docstring)."""
+def _name_pattern(template: str, extension: str) -> re.Pattern:
+    """The file names a `ModelCheckpoint` writes from a filename template (`{epoch}` and the
+    like: anything; Lightning's `-v<n>` version suffix; the extension)."""
+    parts = re.split(r"(\{[^}]*\})", template)
+    body = "".join(".+" if p.startswith("{") else re.escape(p) for p in parts)
+    return re.compile(body + r"(-v\d+)?" + re.escape(extension))
+
+
+def _rebased(state: dict[str, Any], callback: ModelCheckpoint, run: Path, where: str) -> dict:
+    """A `ModelCheckpoint` state whose paths name files of `callback` (module docstring)."""
+    dirpath = Path(callback.dirpath or run / "checkpoints")
+    extension = callback.FILE_EXTENSION
+    own = {"last_model_path": _name_pattern(callback.CHECKPOINT_NAME_LAST, extension)}
+    default = _name_pattern(callback.filename or "{epoch}-{step}", extension)
     saved_dir = state.get("dirpath")
     if saved_dir is not None and not isinstance(saved_dir, str):
         raise UnsafeCheckpointError(f"{where}: dirpath must be a path, got {saved_dir!r}")
@@ -62,11 +77,12 @@ def _rebased(state: dict[str, Any], dirpath: Path, run: Path, where: str) -> dic
         if path == "":
             return ""
         name = os.path.relpath(os.path.normpath(os.path.abspath(path)), base)
-        if "://" in path or name.startswith("..") or os.sep in name or not name.endswith(".ckpt"):
+        ours = own.get(key, default).fullmatch(name)
+        if "://" in path or name.startswith("..") or os.sep in name or not ours:
             raise UnsafeCheckpointError(
-                f"{where}: {key} names {path!r}, which is not a .ckpt file in the state's own "
-                f"checkpoint folder {base}; refusing the checkpoint (Lightning would load or "
-                "delete that file)"
+                f"{where}: {key} names {path!r}, which is not a file this callback writes in "
+                f"the state's own checkpoint folder {base}; refusing the checkpoint (Lightning "
+                "would load or delete that file)"
             )
         target = dirpath / name
         real = Path(os.path.realpath(target))
@@ -122,8 +138,7 @@ def checked_checkpoint_states(
         here = f"{where}: the {type(callback).__name__} state (monitor {callback.monitor})"
         if not isinstance(state, dict):
             raise UnsafeCheckpointError(f"{here} must be a mapping")
-        dirpath = Path(callback.dirpath or Path(run_dir) / "checkpoints")
-        states[callback.state_key] = _rebased(state, dirpath, run, here)
+        states[callback.state_key] = _rebased(state, callback, run, here)
     return checkpoint
 
 
