@@ -225,6 +225,7 @@ def test_thresholds_beside_the_checkpoint_give_keep_flags(trained_runs, tmp_path
         ('{"score": "dt", "threshold": "1", "q": 0.5}', "threshold must be a finite number"),
         ('{"score": "dt", "threshold": true, "q": 0.5}', "threshold must be a finite number"),
         ('{"score": "dt", "threshold": 1.0, "q": 2}', r"q must lie in \[0, 1\]"),
+        ('{"score": "dt", "threshold": -1e300, "q": 0.5}', "within float32's range"),
         ('{"score": "dt", "threshold": 1.0}', r"must be \{score: str, threshold: number"),
         ('{"score": "dt", "threshold": 1.0, "q": 0.5, "x": 1}', r"got \['q', 'score'"),
         ('["dt", 1.0, 0.5]', "got list"),

@@ -350,6 +350,12 @@ def _check_ood(ood: Any, path: Path, what: str) -> dict[str, Any]:
             raise ValueError(f"{path}: {what}'s {key} must be a finite number, got {ood[key]!r}")
     if not 0.0 <= ood["q"] <= 1.0:
         raise ValueError(f"{path}: {what}'s q must lie in [0, 1], got {ood['q']!r}")
+    largest = float(torch.finfo(torch.float32).max)  # scores are compared in float32
+    if not -largest <= ood["threshold"] <= largest:
+        raise ValueError(
+            f"{path}: {what}'s threshold must lie within float32's range (|t| <= {largest:.3g}), "
+            f"got {ood['threshold']!r}"
+        )
     return {"score": ood["score"], "threshold": float(ood["threshold"]), "q": float(ood["q"])}
 
 

@@ -397,7 +397,7 @@ def test_two_resumes_of_one_run_exactly_one_trains(tmp_path, finished_run):
     """The second resume starts while the first trains: it is refused in one line naming the
     first's pid; the first completes; one new history folder, none half-made."""
     run = copy_run(finished_run, tmp_path / "outputs" / "runs" / NAME, resumable=True)
-    longer = ["trainer.max_epochs=4", "data.batches_per_epoch=40"]  # a few seconds of training
+    longer = ["trainer.max_epochs=3", "data.batches_per_epoch=30"]  # a few seconds of training
     first = start_cli([f"ckpt_path={run}", *longer], tmp_path)
     deadline = time.monotonic() + 120
     lock = run / ".rotlearn.lock"
@@ -416,7 +416,7 @@ def test_two_resumes_of_one_run_exactly_one_trains(tmp_path, finished_run):
     lines = second.stderr.strip().splitlines()
     assert len(lines) == 1 and f"in use by pid {first.pid}" in lines[0], second.stderr
     assert sorted(p.name for p in (run / "history").iterdir()) == ["1"]
-    assert json.loads((run / "metrics.json").read_text())["epochs"] == 4
+    assert json.loads((run / "metrics.json").read_text())["epochs"] == 3
 
 
 # ---- 7. a full disk -------------------------------------------------------------------------
@@ -469,3 +469,36 @@ def test_a_full_disk_fails_the_run_and_keeps_the_last_checkpoint(tmp_path, finis
     assert load_checkpoint(run / "checkpoints" / "last.ckpt")["epoch"] == 0
     assert [p.name for p in (run / "checkpoints").iterdir() if p.name.endswith(".tmp")] == []
     assert list(mnt.iterdir()) == []  # the tmpfs was private to the namespace
+
+
+def _weights(edit):
+    def craft(received):
+        checkpoint = torch.load(received.ckpt, weights_only=True)
+        edit(checkpoint["state_dict"])
+        torch.save(checkpoint, received.ckpt)
+
+    return craft
+
+
+WEIGHT_ATTACKS = {
+    "a missing weight": (_weights(lambda w: w.pop(sorted(w)[0])), "missing net."),
+    "an extra weight": (_weights(lambda w: w.update(extra=torch.ones(2))), "unexpected extra"),
+    "integer weights": (
+        _weights(lambda w: w.update({k: v.long() for k, v in w.items()})),
+        "is stored as torch.int64; it must be floating point",
+    ),
+    "another shape": (
+        _weights(lambda w: w.update({k: torch.ones(3) for k in sorted(w)[:1]})),
+        "is stored with shape (3,)",
+    ),
+}
+
+
+@pytest.mark.parametrize("attack", sorted(WEIGHT_ATTACKS))
+def test_weights_that_do_not_fit_the_run_are_refused_before_training(received, attack):
+    """Lightning's own load would fail midway with a RuntimeError traceback, or cast silently."""
+    craft, expected = WEIGHT_ATTACKS[attack]
+    craft(received)
+    received.snapshot()
+    message = refused(received)
+    assert expected in message and str(received.ckpt) in message

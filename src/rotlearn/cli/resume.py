@@ -33,7 +33,12 @@ from pathlib import Path
 from lightning.fabric.plugins.environments import SLURMEnvironment
 from omegaconf import DictConfig
 
-from rotlearn.checkpoint import UnsafeCheckpointError, load_checkpoint, resolve_checkpoint
+from rotlearn.checkpoint import (
+    UnsafeCheckpointError,
+    check_weights,
+    load_checkpoint,
+    resolve_checkpoint,
+)
 from rotlearn.cli.replay import quoted, replayed_config, saved_overrides
 from rotlearn.cli.rundir import check_placement, check_run_tree, user_keys
 from rotlearn.errors import ConfigError
@@ -232,6 +237,29 @@ def _model_checkpoints(cfg: DictConfig) -> list:
     return [cb for cb in built if isinstance(cb, ModelCheckpoint)]
 
 
+def _check_the_weights(cfg: DictConfig, checkpoint: dict, ckpt: Path) -> None:
+    """The checkpoint's weights fit the model the config builds (built on the meta device:
+    nothing allocated): names, shapes, floating point, finite (`rotlearn.checkpoint.check_weights`).
+
+    Raises:
+        UnsafeCheckpointError: naming the checkpoint and the weights at fault.
+    """
+    import torch
+    from hydra.utils import instantiate
+
+    state_dict = checkpoint.get("state_dict")
+    if not isinstance(state_dict, dict) or not all(
+        isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in state_dict.items()
+    ):
+        raise UnsafeCheckpointError(f"{ckpt}: state_dict must map names to tensors")
+    with torch.device("meta"):
+        model = instantiate(cfg.model)
+    try:
+        check_weights(model.state_dict(), state_dict, str(ckpt))
+    except ValueError as exc:
+        raise UnsafeCheckpointError(str(exc)) from None
+
+
 def _check_the_config_that_runs(run_dir: Path, args: list[str], new: list[str], ckpt: Path) -> None:
     """Compose the resumed run's config exactly as Hydra will and check it against the allowlist
     (`replay.replayed_config`), then validate it, check that it writes only inside the run, and
@@ -248,6 +276,7 @@ def _check_the_config_that_runs(run_dir: Path, args: list[str], new: list[str], 
         check_placement(cfg, run_dir, trusted=user_keys(new))
         checkpoint = load_checkpoint(ckpt)
         checked_checkpoint_states(checkpoint, _model_checkpoints(cfg), run_dir, ckpt)
+        _check_the_weights(cfg, checkpoint, ckpt)
     except (ConfigError, UnsafeCheckpointError, UnreadableFileError) as exc:
         raise _refuse(f"refusing to resume {run_dir}: {exc}") from None
     except Exception as exc:  # a config that does not compose or build: nothing was written
