@@ -98,6 +98,18 @@ def copy_run(source: Path, target: Path, resumable: bool = False) -> Path:
     return target
 
 
+def model_checkpoint(path: Path, overrides: Sequence[str] = ()) -> Path:
+    """A checkpoint at `path` holding the weights of the model the train config with
+    `overrides` builds (epoch 0, no training): what a resume checks a run's last.ckpt against."""
+    from hydra.utils import instantiate
+
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        cfg = compose("train", ["paths.output_dir=.", *overrides])
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save({"epoch": 0, "state_dict": instantiate(cfg.model).state_dict()}, path)
+    return path
+
+
 def tree_hashes(root: Path, skip: Path | None = None) -> dict[str, str]:
     """sha256 of every file below `root` (symlinks as their target's name, folders as "dir"),
     by relative path; `skip` (a folder below `root`) left out."""

@@ -9,10 +9,9 @@ import time
 from pathlib import Path
 
 import pytest
-import torch
 
 from rotlearn.cli.resume import keep_earlier_records, resume_arguments
-from tests.conftest import RESUMABLE, SMALL_NET, checkpoint_epoch, start_cli
+from tests.conftest import RESUMABLE, SMALL_NET, checkpoint_epoch, model_checkpoint, start_cli
 
 
 def test_sigkill_then_resume_matches_an_uninterrupted_run(tmp_path):
@@ -45,7 +44,7 @@ def test_sigkill_then_resume_matches_an_uninterrupted_run(tmp_path):
 def _fake_run(root: Path, name: str, overrides: list[str]) -> Path:
     run = root / name
     (run / "checkpoints").mkdir(parents=True)
-    torch.save({"epoch": 0, "state_dict": {}}, run / "checkpoints" / "last.ckpt")
+    model_checkpoint(run / "checkpoints" / "last.ckpt", overrides)
     (run / ".hydra").mkdir()
     (run / ".hydra" / "overrides.yaml").write_text("".join(f"- {o}\n" for o in overrides))
     return run

@@ -328,7 +328,9 @@ def plan_resume(argv: list[str], runs_root: Path = Path("outputs/runs")) -> Resu
         args = [*previous, *new, f"ckpt_path={quoted(str(ckpt.resolve()))}",
                 f"hydra.run.dir={quoted(str(run_dir))}"]  # fmt: skip
         _check_the_config_that_runs(run_dir, args, new, ckpt.resolve())
-    except (RunLockedError, UnreadableFileError) as exc:
+    except RunLockedError as exc:
+        raise _refuse(f"refusing to resume: {exc}") from None
+    except UnreadableFileError as exc:
         raise _refuse(f"refusing to resume {run_dir}: {exc}") from None
     except SystemExit:
         _refuse_if_in_use(run_dir)  # a resume in another process may be changing the run
@@ -345,7 +347,7 @@ def _refuse_if_in_use(run_dir: Path) -> None:
     try:
         check_free(run_dir)
     except RunLockedError as exc:
-        raise _refuse(f"refusing to resume {run_dir}: {exc}") from None
+        raise _refuse(f"refusing to resume: {exc}") from None
 
 
 def resume_arguments(argv: list[str], runs_root: Path = Path("outputs/runs")) -> list[str]:

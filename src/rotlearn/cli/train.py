@@ -124,11 +124,10 @@ def main() -> float | None:
         return None
     from rotlearn.cli.rundir import is_child_rank
 
-    if not is_child_rank():
-        _refuse_a_run_in_use(argv)
-    import rotlearn.cli.schemas  # noqa: F401  (registers the schemas the config composes from)
-
     if not is_child_rank():  # another rank repeats rank 0's command line, already checked
+        _refuse_a_run_in_use(argv)
+        import rotlearn.cli.schemas  # noqa: F401  (registers the schemas the config composes from)
+
         sys.argv[1:] = _checked_command_line(argv)
     return _hydra_main()
 
@@ -141,18 +140,13 @@ def _refuse_a_run_in_use(argv: list[str]) -> None:
     values = [a.split("=", 1)[1] for a in argv if a.startswith("ckpt_path=")]
     if not values or values[-1] in ("", "null", "None", "last"):
         return
-    path = Path(values[-1])
-    run = (
-        path
-        if path.is_dir()
-        else path.parent.parent
-        if path.parent.name == "checkpoints"
-        else path.parent
-    )
+    run = Path(values[-1])
+    if not run.is_dir():  # a checkpoint file: <run>/checkpoints/<name>.ckpt, or beside it
+        run = run.parent.parent if run.parent.name == "checkpoints" else run.parent
     try:
         check_free(run)
     except RunLockedError as exc:
-        raise SystemExit(f"rotlearn-train: refusing to resume {run.resolve()}: {exc}") from None
+        raise SystemExit(f"rotlearn-train: refusing to resume: {exc}") from None
 
 
 def _checked_command_line(argv: list[str]) -> list[str]:
@@ -168,7 +162,9 @@ def _checked_command_line(argv: list[str]) -> list[str]:
         return argv
     try:
         hold_run(plan.run_dir)  # until this process ends
-    except (RunLockedError, ValueError) as exc:
+    except RunLockedError as exc:
+        raise SystemExit(f"rotlearn-train: refusing to resume: {exc}") from None
+    except ValueError as exc:  # the lock file is a symlink or not a regular file
         raise SystemExit(f"rotlearn-train: refusing to resume {plan.run_dir}: {exc}") from None
     kept = keep_earlier_records(plan.run_dir)
     if kept is not None:
