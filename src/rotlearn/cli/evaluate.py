@@ -129,8 +129,8 @@ def main() -> float:
     from rotlearn.cli.rundir import is_child_rank, refuse_an_existing_output_dir
 
     argv = sys.argv[1:]
-    if not is_child_rank() and not any(a.startswith("-") and a not in ("-m", "--multirun")
-                                       for a in argv):  # fmt: skip
+    flags = [a for a in argv if a.startswith("-") and a not in ("-m", "--multirun")]
+    if not is_child_rank() and not flags:  # --cfg, --help and the like write nothing
         refuse_an_existing_output_dir(argv, "eval", "rotlearn-eval")
     return _hydra_main()
 

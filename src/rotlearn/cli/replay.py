@@ -110,8 +110,9 @@ def replayed_config(args: list[str], run_dir: str | Path, config_name: str = "tr
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
-    import rotlearn.cli.resolvers
+    import rotlearn.cli.resolvers  # the configs' own resolvers
     import rotlearn.cli.schemas  # noqa: F401  (registers the schemas the configs compose from)
+    from rotlearn.cli.rundir import place_output_dir
 
     source = Path(run_dir) / ".hydra" / "overrides.yaml"
     overrides = [a for a in args if not a.lstrip("+~").startswith(("hydra.", "hydra/"))]
@@ -120,8 +121,6 @@ def replayed_config(args: list[str], run_dir: str | Path, config_name: str = "tr
             cfg = compose(config_name=config_name, overrides=overrides)
     except (HydraException, OmegaConfBaseException) as exc:
         raise UntrustedConfigError(f"{source}: the overrides do not compose: {exc}") from None
-    node = cfg.paths._get_node("output_dir") if "paths" in cfg else None
-    if node is not None and node._value() == "${hydra:runtime.output_dir}":
-        cfg.paths.output_dir = str(run_dir)
+    place_output_dir(cfg, run_dir)
     trusted_config(cfg, source)  # resolved and walked; nothing is built from a refused config
     return cfg

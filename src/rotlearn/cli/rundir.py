@@ -31,6 +31,7 @@ __all__ = [
     "compose_command_line",
     "is_child_rank",
     "output_paths",
+    "place_output_dir",
     "refuse_an_existing_output_dir",
     "user_keys",
 ]
@@ -249,9 +250,16 @@ def refuse_an_existing_output_dir(
             f"{prog}: {folder} already exists and is not empty; a new {what} never writes into "
             f"an existing directory{hint}; nothing was written"
         )
-    if multirun:
-        return cfg
+    if not multirun:
+        place_output_dir(cfg, folder.absolute())
+    return cfg
+
+
+def place_output_dir(cfg: DictConfig, run_dir: str | os.PathLike) -> DictConfig:
+    """Set `paths.output_dir` as Hydra will resolve it when the run starts in `run_dir` (its
+    default, `${hydra:runtime.output_dir}`, only resolves inside a running Hydra app); a value
+    an override set is left as it is. Returns `cfg`, changed in place."""
     node = cfg.paths._get_node("output_dir") if "paths" in cfg else None
     if node is not None and node._value() == "${hydra:runtime.output_dir}":
-        cfg.paths.output_dir = str(folder.absolute())
+        cfg.paths.output_dir = str(run_dir)
     return cfg
