@@ -103,6 +103,8 @@ def model_checkpoint(path: Path, overrides: Sequence[str] = ()) -> Path:
     `overrides` builds (epoch 0, no training): what a resume checks a run's last.ckpt against."""
     from hydra.utils import instantiate
 
+    import rotlearn.cli.schemas  # noqa: F401  (registers the schemas the config composes from)
+
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         cfg = compose("train", ["paths.output_dir=.", *overrides])
     path.parent.mkdir(parents=True, exist_ok=True)

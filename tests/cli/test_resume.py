@@ -11,7 +11,14 @@ from pathlib import Path
 import pytest
 
 from rotlearn.cli.resume import keep_earlier_records, resume_arguments
-from tests.conftest import RESUMABLE, SMALL_NET, checkpoint_epoch, model_checkpoint, start_cli
+from tests.conftest import (
+    RESUMABLE,
+    SMALL_NET,
+    checkpoint_epoch,
+    copy_run,
+    model_checkpoint,
+    start_cli,
+)
 
 
 def test_sigkill_then_resume_matches_an_uninterrupted_run(tmp_path):
@@ -92,9 +99,6 @@ def test_a_finished_run_is_not_resumed(make_cfg):
 
 # --- issue 13: a refused resume changes nothing; a completed run only trains longer -----------
 
-ONE_EPOCH = ["data=tiny", "trainer.max_epochs=1", "trainer.enable_progress_bar=false",
-             "logger=csv", *SMALL_NET]  # fmt: skip
-
 
 def _hashes(run: Path) -> dict[str, str]:
     """sha256 of every file below `run`, by relative path."""
@@ -105,19 +109,18 @@ def _hashes(run: Path) -> dict[str, str]:
     }
 
 
-def _completed_run(cwd: Path, name: str) -> Path:
-    """A finished one-epoch run, made by the CLI in `<cwd>/outputs/runs/<name>`."""
-    run = cwd / "outputs" / "runs" / name
-    job = start_cli([*ONE_EPOCH, f"hydra.run.dir={run}"], cwd)
-    assert job.wait(timeout=300) == 0, job.stderr.read()
+def _completed_run(finished_run: Path, cwd: Path, name: str) -> Path:
+    """A finished one-epoch run made by the CLI (the session's, copied) in
+    `<cwd>/outputs/runs/<name>`."""
+    run = copy_run(finished_run, cwd / "outputs" / "runs" / name)
     assert json.loads((run / "status.json").read_text())["status"] == "COMPLETED"
     return run
 
 
 @pytest.fixture(scope="module")
-def completed(tmp_path_factory) -> Path:
+def completed(tmp_path_factory, finished_run) -> Path:
     cwd = tmp_path_factory.mktemp("completed")
-    _completed_run(cwd, "2026-01-02_00-00-00-000000")
+    _completed_run(finished_run, cwd, "2026-01-02_00-00-00-000000")
     return cwd
 
 
@@ -166,8 +169,8 @@ def test_ckpt_path_last_skips_completed_runs_and_names_its_pick(tmp_path, capsys
     assert f"resuming {older}" in said and "skipped 1 newer COMPLETED" in said
 
 
-def test_a_completed_run_trains_longer_and_keeps_its_earlier_records(tmp_path):
-    run = _completed_run(tmp_path, "2026-01-03_00-00-00-000000")
+def test_a_completed_run_trains_longer_and_keeps_its_earlier_records(tmp_path, finished_run):
+    run = _completed_run(finished_run, tmp_path, "2026-01-03_00-00-00-000000")
     records = ["metrics.json", "status.json", "timing.json", "test_errors.json",
                ".hydra/config.yaml", ".hydra/overrides.yaml", ".hydra/hydra.yaml"]  # fmt: skip
     before = {name: (run / name).read_bytes() for name in records}

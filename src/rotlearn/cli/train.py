@@ -160,6 +160,8 @@ def _checked_command_line(argv: list[str]) -> list[str]:
     if plan is None:
         _refuse_an_invalid_new_run(argv)
         return argv
+    if any(a.startswith("-") for a in argv):  # --cfg, --info: Hydra shows, nothing trains
+        return plan.args
     try:
         hold_run(plan.run_dir)  # until this process ends
     except RunLockedError as exc:
