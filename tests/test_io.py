@@ -1,6 +1,6 @@
 """rotlearn.io: bounded reads (regular files only, a size cap per kind, depth limits, no YAML
-aliases) and durable writes (temp file beside the target, fsync, rename; the umask's mode; a
-failed write leaves the previous file)."""
+aliases) and the one atomic write: whole or nothing, durable (temp file beside the target, fsync,
+rename), the mode the umask allows, a failed write naming the file and leaving the previous one."""
 
 from __future__ import annotations
 
@@ -8,19 +8,23 @@ import errno
 import os
 import stat
 
+import numpy as np
 import pytest
+import torch
 
 from rotlearn import io
 from rotlearn.io import (
     MAX_BYTES,
     UnreadableFileError,
     WriteError,
+    atomic_write,
     read_bytes,
     read_json,
     read_record,
     read_yaml,
     rewrite_in_place,
     write_bytes_atomic,
+    write_json_atomic,
     write_text_atomic,
 )
 from tests.conftest import within
@@ -126,17 +130,6 @@ def test_genuine_yaml_reads(tmp_path):
 # ---- durable writes -----------------------------------------------------------------------------
 
 
-def test_writes_follow_the_umask(tmp_path):
-    previous = os.umask(0o022)
-    try:
-        path = write_text_atomic(tmp_path / "a" / "record.json", "{}")
-        assert stat.S_IMODE(path.stat().st_mode) == 0o644
-        os.umask(0o077)
-        assert stat.S_IMODE(write_text_atomic(tmp_path / "b.json", "{}").stat().st_mode) == 0o600
-    finally:
-        os.umask(previous)
-
-
 def test_a_symlink_at_the_target_is_replaced_not_written_through(tmp_path):
     victim = tmp_path / "victim.txt"
     victim.write_text("precious\n")
@@ -176,3 +169,45 @@ def test_rewrite_in_place_reuses_the_files_blocks(tmp_path):
     link.symlink_to(path)
     with pytest.raises(WriteError):
         rewrite_in_place(link, b"{}")  # never written through a symlink
+
+
+@pytest.fixture
+def umask():
+    """Set the process umask for a test, restored afterwards."""
+    old = os.umask(0o022)
+    os.umask(old)
+    yield lambda mask: os.umask(mask)
+    os.umask(old)
+
+
+@pytest.mark.parametrize("mask", [0o022, 0o027, 0o077])
+def test_every_kind_of_writer_creates_the_mode_the_umask_allows(tmp_path, umask, mask):
+    umask(mask)
+    write_text_atomic(tmp_path / "a.md", "text")
+    write_json_atomic(tmp_path / "b.json", {"x": 1})
+    with atomic_write(tmp_path / "c.npy") as tmp:
+        np.save(tmp, np.arange(3))
+    with atomic_write(tmp_path / "d.ckpt") as tmp:
+        torch.save({"w": torch.ones(2)}, tmp)
+    with atomic_write(tmp_path / "e.npy") as tmp:
+        array = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=(2, 2))
+        array[:] = 7
+        array.flush()
+        del array
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.md", "b.json", "c.npy", "d.ckpt",
+                                                          "e.npy"]  # fmt: skip
+    for path in tmp_path.iterdir():
+        assert stat.S_IMODE(path.stat().st_mode) == 0o666 & ~mask, path.name
+    assert np.load(tmp_path / "c.npy").tolist() == [0, 1, 2]
+    assert np.load(tmp_path / "e.npy").sum() == 28
+
+
+def test_a_failed_write_leaves_the_old_file_and_no_temporary(tmp_path):
+    path = write_text_atomic(tmp_path / "metrics.json", "old")
+    with pytest.raises(RuntimeError, match="disk full"), atomic_write(path) as tmp:
+        tmp.write_text("half")
+        raise RuntimeError("disk full")
+    assert path.read_text() == "old"
+    assert [p.name for p in tmp_path.iterdir()] == ["metrics.json"]
+    write_text_atomic(path, "new")
+    assert path.read_text() == "new" and len(list(tmp_path.iterdir())) == 1

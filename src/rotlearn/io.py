@@ -2,7 +2,14 @@
 kind of file, YAML without aliases, JSON and YAML with a depth limit), durable writes (a reader
 sees the old file or the whole new one, never a part, also after a crash or a full disk), reading
 rows of numbers with errors that name the file and line, and the checks every dataset reader
-shares: finite values, plain names and paths that stay inside their root."""
+shares: finite values, plain names and paths that stay inside their root.
+
+Every file rotlearn writes itself (records, tables, figures, caches, checkpoints) goes through
+`atomic_write`, the one write-temporary-then-rename: the temporary file is created beside the
+target with the mode the umask allows (0644 under umask 022, like a file `open` creates), so a
+colleague in a shared folder can read the results; it is fsynced, renamed, and its folder fsynced;
+a failed write (a full disk, a quota) is a `WriteError` naming the file and the cause, and leaves
+the previous file as it was."""
 
 from __future__ import annotations
 
@@ -14,7 +21,7 @@ import os
 import re
 import secrets
 import stat
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +34,7 @@ __all__ = [
     "MAX_DEPTH",
     "UnreadableFileError",
     "WriteError",
+    "atomic_write",
     "cache_file",
     "parse_number_rows",
     "parse_yaml",
@@ -297,42 +305,94 @@ def _fsync_dir(folder: Path) -> None:
         os.close(fd)
 
 
-def write_bytes_atomic(path: str | os.PathLike, data: bytes | bytearray | memoryview) -> Path:
-    """Write `data` to `path` durably: into a new temporary file beside it (created with the mode
-    the umask allows, 0644 under umask 022), fsynced, renamed over `path`, and the folder fsynced.
+def _new_temporary(path: Path) -> Path:
+    """A new empty file beside `path` (hidden, same suffix, so writers that add one, such as
+    `numpy.save`, keep its name), created with mode 0666 minus the umask, never through a
+    symlink (`O_EXCL`)."""
+    flags = os.O_CREAT | os.O_EXCL | os.O_WRONLY | getattr(os, "O_CLOEXEC", 0)
+    while True:
+        tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp{path.suffix}")
+        try:
+            os.close(os.open(tmp, flags, 0o666))
+        except FileExistsError:
+            continue
+        return tmp
 
-    A reader sees the old file or the whole new one, never a part, also after a crash. A
-    symlink at `path` is replaced, never written through.
+
+def _write_error(path: Path, exc: OSError) -> WriteError:
+    kept = "; the previous file is unchanged" if os.path.lexists(path) else ""
+    return WriteError(exc.errno, f"cannot write {path}: {exc.strerror or exc}{kept}")
+
+
+@contextlib.contextmanager
+def atomic_write(path: str | os.PathLike) -> Iterator[Path]:
+    """Write `path` whole or not at all, durably: yields the path of a new, empty temporary file
+    beside `path` for any writer to fill (text, `numpy.save`, a figure, a memmap); when the block
+    ends, the file is synced to disk, renamed over `path` (a symlink there is replaced, never
+    written through) and the folder synced. If the block raises, the temporary file is removed
+    and `path` is left as it was.
+
+    The file gets the mode the umask allows (0644 under umask 022), as `open` gives a new file.
+
+    Example::
+
+        with atomic_write(run_dir / "table.npy") as tmp:
+            np.save(tmp, table)
 
     Raises:
-        WriteError: naming `path` and the cause (a full disk, a quota, permissions); nothing is
-            left behind and the file that was at `path` is unchanged.
+        WriteError: an OSError while creating, filling, syncing or renaming the file (a full
+            disk, a quota, permissions), naming `path` and the cause; `path` is unchanged.
     """
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.{secrets.token_hex(6)}.tmp")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0)
-        fd = os.open(tmp, flags | getattr(os, "O_BINARY", 0), 0o666)  # the umask applies
+        tmp = _new_temporary(path)
+    except OSError as exc:
+        raise _write_error(path, exc) from None
+    try:
+        yield tmp
+        fd = os.open(tmp, os.O_RDONLY)
         try:
-            view = memoryview(data).cast("B")
-            while view:
-                view = view[os.write(fd, view[: 64 * _MIB]) :]
             os.fsync(fd)
         finally:
             os.close(fd)
         os.replace(tmp, path)
         _fsync_dir(path.parent)
-    except OSError as exc:
+    except BaseException as exc:
         with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        kept = "; the previous file is unchanged" if path.exists() else ""
-        raise WriteError(exc.errno, f"cannot write {path}: {exc.strerror or exc}{kept}") from None
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
+            tmp.unlink()
+        if isinstance(exc, OSError) and not isinstance(exc, WriteError):
+            raise _write_error(path, exc) from None
         raise
-    return path
+
+
+def write_bytes_atomic(path: str | os.PathLike, data: bytes | bytearray | memoryview) -> Path:
+    """`data` into `path`, durably (`atomic_write`).
+
+    Raises:
+        WriteError: as `atomic_write`.
+    """
+    with atomic_write(path) as tmp:
+        fd = os.open(tmp, os.O_WRONLY | getattr(os, "O_BINARY", 0))
+        try:
+            view = memoryview(data).cast("B")
+            while view:
+                view = view[os.write(fd, view[: 64 * _MIB]) :]
+        finally:
+            os.close(fd)
+    return Path(path)
+
+
+def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
+    """`text` (UTF-8) into `path`, atomically (`atomic_write`)."""
+    with atomic_write(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    return Path(path)
+
+
+def write_json_atomic(path: str | os.PathLike, data: Any) -> Path:
+    """`write_text_atomic` of `data` as indented JSON."""
+    return write_text_atomic(path, json.dumps(data, indent=2, sort_keys=True) + "\n")
 
 
 def rewrite_in_place(path: str | os.PathLike, data: bytes) -> Path:
@@ -364,16 +424,6 @@ def rewrite_in_place(path: str | os.PathLike, data: bytes) -> Path:
     except OSError as exc:
         raise WriteError(exc.errno, f"cannot write {path}: {exc.strerror or exc}") from None
     return path
-
-
-def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
-    """`write_bytes_atomic` of `text` as UTF-8."""
-    return write_bytes_atomic(path, text.encode("utf-8"))
-
-
-def write_json_atomic(path: str | os.PathLike, data: Any) -> Path:
-    """`write_text_atomic` of `data` as indented JSON."""
-    return write_text_atomic(path, json.dumps(data, indent=2, sort_keys=True) + "\n")
 
 
 # ---- numbers ------------------------------------------------------------------------------------

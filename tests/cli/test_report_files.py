@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import os
 
-from rotlearn.cli.report import collect_runs, make_report
+from rotlearn.report import collect_runs, make_report
 from tests.conftest import copy_run, tree_hashes, within
 
 ALIAS_BOMB = "a: &a [x, x, x, x, x, x, x, x, x]\n" + "".join(

@@ -98,7 +98,9 @@ class AutoEncoderModule(FiniteChecks, RunStateHooks, pl.LightningModule):
         self.test_score.update(self._loss(batch, "test", batch_idx))
 
     def _log_mean(self, name: str, metric: MeanMetric) -> None:
-        self.log(name, metric.compute(), on_step=False, on_epoch=True)
+        """The metric's mean: a per-epoch series for train and val, one result for test."""
+        logger = False if name.startswith("test/") else None  # None: to the loggers
+        self.log(name, metric.compute(), on_step=False, on_epoch=True, logger=logger)
         metric.reset()
 
     def on_train_epoch_end(self) -> None:
