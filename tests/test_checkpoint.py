@@ -124,3 +124,23 @@ def test_the_evaluation_runs_on_the_devices_its_command_line_gives(finished_run,
         trainer = evaluation_config(cfg, saved).trainer
         assert trainer.devices == devices and trainer.accelerator == "auto"
         assert "strategy" not in trainer
+
+
+def test_a_run_cannot_send_the_loader_outside_it_through_a_symlink(finished_run, tmp_path):
+    from rotlearn.checkpoint import TEMPERATURE_FILE
+    from tests.conftest import copy_run
+
+    outside = tmp_path / "elsewhere.ckpt"
+    outside.write_bytes((finished_run / "checkpoints" / "last.ckpt").read_bytes())
+    run = copy_run(finished_run, tmp_path / "run")
+    (run / "checkpoints" / "last.ckpt").unlink()
+    (run / "checkpoints" / "last.ckpt").symlink_to(outside)
+    with pytest.raises(UnsafeCheckpointError, match=r"a symlink to .*outside the run"):
+        rotlearn.load(run)
+    (run / "checkpoints" / "last.ckpt").unlink()
+    (run / "checkpoints" / "last.ckpt").write_bytes(outside.read_bytes())
+    record = tmp_path / "temperature.json"
+    record.write_text('{"temperature": 2.0}')
+    (run / "checkpoints" / TEMPERATURE_FILE).symlink_to(record)
+    with pytest.raises(ValueError, match="outside"):
+        rotlearn.load(run)

@@ -66,10 +66,18 @@ class UnsafeCheckpointError(pickle.UnpicklingError, ValueError):
 
 
 def resolve_checkpoint(path: str | os.PathLike) -> Path:
-    """A checkpoint file, or a run directory (meaning its checkpoints/last.ckpt)."""
+    """A checkpoint file, or a run directory (meaning its checkpoints/last.ckpt).
+
+    Raises:
+        FileNotFoundError: no checkpoint there.
+        UnsafeCheckpointError: a run directory whose last.ckpt is a symlink out of the run.
+    """
     path = Path(path)
     if path.is_dir():
-        path = path / "checkpoints" / "last.ckpt"
+        run, path = path, path / "checkpoints" / "last.ckpt"
+        real = Path(os.path.realpath(path))
+        if os.path.lexists(path) and not real.is_relative_to(os.path.realpath(run)):
+            raise UnsafeCheckpointError(f"{path}: a symlink to {real}, outside the run; not read")
     if not path.is_file():
         raise FileNotFoundError(f"no checkpoint at {path}")
     return path
@@ -324,7 +332,7 @@ def _read_record(path: Path, what: str) -> Any:
     NaN and the infinities and nesting too deep to parse; ValueError naming the file otherwise."""
     import json
 
-    data = read_bytes(path, "calibration record")
+    data = read_bytes(path, "calibration record", root=path.parent)  # no symlink out of it
 
     def refuse(constant: str) -> None:
         raise ValueError(f"{constant} is not a number")

@@ -186,7 +186,7 @@ def _checkpoint_of(value: str, runs_root: Path) -> Path:
         return resolve_checkpoint(_newest_resumable_run(runs_root))
     try:
         return resolve_checkpoint(value)
-    except FileNotFoundError as exc:
+    except (FileNotFoundError, UnsafeCheckpointError) as exc:
         raise _refuse(f"ckpt_path: {exc}") from None
 
 
