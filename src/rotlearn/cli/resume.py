@@ -25,7 +25,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-import shutil
+import secrets
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -367,19 +367,19 @@ def keep_earlier_records(run_dir: Path) -> Path | None:
     status.json, timing.json, test_errors.json) and copy its `.hydra/*.yaml` into
     `<run_dir>/history/<n>/` (n = 1, 2, ... per resume), so the new attempt never overwrites
     them. The folder is assembled under a hidden name and renamed into place, so it appears
-    whole or not at all; the records leave the run only after that. Returns the folder (None
-    when the run had no records)."""
+    whole or not at all; the records leave the run only after that (an attempt killed midway
+    leaves its hidden `.<n>.*.partial` folder, and every record in place). Returns the folder
+    (None when the run had no records)."""
     records = [run_dir / name for name in _RECORDS if os.path.lexists(run_dir / name)]
     configs = sorted(p for p in (run_dir / ".hydra").glob("*.yaml") if p.is_file())
     if not records and not configs:
         return None
     history = run_dir / "history"
     history.mkdir(exist_ok=True)
-    for stale in history.glob(".*.partial"):  # an attempt that died while assembling
-        shutil.rmtree(stale)
     n = 1 + max((int(p.name) for p in history.iterdir() if p.name.isdigit()), default=0)
-    target, staging = history / str(n), history / f".{n}.partial"
-    (staging / ".hydra").mkdir(parents=True)
+    target = history / str(n)
+    staging = history / f".{n}.{secrets.token_hex(4)}.partial"
+    (staging / ".hydra").mkdir(parents=True)  # the mode the umask allows
     for path in configs:  # copied: the run keeps a config until Hydra writes the new one
         _copy_bounded(path, staging / ".hydra" / path.name)
     for path in records:  # linked, then unlinked from the run once the folder is in place
