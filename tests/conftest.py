@@ -163,6 +163,17 @@ def tree_hashes(root: Path, skip: Path | None = None) -> dict[str, str]:
 
 
 @contextlib.contextmanager
+def unchanged(root: Path) -> Iterator[None]:
+    """Assert that the block changed, added and removed nothing below `root` (its tree's
+    hashes, `tree_hashes`), also when the block raised (a refusal must lose nothing)."""
+    before = tree_hashes(root)
+    try:
+        yield
+    finally:
+        assert tree_hashes(root) == before, f"the tree below {root} changed"
+
+
+@contextlib.contextmanager
 def within(seconds: float) -> Iterator[None]:
     """Fail the block with TimeoutError when it takes longer than `seconds` (SIGALRM: also a
     read or an open that would block forever is interrupted)."""

@@ -1,7 +1,8 @@
 """rotlearn.checkpoint: what a checkpoint may make rotlearn allocate or compute. Sizes in its
 config are checked against its weights on the meta device before anything is built; weights
 must be floating point and finite; missing or extra weights and another net's config are named;
-truncated, oversized and decompression-bomb files are refused unread."""
+truncated, oversized and decompression-bomb files are refused unread. Each refusal changes
+nothing below the test's folder (the crafted file and everything beside it: `unchanged`)."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ from omegaconf import OmegaConf
 import rotlearn
 from rotlearn.checkpoint import UnsafeCheckpointError, load_checkpoint, load_run
 from rotlearn.io import MAX_BYTES
-from tests.conftest import within
+from tests.conftest import unchanged, within
 
 
 @pytest.fixture
@@ -40,51 +41,57 @@ def _set(key: str, value):
     )
 
 
-def test_sizes_in_the_config_are_checked_before_anything_is_allocated(crafted):
+def test_sizes_in_the_config_are_checked_before_anything_is_allocated(crafted, tmp_path):
     """net.head_channels=[1000000, 128] once allocated 4.9 GB before the shapes were checked."""
     path = crafted(_set("net.head_channels", [1_000_000, 128]))
     before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    with within(20), pytest.raises(ValueError, match="shape") as info:
+    with unchanged(tmp_path), within(20), pytest.raises(ValueError, match="shape") as info:
         rotlearn.load(path)
     grown_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024
     assert path in str(info.value) and grown_mb < 500
 
 
 @pytest.mark.parametrize("dtype", [torch.int64, torch.bool, torch.complex64])
-def test_weights_must_be_floating_point(crafted, dtype):
+def test_weights_must_be_floating_point(crafted, tmp_path, dtype):
     def edit(c):
         name = next(iter(c["state_dict"]))
         c["state_dict"][name] = c["state_dict"][name].to(dtype)
 
-    with pytest.raises(ValueError, match=f"is stored as {dtype}; it must be floating point"):
-        rotlearn.load(crafted(edit))
+    path = crafted(edit)
+    with unchanged(tmp_path), pytest.raises(ValueError, match=f"is stored as {dtype}; it must"):
+        rotlearn.load(path)
 
 
 @pytest.mark.parametrize("value", [float("nan"), float("inf"), 1e300])
-def test_weights_must_be_finite_in_the_models_dtype(crafted, value):
+def test_weights_must_be_finite_in_the_models_dtype(crafted, tmp_path, value):
     def edit(c):
         name = next(iter(c["state_dict"]))
         weight = c["state_dict"][name].double()
         weight.view(-1)[0] = value
         c["state_dict"][name] = weight  # 1e300 is finite in float64, not in the net's float32
 
-    with pytest.raises(ValueError, match="NaN or infinite"):
-        rotlearn.load(crafted(edit))
+    path = crafted(edit)
+    with unchanged(tmp_path), pytest.raises(ValueError, match="NaN or infinite"):
+        rotlearn.load(path)
 
 
-def test_missing_and_unexpected_weights_are_named(crafted):
+def test_missing_and_unexpected_weights_are_named(crafted, tmp_path):
     def edit(c):
         name = sorted(c["state_dict"])[0]
         c["state_dict"]["net.extra.weight"] = c["state_dict"].pop(name)
 
-    with pytest.raises(ValueError, match=r"missing net\..*; unexpected net\.extra\.weight") as info:
-        rotlearn.load(crafted(edit))
+    path = crafted(edit)
+    with (
+        unchanged(tmp_path),
+        pytest.raises(ValueError, match=r"missing net\..*; unexpected net\.extra\.weight") as info,
+    ):
+        rotlearn.load(path)
     assert "Traceback" not in str(info.value)
 
 
-def test_another_allowed_net_in_the_config_is_named_not_a_traceback(crafted):
+def test_another_allowed_net_in_the_config_is_named_not_a_traceback(crafted, tmp_path):
     path = crafted(_set("net._target_", "rotlearn.nets.PairCNN"))
-    with pytest.raises(ValueError, match=r"the saved config's net cannot be built") as info:
+    with unchanged(tmp_path), pytest.raises(ValueError, match=r"net cannot be built") as info:
         rotlearn.load(path)
     assert path in str(info.value)
 
@@ -94,16 +101,20 @@ def test_a_truncated_or_inflating_or_oversized_file_is_refused_unread(tmp_path, 
     torch.save({"epoch": 0, "state_dict": {"w": torch.ones(1000)}}, path)
     whole = path.read_bytes()
     path.write_bytes(whole[: len(whole) // 2])
-    with pytest.raises(UnsafeCheckpointError, match="not a whole PyTorch checkpoint"):
+    with unchanged(tmp_path), pytest.raises(UnsafeCheckpointError, match="not a whole PyTorch"):
         load_checkpoint(path)
     path.unlink()
     with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as archive:
         archive.writestr("archive/data.pkl", b"\0" * 50_000_000)  # 50 MB from about 50 kB
-    with within(10), pytest.raises(UnsafeCheckpointError, match="would decompress to 50000000"):
+    with (
+        unchanged(tmp_path),
+        within(10),
+        pytest.raises(UnsafeCheckpointError, match="would decompress to 50000000"),
+    ):
         load_checkpoint(path)
     path.write_bytes(whole)
     monkeypatch.setitem(MAX_BYTES, "checkpoint", 1000)
-    with pytest.raises(UnsafeCheckpointError, match="larger than a checkpoint may be"):
+    with unchanged(tmp_path), pytest.raises(UnsafeCheckpointError, match="larger than a checkp"):
         load_checkpoint(path)
 
 
@@ -135,7 +146,7 @@ def test_a_run_cannot_send_the_loader_outside_it_through_a_symlink(finished_run,
     run = copy_run(finished_run, tmp_path / "run")
     (run / "checkpoints" / "last.ckpt").unlink()
     (run / "checkpoints" / "last.ckpt").symlink_to(outside)
-    with pytest.raises(UnsafeCheckpointError, match=r"a symlink to .*outside the run"):
+    with unchanged(tmp_path), pytest.raises(UnsafeCheckpointError, match=r"a symlink to .*outside"):
         rotlearn.load(run)
     (run / "checkpoints" / "last.ckpt").unlink()
     (run / "checkpoints" / "last.ckpt").write_bytes(outside.read_bytes())

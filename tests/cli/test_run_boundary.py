@@ -195,6 +195,10 @@ OVERRIDE_ATTACKS = {
     "+callbacks.extra={_target_:lightning.pytorch.callbacks.ModelCheckpoint,dirpath:HOME/c}": (
         "callbacks.extra.dirpath"
     ),
+    # another logger class (the config's schema allows no `paths.*` key but output_dir)
+    "+logger.tb={_target_:rotlearn.lit.TensorBoardRunLogger,save_dir:HOME/tb,name:x}": (
+        "logger.tb.save_dir"
+    ),
 }
 
 

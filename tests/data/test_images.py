@@ -1,6 +1,7 @@
 """rotlearn.data.images and image_header: frames of any bit depth and channel count become the
 right uint8 pixels, or are refused naming the frame; every header is checked against the pixel
-budget before a pixel is decoded."""
+budget before a pixel is decoded. A refused frame changes no frame (`unchanged`) and leaves no
+cache of its sequence."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ import pytest
 from rotlearn.data import KittiOdometryDataModule
 from rotlearn.data.image_header import MAX_PIXELS, image_size
 from rotlearn.data.images import read_frame, read_image
-from tests.conftest import within, write_kitti, yaw_sequence
+from tests.conftest import unchanged, within, write_kitti, yaw_sequence
 
 cv2 = pytest.importorskip("cv2")
 RNG = np.random.default_rng(0)
@@ -68,7 +69,7 @@ def test_every_channel_count_becomes_rgb_or_gray(tmp_path, ext):
 
 def test_floating_point_frames_are_refused_naming_them(tmp_path):
     path = _written(tmp_path, "f.tiff", COLOUR.astype(np.float32) / 255)
-    with pytest.raises(ValueError, match=r"f\.tiff: float32 samples"):
+    with unchanged(tmp_path), pytest.raises(ValueError, match=r"f\.tiff: float32 samples"):
         read_image(path)
 
 
@@ -93,8 +94,12 @@ def test_a_sequence_mixing_bit_depths_is_refused_naming_the_frame(tmp_path):
     cv2.imwrite(str(frame), (cv2.imread(str(frame)).astype(np.uint16) * 257))
     dm = KittiOdometryDataModule(str(root), train_sequences=["01"], test_sequences=["00"],
                                  image_size=8, num_workers=0)  # fmt: skip
-    with pytest.raises(ValueError, match=r"000002\.png: frame 2 holds 16-bit, but frame 0"):
+    with (
+        unchanged(root / "sequences"),
+        pytest.raises(ValueError, match=r"000002\.png: frame 2 holds 16-bit, but frame 0"),
+    ):
         dm.setup()
+    assert not list((root / ".rotlearn_cache").glob("00_*"))  # sequence 01's cache is whole
 
 
 # ---- headers and the pixel budget ---------------------------------------------------------------
@@ -135,7 +140,7 @@ def test_a_frame_over_the_pixel_budget_is_refused_before_decoding(tmp_path, name
     path.write_bytes(content)
     width, height, _ = image_size(path)
     assert width * height > MAX_PIXELS
-    with within(5), pytest.raises(ValueError, match="over the budget of") as info:
+    with unchanged(tmp_path), within(5), pytest.raises(ValueError, match="over the budget") as info:
         read_image(path)
     assert str(path) in str(info.value) and f"{width} x {height} pixels" in str(info.value)
 
@@ -146,9 +151,13 @@ def test_a_kitti_frame_over_the_budget_names_the_frame(tmp_path):
     frame.write_bytes(_png_header(30000, 30000))
     dm = KittiOdometryDataModule(str(root), train_sequences=["01"], test_sequences=["00"],
                                  image_size=8, num_workers=0)  # fmt: skip
-    with within(10), pytest.raises(ValueError, match=r"000001\.png: a PNG of 30000 x 30000"):
+    with (
+        unchanged(root / "sequences"),
+        within(10),
+        pytest.raises(ValueError, match=r"000001\.png: a PNG of 30000 x 30000"),
+    ):
         dm.setup()
-    assert not list((root / ".rotlearn_cache").glob("00_*"))
+    assert not list((root / ".rotlearn_cache").glob("00_*"))  # sequence 01's cache is whole
 
 
 def test_headers_of_every_format_give_the_size(tmp_path):
