@@ -41,6 +41,7 @@ __all__ = [
     "plain_name",
     "read_bytes",
     "read_json",
+    "read_manifest",
     "read_number_rows",
     "read_record",
     "read_table",
@@ -220,6 +221,15 @@ def read_json(
         return None
     except (OSError, ValueError) as exc:
         log.warning("%s (ignored)", exc)
+        return None
+
+
+def read_manifest(path: str | os.PathLike) -> Any:
+    """A dataset cache's `.json` manifest (`read_record`, bounded), or None where it is missing
+    or cannot be read (a named pipe, too large, not JSON): the cache is then rebuilt."""
+    try:
+        return read_record(path)
+    except (OSError, ValueError):
         return None
 
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from rotlearn.data.image_header import check_frame
 from rotlearn.extras import import_extra
-from rotlearn.io import atomic_write, read_record, write_text_atomic
+from rotlearn.io import atomic_write, read_manifest, write_text_atomic
 
 __all__ = [
     "DECODER",
@@ -138,14 +138,6 @@ def _stat(files: Sequence[Path], i: int) -> os.stat_result:
         raise FileNotFoundError(f"{files[i]}: frame {i}: no such image file") from None
 
 
-def _reads(manifest_path: Path) -> object:
-    """A cache manifest's data (None when it cannot be read: the cache is rebuilt)."""
-    try:
-        return read_record(manifest_path)
-    except (OSError, ValueError):
-        return None
-
-
 def _manifest(files: Sequence[Path], recipe: dict) -> dict:
     stats = [_stat(files, i) for i in range(len(files))]
     return {
@@ -182,7 +174,11 @@ def frame_cache(
     """
     array_path, manifest_path = cache.with_suffix(".npy"), cache.with_suffix(".json")
     manifest = _manifest(files, {**recipe, "gray": gray, "decoder": DECODER})
-    if manifest_path.is_file() and array_path.is_file() and _reads(manifest_path) == manifest:
+    if (
+        manifest_path.is_file()
+        and array_path.is_file()
+        and read_manifest(manifest_path) == manifest
+    ):
         return np.load(array_path, mmap_mode="r")
     from tqdm import tqdm
 

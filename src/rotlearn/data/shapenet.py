@@ -37,6 +37,7 @@ from rotlearn.io import (
     cache_file,
     parse_number_rows,
     plain_name,
+    read_manifest,
     read_number_rows,
     read_text_lines,
     resolve_inside,
@@ -128,14 +129,17 @@ def read_mesh(path: str | os.PathLike):
 def sample_meshes(paths: list[Path], num_points: int, cache: Path, seed: int = 0) -> np.ndarray:
     """Surface samples of meshes, (M, num_points, 3) float32, cached in `cache` (.npy + .json).
 
-    The cache is reused only if its manifest lists the same files, point count and seed. Each
-    mesh is checked by `read_mesh`; an error leaves no cache behind.
+    The cache is reused only if its manifest (read bounded) lists the same files, point count
+    and seed and its array holds (M, num_points, 3) finite float32; anything else in the cache
+    folder (a named pipe, a huge or foreign file) is rebuilt over. Each mesh is checked by
+    `read_mesh`; an error leaves no cache behind.
     """
     manifest = {"files": [str(p) for p in paths], "num_points": num_points, "seed": seed}
     array_path, manifest_path = cache.with_suffix(".npy"), cache.with_suffix(".json")
-    fresh = manifest_path.is_file() and json.loads(manifest_path.read_text()) == manifest
-    if fresh and array_path.is_file():
-        return np.load(array_path)
+    if read_manifest(manifest_path) == manifest and array_path.is_file():
+        cached = _cached_clouds(array_path, (len(paths), num_points, 3))
+        if cached is not None:
+            return cached
     trimesh = import_extra("trimesh", "reading meshes")
     from tqdm import tqdm
 
@@ -147,6 +151,17 @@ def sample_meshes(paths: list[Path], num_points: int, cache: Path, seed: int = 0
         np.save(tmp, clouds)
     write_text_atomic(manifest_path, json.dumps(manifest))
     return clouds
+
+
+def _cached_clouds(path: Path, shape: tuple[int, ...]) -> np.ndarray | None:
+    """The cached samples at `path` if they are `shape` finite float32 (None otherwise)."""
+    try:
+        cached = np.load(path, mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError):
+        return None
+    if cached.shape != shape or cached.dtype != np.float32 or not np.isfinite(cached).all():
+        return None
+    return np.array(cached)
 
 
 @config_target
