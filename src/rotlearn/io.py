@@ -40,6 +40,7 @@ __all__ = [
     "parse_yaml",
     "plain_name",
     "read_bytes",
+    "read_cached_array",
     "read_json",
     "read_manifest",
     "read_number_rows",
@@ -231,6 +232,24 @@ def read_manifest(path: str | os.PathLike) -> Any:
         return read_record(path)
     except (OSError, ValueError):
         return None
+
+
+def read_cached_array(
+    path: str | os.PathLike, dtype: Any, shape: tuple[int | None, ...]
+) -> np.ndarray | None:
+    """A dataset cache's `.npy` array, memory-mapped read-only (never unpickled), if it is a
+    regular file holding `dtype` of `shape` (None: any length on that axis); None otherwise (a
+    foreign, damaged or hostile cache: it is rebuilt)."""
+    if not Path(path).is_file():
+        return None
+    try:
+        array = np.load(path, mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError):
+        return None
+    fits = array.dtype == np.dtype(dtype) and array.ndim == len(shape)
+    if not fits or any(n is not None and n != m for n, m in zip(shape, array.shape, strict=True)):
+        return None
+    return array
 
 
 def read_table(path: str | os.PathLike, root: str | os.PathLike | None = None) -> Any:

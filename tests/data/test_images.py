@@ -88,6 +88,38 @@ def test_a_16_bit_kitti_sequence_caches_the_same_pixels_as_an_8_bit_one(tmp_path
     np.testing.assert_array_equal(frames[0], frames[1])
 
 
+def test_a_shipped_frame_cache_that_does_not_fit_is_rebuilt(tmp_path):
+    """A dataset may ship its `.rotlearn_cache`: a matching manifest beside an array of another
+    dtype, frame count, channel count or a non-square frame, or a named pipe as the manifest,
+    is not used (nor does it hang): the frames are decoded again, the same pixels result."""
+    import json
+    import os
+
+    root = write_kitti(tmp_path, {"00": yaw_sequence(4, 1.0), "01": yaw_sequence(3, 1.0)})
+
+    def cached() -> np.ndarray:
+        dm = KittiOdometryDataModule(str(root), train_sequences=["01"], test_sequences=["00"],
+                                     image_size=8, num_workers=0)  # fmt: skip
+        with within(60):
+            dm.setup()
+        return np.load(next((root / ".rotlearn_cache").glob("00_*.npy")))
+
+    genuine = cached()
+    array = next((root / ".rotlearn_cache").glob("00_*.npy"))
+    manifest = array.with_suffix(".json")
+    record = manifest.read_text()
+    for foreign in (genuine.astype(np.float32), genuine[:2], genuine[:, :1], genuine[..., :4]):
+        np.save(array, foreign)
+        manifest.write_text(record)  # the manifest still matches the frames
+        got = cached()
+        assert got.dtype == np.uint8
+        np.testing.assert_array_equal(got, genuine)
+        assert json.loads(manifest.read_text()) == json.loads(record)
+    manifest.unlink()
+    os.mkfifo(manifest)
+    np.testing.assert_array_equal(cached(), genuine)
+
+
 def test_a_sequence_mixing_bit_depths_is_refused_naming_the_frame(tmp_path):
     root = write_kitti(tmp_path, {"00": yaw_sequence(4, 1.0), "01": yaw_sequence(3, 1.0)})
     frame = root / "sequences" / "00" / "image_2" / "000002.png"

@@ -2,8 +2,10 @@
 
 A frame cache is an `.npy` array (N, C, S, S) uint8 beside a `.json` manifest (the source files,
 their sizes and modification times, and the preprocessing). It is reused, memory-mapped, while
-the manifest matches; otherwise it is rebuilt with a progress bar. It is written to a temporary
-file and renamed into place, so an error or an interrupt never leaves a half-written cache.
+the manifest matches and the array is (N, C, S, S) uint8 for the N frames (a dataset may ship a
+foreign or hostile cache); otherwise it is rebuilt with a progress bar. It is written to a
+temporary file and renamed into place, so an error or an interrupt never leaves a half-written
+cache.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ import numpy as np
 
 from rotlearn.data.image_header import check_frame
 from rotlearn.extras import import_extra
-from rotlearn.io import atomic_write, read_manifest, write_text_atomic
+from rotlearn.io import atomic_write, read_cached_array, read_manifest, write_text_atomic
 
 __all__ = [
     "DECODER",
@@ -174,12 +176,10 @@ def frame_cache(
     """
     array_path, manifest_path = cache.with_suffix(".npy"), cache.with_suffix(".json")
     manifest = _manifest(files, {**recipe, "gray": gray, "decoder": DECODER})
-    if (
-        manifest_path.is_file()
-        and array_path.is_file()
-        and read_manifest(manifest_path) == manifest
-    ):
-        return np.load(array_path, mmap_mode="r")
+    if read_manifest(manifest_path) == manifest:
+        cached = read_cached_array(array_path, np.uint8, (len(files), 1 if gray else 3, None, None))
+        if cached is not None and cached.shape[2] == cached.shape[3]:
+            return cached
     from tqdm import tqdm
 
     manifest_path.unlink(missing_ok=True)

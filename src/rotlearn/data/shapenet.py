@@ -37,6 +37,7 @@ from rotlearn.io import (
     cache_file,
     parse_number_rows,
     plain_name,
+    read_cached_array,
     read_manifest,
     read_number_rows,
     read_text_lines,
@@ -136,10 +137,10 @@ def sample_meshes(paths: list[Path], num_points: int, cache: Path, seed: int = 0
     """
     manifest = {"files": [str(p) for p in paths], "num_points": num_points, "seed": seed}
     array_path, manifest_path = cache.with_suffix(".npy"), cache.with_suffix(".json")
-    if read_manifest(manifest_path) == manifest and array_path.is_file():
-        cached = _cached_clouds(array_path, (len(paths), num_points, 3))
-        if cached is not None:
-            return cached
+    if read_manifest(manifest_path) == manifest:
+        cached = read_cached_array(array_path, np.float32, (len(paths), num_points, 3))
+        if cached is not None and np.isfinite(cached).all():
+            return np.array(cached)
     trimesh = import_extra("trimesh", "reading meshes")
     from tqdm import tqdm
 
@@ -151,17 +152,6 @@ def sample_meshes(paths: list[Path], num_points: int, cache: Path, seed: int = 0
         np.save(tmp, clouds)
     write_text_atomic(manifest_path, json.dumps(manifest))
     return clouds
-
-
-def _cached_clouds(path: Path, shape: tuple[int, ...]) -> np.ndarray | None:
-    """The cached samples at `path` if they are `shape` finite float32 (None otherwise)."""
-    try:
-        cached = np.load(path, mmap_mode="r", allow_pickle=False)
-    except (OSError, ValueError):
-        return None
-    if cached.shape != shape or cached.dtype != np.float32 or not np.isfinite(cached).all():
-        return None
-    return np.array(cached)
 
 
 @config_target
