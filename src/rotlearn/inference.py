@@ -280,6 +280,10 @@ class Predictor:
         disagreement (b,) of one chunk of inputs, the belief tempered by `temperature` (None
         where the head has none)."""
         p = self._untempered(x).with_temperature(self.temperature)
+        if p.A is not None and not bool(torch.isfinite(p.A).all()):
+            raise FloatingPointError(
+                f"the belief tempered by the temperature {self.temperature:g} is not finite"
+            )
         return p.R, p.q, p.dispersion, p.dt, p.A, p.F, p.disagreement
 
     def _untempered(self, x: Tensor) -> RotationPrediction:
@@ -335,9 +339,12 @@ def load(
     Goes through `rotlearn.checkpoint.load_run`: the file is read with
     `torch.load(weights_only=True)` (pickled code is refused: `UnsafeCheckpointError`) and the
     saved config may only name allowlisted components (`UntrustedConfigError`, naming the key),
-    checked before the network and head are rebuilt from it. The belief's calibration fitted
-    for this checkpoint (`calibrate`: `checkpoints/temperature.json`, read strictly: its
-    temperature and level map) is applied to every estimate.
+    checked before the network and head are rebuilt from it; the stored weights are checked
+    against the network the config describes, built first on the meta device (names, shapes,
+    floating point, finite), so no size named in the file is allocated before it is known to
+    match the weights (`SavedRun.build`). The belief's calibration fitted for this checkpoint
+    (`calibrate`: `checkpoints/temperature.json`, read strictly: its temperature and level map)
+    is applied to every estimate.
     """
     require("train", "rotlearn.load (it rebuilds the model from the checkpoint's Hydra config)")
     from omegaconf import OmegaConf
@@ -345,8 +352,7 @@ def load(
     if not isinstance(ckpt_path, str | os.PathLike):
         return _load_ensemble(list(ckpt_path), device, chunk_elements)
     run = load_run(ckpt_path, task="rotation")
-    net, head = run.build("net"), run.build("rep")
-    net.load_state_dict(run.weights("net"))
+    net, head = run.build("net"), run.build("rep", prefix="head")  # weights checked, then loaded
     config = OmegaConf.to_container(run.config)
     return Predictor(
         net, head, config, ood=run.ood, device=device, chunk_elements=chunk_elements,
@@ -369,10 +375,9 @@ def ensemble_members(paths: Sequence[str | os.PathLike]) -> tuple[nn.Module, Rot
     runs = [load_run(p, task="rotation") for p in paths]
     nets, heads = [], []
     for run in runs:
-        net, head = run.build("net"), run.build("rep")
+        net, head = run.build("net"), run.build("rep", prefix="head")  # weights checked, loaded
         if not head.defines_belief:
             raise ValueError(f"{run.path}: rep={head.name} has no belief; an ensemble needs one")
-        net.load_state_dict(run.weights("net"))
         nets.append(net.eval())
         heads.append(head)
     head = EnsembleHead(heads, [run.temperature for run in runs])

@@ -32,9 +32,11 @@ __all__ = ["evaluate", "evaluation_config", "main"]
 log = logging.getLogger("rotlearn")
 
 DEFAULT_OOD = config_dir() / "callbacks" / "ood.yaml"
-# What the evaluation keeps of the trained run's trainer config (how it computes, not where it
-# writes: outputs go to the evaluation's own directory).
-SAVED_TRAINER_KEYS = ("_target_", "accelerator", "devices", "precision", "deterministic")
+# What the evaluation keeps of the trained run's trainer config: how it computes, not where it
+# writes (outputs go to the evaluation's own directory) nor on what (the devices are the
+# evaluation's command line's: trainer.accelerator, trainer.devices; default auto and one).
+SAVED_TRAINER_KEYS = ("_target_", "precision", "deterministic")
+DEFAULT_DEVICES = {"accelerator": "auto", "devices": 1}
 
 
 def _set(node: DictConfig | None) -> dict[str, Any]:
@@ -46,7 +48,8 @@ def _set(node: DictConfig | None) -> dict[str, Any]:
 def evaluation_config(cfg: DictConfig, saved: SavedRun) -> DictConfig:
     """The saved run config (already checked: `rotlearn.checkpoint.load_run`) with the
     evaluation's overrides, OOD callback and output paths. Of the saved trainer config only the
-    keys in `SAVED_TRAINER_KEYS` are kept; the rest comes from the evaluation's own command line."""
+    keys in `SAVED_TRAINER_KEYS` are kept; the devices and the rest come from the evaluation's
+    own command line (a checkpoint never chooses how many processes are launched)."""
     if saved.task != "rotation":
         raise ConfigError("ckpt", f"{cfg.ckpt}: a {saved.task} checkpoint, not a rotation model")
     run = OmegaConf.create(OmegaConf.to_container(saved.config))
@@ -63,7 +66,10 @@ def evaluation_config(cfg: DictConfig, saved: SavedRun) -> DictConfig:
     run.data.pop("cache_dir", None)  # caches go where this command line says, or under data.root
     run.data = OmegaConf.merge(run.data, _set(cfg.data))
     trainer = {k: v for k, v in run.trainer.items() if k in SAVED_TRAINER_KEYS}
-    run.trainer = OmegaConf.merge(trainer, _set(cfg.trainer), {"default_root_dir": out})
+    trainer["_target_"] = "lightning.pytorch.Trainer"
+    run.trainer = OmegaConf.merge(
+        trainer, DEFAULT_DEVICES, _set(cfg.trainer), {"default_root_dir": out}
+    )
     run.logger = {
         "tensorboard": {
             "_target_": "rotlearn.lit.TensorBoardRunLogger",
@@ -92,6 +98,10 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
         raise ConfigError("ckpt", f"{cfg.ckpt}: {exc}") from None
     ckpt = saved.path
     run = evaluation_config(cfg, saved)
+    try:  # the weights against the model the config describes, built on the meta device first
+        saved.check_fits("model", prefix="")
+    except ValueError as exc:
+        raise ConfigError("ckpt", str(exc)) from None
     if paths is not None:
         run.calibrate = True  # the ensemble's own temperature and level map, on validation
     model, datamodule, trainer = build(run)
@@ -113,9 +123,12 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
 
 @hydra.main(version_base="1.3", config_path=str(config_dir()), config_name="eval")
 def _hydra_main(cfg: DictConfig) -> float:
+    from rotlearn.cli.callbacks import end_failed_job
+
     try:
         metrics = evaluate(cfg)
-    except ConfigError as exc:
+    except (OSError, ValueError, ArithmeticError) as exc:  # the input's or the machine's fault
+        end_failed_job(cfg.paths.output_dir, exc, "rotlearn-eval")  # a bug keeps its traceback
         log.error("rotlearn-eval: %s", exc)
         raise
     log.info(
@@ -127,7 +140,14 @@ def _hydra_main(cfg: DictConfig) -> float:
 
 
 def main() -> float:
-    """Entry point of `rotlearn-eval`."""
+    """Entry point of `rotlearn-eval`. A new evaluation never writes into an existing,
+    non-empty directory (refused before Hydra writes anything)."""
+    from rotlearn.cli.rundir import is_child_rank, refuse_an_existing_output_dir
+
+    argv = sys.argv[1:]
+    flags = [a for a in argv if a.startswith("-") and a not in ("-m", "--multirun")]
+    if not is_child_rank() and not flags:  # --cfg, --help and the like write nothing
+        refuse_an_existing_output_dir(argv, "eval", "rotlearn-eval")
     return _hydra_main()
 
 

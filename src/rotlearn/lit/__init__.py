@@ -5,6 +5,7 @@ from rotlearn.extras import require
 require("train", "rotlearn.lit")
 
 from rotlearn.lit.autoencoder import AutoEncoderModule, load_autoencoder
+from rotlearn.lit.boundary import CheckpointStateGuard, RunCheckpointIO
 from rotlearn.lit.calibration import PostHocCalibration
 from rotlearn.lit.callbacks import (
     EpochLosses,
@@ -19,6 +20,7 @@ from rotlearn.lit.tensorboard import TensorBoardRunLogger
 
 __all__ = [
     "AutoEncoderModule",
+    "CheckpointStateGuard",
     "EpochLosses",
     "EpochTimer",
     "InterruptRecorder",
@@ -26,6 +28,7 @@ __all__ = [
     "PostHocCalibration",
     "ProgressBar",
     "RotationRegressor",
+    "RunCheckpointIO",
     "RunRecords",
     "TensorBoardRunLogger",
     "barely_learned",

@@ -136,7 +136,7 @@ def load_autoencoder_net(
         UnsafeCheckpointError, UntrustedConfigError: see `load_run`.
         ValueError: the checkpoint's net is not an auto-encoder (the message names the path).
     """
-    from rotlearn.checkpoint import load_run
+    from rotlearn.checkpoint import check_weights, load_run
 
     run = load_run(ckpt_path)
     target = str(run.config.get("net", {}).get("_target_", ""))
@@ -145,6 +145,7 @@ def load_autoencoder_net(
             f"{run.path} is not an auto-encoder checkpoint: its net is {target or 'missing'!r} "
             "(train one with model=autoencoder, e.g. experiment=kitti_autoencoder)"
         )
-    net = run.build("net")
-    net.load_state_dict(run.weights("net"))
+    net = run.build("net")  # the net's weights checked, then loaded
+    stored = {f"net.{k}": v for k, v in net.state_dict().items()}
+    check_weights(stored, run.state_dict, str(run.path))  # and nothing else stored
     return net.to(device).eval()
