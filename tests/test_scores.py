@@ -84,11 +84,17 @@ def test_scores_follow_the_head():
 
 
 @settings(max_examples=30, deadline=None)
-@given(seed=st.integers(0, 10_000), levels=st.integers(2, 6))
-def test_auroc_is_the_mann_whitney_probability_with_ties_half(seed, levels):
-    """Against the definition, pair by pair: P(positive > negative) + P(equal) / 2."""
+@given(
+    seed=st.integers(0, 10_000),
+    levels=st.integers(2, 6),
+    scale=st.sampled_from([1.0, 1e-3, 1e5]),
+    offset=st.sampled_from([0.0, -3e5, 50.0]),
+)
+def test_auroc_is_the_mann_whitney_probability_with_ties_half(seed, levels, scale, offset):
+    """Against the definition, pair by pair: P(positive > negative) + P(equal) / 2, whatever
+    the scores' scale and offset (DT values of a trained belief are about -1e5: no squashing)."""
     g = torch.Generator().manual_seed(seed)
-    s = torch.randint(0, levels, (60,), generator=g).double()
+    s = torch.randint(0, levels, (60,), generator=g).double() * scale + offset
     p = torch.rand(60, generator=g) < 0.4
     if not bool(p.any()) or bool(p.all()):
         return

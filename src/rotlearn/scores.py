@@ -159,7 +159,12 @@ def auroc(scores: Tensor, positive: Tensor, keep_below: bool) -> float:
     s, p = scores[finite].double(), positive[finite].bool()
     if not bool(p.any()) or bool(p.all()):
         return math.nan
-    return float(binary_auroc(s if keep_below else -s, p.long()))
+    # torchmetrics reads predictions outside [0, 1] as logits and squashes them with a sigmoid,
+    # which ties every score beyond about +-40 (DT values are -1e5 and lower): give it the
+    # scores' dense ranks scaled into [0, 1] instead (the AUROC depends only on their order)
+    _, order = torch.unique(s if keep_below else -s, return_inverse=True)
+    unit = order.double() / max(int(order.max()), 1)
+    return float(binary_auroc(unit, p.long()))
 
 
 def spearman(x: Tensor, y: Tensor) -> float:
