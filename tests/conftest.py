@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 from scipy.spatial.transform import Rotation
 
+from rotlearn.config import compose
 from rotlearn.geometry import so3_exp
 from rotlearn.paths import config_dir
 
@@ -99,12 +99,36 @@ def config_options(group: str) -> list[str]:
 
 @pytest.fixture
 def make_cfg(tmp_path: Path) -> Callable[..., DictConfig]:
-    """compose(overrides) -> the train config, writing below a fresh temporary directory."""
+    """compose(overrides) -> the train config (`rotlearn.config.compose`, not yet validated),
+    writing below a fresh temporary directory."""
 
     def _make(overrides: Sequence[str] = (), run_dir: Path | None = None) -> DictConfig:
         out = run_dir or tmp_path / "run"
-        with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-            return compose(config_name="train", overrides=[f"paths.output_dir={out}", *overrides])
+        return compose([f"paths.output_dir={out}", *overrides], check=False)
+
+    return _make
+
+
+@pytest.fixture
+def on_disk(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Callable[[DictConfig], DictConfig]:
+    """cfg -> cfg, once the (empty) folders and files that its data root must hold exist
+    (`rotlearn.config.checks.data_paths`), relative roots inside a fresh working directory:
+    enough for a config to validate without its dataset, not to read one."""
+    from omegaconf import OmegaConf
+
+    from rotlearn.config.checks import data_paths
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("ROTLEARN_DATA_DIR", raising=False)
+
+    def _make(cfg: DictConfig) -> DictConfig:
+        for _, path in data_paths(OmegaConf.to_container(cfg.data, resolve=True)):
+            if path.suffix:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                path.touch()
+            else:
+                path.mkdir(parents=True, exist_ok=True)
+        return cfg
 
     return _make
 

@@ -28,7 +28,7 @@ from rotlearn.checkpoint import UnsafeCheckpointError, load_checkpoint
 from rotlearn.cli.evaluate import evaluate
 from rotlearn.cli.predict import main as predict_main
 from rotlearn.cli.resume import resume_arguments
-from rotlearn.cli.schemas import ConfigError
+from rotlearn.config import ConfigError
 from rotlearn.lit.autoencoder import load_autoencoder
 from rotlearn.ood import OODEvaluation
 from rotlearn.paths import config_dir

@@ -27,6 +27,7 @@ EXTRAS: dict[str, tuple[str, ...]] = {
         "tensorboard",
         "matplotlib",
         "pandas",
+        "pydantic",
     ),
     "data": ("cv2", "trimesh", "skimage", "tqdm"),
 }

@@ -15,7 +15,7 @@ from omegaconf import OmegaConf
 from rotlearn.cli.report import collect_runs, make_report
 from rotlearn.cli.report import main as report_main
 from rotlearn.cli.resolvers import loguniform_trial
-from rotlearn.cli.schemas import validate
+from rotlearn.config import validate
 from rotlearn.paths import config_dir
 from tests.conftest import CONFIG_DIR, FAST, config_options, run_cli
 

@@ -219,7 +219,7 @@ def test_the_options_are_config_keys_of_the_image_datamodules(make_cfg, tmp_path
     """The config validator reads the new keys from the constructors' signatures."""
     from hydra.utils import instantiate
 
-    from rotlearn.cli.schemas import validate
+    from rotlearn.config import validate
 
     over = ["data.swap_pairs=0.5", "data.photometric={brightness: 0.2, contrast: 0.1}"]
     cfg = make_cfg(["data=kitti", f"data.root={tmp_path}", "data.deltas=[1,2]", *over])

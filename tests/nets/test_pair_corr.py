@@ -122,7 +122,7 @@ def test_bad_arguments_are_refused(kwargs, message):
 
 @pytest.mark.parametrize("data", ["kitti", "mav"])
 def test_net_pair_corr_composes_and_runs_on_a_batch(make_cfg, demo_data, data):
-    from rotlearn.cli.schemas import validate
+    from rotlearn.config import validate
 
     cfg = make_cfg([f"data={data}", "net=pair_corr", "rep=a", *demo_overrides(demo_data, data)])
     validate(cfg)

@@ -170,7 +170,7 @@ def test_a_tiny_mav_run_scores_its_extra_sets(tmp_path, make_cfg):
 def test_the_reproduction_configs_compose_and_validate(make_cfg):
     """`make reproduce-ood`'s three training commands: Table I with the paper's rows, the A head
     with the Bingham loss, and Fig. 8 with its extra sets."""
-    from rotlearn.cli.schemas import validate
+    from rotlearn.config import validate
 
     kitti = make_cfg(["experiment=kitti_ood_demo"])
     validate(kitti)

@@ -14,7 +14,7 @@ from hydra import compose, initialize_config_dir
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rotlearn.cli.schemas import ConfigError
+from rotlearn.config import ConfigError
 from rotlearn.cli.train import train
 from rotlearn.heads import make_head
 from rotlearn.ood import (
@@ -314,7 +314,7 @@ def test_unseen_scenes_count_as_ood(tmp_path, make_cfg):
 
 
 def test_ood_config_keys_are_checked_before_training(make_cfg):
-    from rotlearn.cli.schemas import validate
+    from rotlearn.config import validate
 
     validate(make_cfg(["experiment=kitti_ood_demo"]))
     with pytest.raises(ConfigError, match=r"callbacks\.ood\.quantile: unknown \(did you mean"):

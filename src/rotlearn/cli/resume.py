@@ -21,7 +21,6 @@ from omegaconf import DictConfig
 
 from rotlearn.checkpoint import load_checkpoint, resolve_checkpoint
 from rotlearn.cli.replay import saved_overrides
-from rotlearn.cli.schemas import validate_command_line
 from rotlearn.io import read_json
 from rotlearn.trust import UntrustedConfigError
 
@@ -157,8 +156,10 @@ def _refuse_rewriting_a_completed_run(run_dir: Path, previous: list[str], new: l
 
 def _refuse_an_invalid_config(run_dir: Path, args: list[str]) -> None:
     """Compose and validate the resumed run's config before Hydra writes anything into it."""
+    from rotlearn.config import command_line
+
     try:
-        validate_command_line(args, str(run_dir))
+        command_line(args, str(run_dir))
     except Exception as exc:  # any composition or validation error: nothing was written
         raise _refuse(f"refusing to resume {run_dir}: {exc}") from None
 

@@ -1,8 +1,9 @@
 """`rotlearn-train` (also `python -m rotlearn.train`): train and test one run (or a sweep, -m).
 
 The entry point only. `rotlearn-train --help` is answered from the config directory alone, without
-importing torch, Lightning or the config schemas (a second instead of several); everything else
-registers the schemas and starts the Hydra app, which builds and trains with
+importing torch or Lightning (a second instead of several); a command line with an unknown option
+or key, or missing data, is refused as fast (`rotlearn.config` reads the components' source, not
+their modules); everything else is validated, then starts the Hydra app, which builds and trains with
 `rotlearn.cli.training` (`build`, `train`, `RunInterrupted`, `ConfigError`: importable from here
 too, loaded on first use). See conf/train.yaml.
 """
@@ -84,23 +85,24 @@ def _hydra_main(cfg: DictConfig) -> float:
     return metrics.get("val/err_median", metrics.get("val/loss", math.nan))
 
 
-def _refuse_an_invalid_new_run(argv: list[str]) -> None:
-    """Validate a new single run's config before Hydra creates its directory, so that a bad value
-    leaves nothing behind (SystemExit naming the key). Sweeps (each job is validated by `build`
-    and listed FAILED), flags such as --help or --cfg, and resumes (`rotlearn.cli.resume`) are
-    left to their own paths; a config that does not compose is left for Hydra to report."""
+def _checked(argv: list[str]) -> list[str]:
+    """The command line of a new run (or sweep), validated before Hydra creates its directory
+    (`rotlearn.config.command_line`): a bad option, key or value exits naming it, having written
+    nothing. Returns the arguments for Hydra, with `+` before each component argument that its
+    YAML does not list. Flags such as --cfg and resumes (`rotlearn.cli.resume` validates those)
+    pass unchecked; a command line that does not compose is left for Hydra to report."""
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
-    from rotlearn.cli.schemas import validate_command_line
-    from rotlearn.errors import ConfigError
+    from rotlearn.config import ConfigError, command_line
 
-    if any(a.startswith("-") or a.startswith("ckpt_path=") for a in argv):
-        return
+    flags = [a for a in argv if a.startswith("-") and a not in ("-m", "--multirun")]
+    if flags or any(a.startswith("ckpt_path=") for a in argv):
+        return argv
     try:
-        validate_command_line(argv, "new-run")
+        return command_line(argv, "new-run")
     except (HydraException, OmegaConfBaseException):
-        return
+        return argv
     except ConfigError as exc:
         raise SystemExit(f"rotlearn-train: {exc} (nothing was written)") from None
 
@@ -112,10 +114,9 @@ def main() -> float | None:
     if any(a in HELP_FLAGS for a in argv):
         print(usage(), end="")
         return None
-    import rotlearn.cli.schemas  # noqa: F401  (registers the schemas the config composes from)
+    argv = _checked(argv)
     from rotlearn.cli.resume import keep_earlier_records, resume_arguments
 
-    _refuse_an_invalid_new_run(argv)
     args = resume_arguments(argv)
     if args != argv:  # a resume that will train: its last argument is hydra.run.dir=<run dir>
         kept = keep_earlier_records(Path(args[-1].split("=", 1)[1]))

@@ -3,8 +3,8 @@
 
 Every component comes from the Hydra config with `hydra.utils.instantiate` (`build`); every file
 goes below `paths.output_dir` (Hydra's run directory), the records written by
-`rotlearn.lit.RunRecords`. Resuming is `rotlearn.cli.resume`. See conf/train.yaml. Importing this
-module registers the config schemas (`rotlearn.cli.schemas`) that composing a config needs.
+`rotlearn.lit.RunRecords`. Resuming is `rotlearn.cli.resume`. See conf/train.yaml; the config is
+validated and the model built by `rotlearn.config`.
 """
 
 from __future__ import annotations
@@ -12,7 +12,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-import re
 import signal
 import sys
 import warnings
@@ -25,10 +24,10 @@ import torch
 from hydra.errors import InstantiationException
 from omegaconf import DictConfig, OmegaConf
 
+from rotlearn import config
 from rotlearn.checkpoint import load_checkpoint
 from rotlearn.cli.callbacks import record_job
 from rotlearn.cli.resume import checkpoint_to_resume
-from rotlearn.cli.schemas import validate
 from rotlearn.errors import ConfigError
 from rotlearn.lit import (
     EpochLosses,
@@ -69,64 +68,31 @@ class _WithoutCloudTips(logging.Filter):
 logging.getLogger("lightning.pytorch.utilities.rank_zero").addFilter(_WithoutCloudTips())
 
 
-def _instantiate(cfg: DictConfig, key: str, **kwargs: Any) -> Any:
-    """Instantiate the config node `key`; a component's `ConfigError` (its key relative to the
-    node) is re-raised with the full key."""
-    node = OmegaConf.select(cfg, key)
-    if node is None:
-        raise ConfigError(key, "is missing")
-    try:
-        return hydra.utils.instantiate(node, **kwargs)
-    except InstantiationException as exc:  # Hydra wraps what the constructor raised
-        if isinstance(exc.__cause__, ConfigError):
-            raise exc.__cause__.within(_component_key(cfg, key, exc)) from None
-        raise
-
-
-def _component_key(cfg: DictConfig, key: str, exc: InstantiationException) -> str:
-    """The config key of the component that failed while `key` was built: `key` itself, or, for
-    the model, the group its failing part comes from (model.head is `${rep}`: rep)."""
-    match = re.search(r"full_key: ([\w.]+)", str(exc))
-    if key != "model" or match is None:
-        return key
-    parts = match.group(1).split(".")
-    parts = parts[1:] if parts[0] == key else parts  # relative to the model node
-    if not parts:  # the model's own constructor
-        return key
-    part = parts[0]
-    raw = OmegaConf.to_container(OmegaConf.select(cfg, key), resolve=False).get(part)
-    if isinstance(raw, str) and raw.startswith("${") and raw.endswith("}"):
-        return raw[2:-1]
-    return f"{key}.{part}"
-
-
 def _instantiate_all(cfg: DictConfig, key: str) -> list[Any]:
     node = OmegaConf.select(cfg, key) or {}
     return [_instantiate(cfg, f"{key}.{name}") for name in node]
 
 
-def build(cfg: DictConfig) -> tuple[pl.LightningModule, pl.LightningDataModule, pl.Trainer]:
-    """Model, datamodule and trainer for a composed config (validated, seeds set first).
+def _instantiate(cfg: DictConfig, key: str, **kwargs: Any) -> Any:
+    try:
+        return hydra.utils.instantiate(OmegaConf.select(cfg, key), **kwargs)
+    except InstantiationException as exc:  # Hydra wraps what the constructor raised
+        if isinstance(exc.__cause__, ConfigError):
+            raise exc.__cause__.within(key) from None
+        raise
 
-    `instantiate(cfg.model)` is the whole model (`model=regressor`: net, head, loss, optimizer
-    and scheduler from their groups; `model=autoencoder`: the OOD baseline). The trainer gets
-    the configured callbacks plus the run's record keeping (`RunRecords`, `InterruptRecorder`,
-    `EpochLosses`), whatever `callbacks=` says, `calibrate: true` adds the post-hoc temperature
-    fit (`rotlearn.lit.calibration.TemperatureScaling`; refused with a `ConfigError` naming
-    `calibrate` for a head without a belief), and `trainer.enable_model_summary` gives
-    rotlearn's `ModelSummary`."""
-    validate(cfg)
-    pl.seed_everything(cfg.seed, workers=True, verbose=False)
-    datamodule = _instantiate(cfg, "data")
-    model = _instantiate(cfg, "model")
-    model.run_config = OmegaConf.to_container(cfg, resolve=True)
+
+def build(cfg: DictConfig) -> tuple[pl.LightningModule, pl.LightningDataModule, pl.Trainer]:
+    """Model, datamodule and trainer for a composed config: `rotlearn.config.build` (validated,
+    seeded; the model with its net, head, loss, optimizer and scheduler, or the auto-encoder)
+    and a trainer with the configured callbacks plus the run's record keeping (`RunRecords`,
+    `InterruptRecorder`, `EpochLosses`), whatever `callbacks=` says; `calibrate: true` adds the
+    post-hoc temperature fit (`rotlearn.lit.calibration.TemperatureScaling`), and
+    `trainer.enable_model_summary` gives rotlearn's `ModelSummary`."""
+    model, datamodule = config.build(cfg)
     callbacks = _instantiate_all(cfg, "callbacks")
     callbacks += [RunRecords(cfg.paths.output_dir), InterruptRecorder(), EpochLosses()]
     if OmegaConf.select(cfg, "calibrate", default=False):
-        head = getattr(model, "head", None)
-        if not getattr(head, "defines_belief", False):
-            what = f"rep={head.name}" if head is not None else f"the {type(model).__name__}"
-            raise ConfigError("calibrate", f"fits the temperature of a belief; {what} has none")
         callbacks.append(TemperatureScaling(cfg.paths.output_dir))
     if OmegaConf.select(cfg, "trainer.enable_model_summary", default=True):
         callbacks.append(ModelSummary())  # Lightning's, without its column of zero FLOPs

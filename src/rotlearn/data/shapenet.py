@@ -16,6 +16,7 @@ import io
 import json
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Literal
 
 import numpy as np
 import torch
@@ -29,7 +30,6 @@ from rotlearn.data.heteroscedastic import (
     keep_random_rows,
     log_uniform,
 )
-from rotlearn.errors import ConfigValueError, require_positive_ints
 from rotlearn.extras import import_extra
 from rotlearn.geometry import quat_to_rotmat, so3_exp_quat
 from rotlearn.io import (
@@ -42,6 +42,9 @@ from rotlearn.io import (
     write_text_atomic,
 )
 from rotlearn.trust import config_target
+
+if TYPE_CHECKING:  # constraints of the config values, checked by rotlearn.config
+    from annotated_types import Ge, Gt, Le
 
 __all__ = ["AIRPLANE_SYNSET", "ShapeNetDataModule", "read_mesh", "read_point_file", "sample_meshes"]
 
@@ -183,37 +186,29 @@ class ShapeNetDataModule(DrawDataModule):
             without noise_range so that it still ranks samples by their number of points.
     """
 
+    # What data.root holds, checked when a config is validated (rotlearn.config): the split
+    # folders of the 6D paper's clouds (format=pts) or the category's folder of meshes.
+    layout = ("format=pts: train", "format=pts: test", "format=mesh: {synset}")
+
     def __init__(
         self,
         root: str,
-        format: str = "pts",
+        format: Literal["pts", "mesh"] = "pts",
         synset: str = AIRPLANE_SYNSET,
-        num_train: int = 2290,
-        num_test: int = 400,
-        point_fraction: float = 0.5,
-        num_points: int = 1024,
-        rotations_per_cloud: int = 10,
-        iterations_per_epoch: int = 200,
-        test_rotations: int = 100,
-        num_val: int = 20,
-        seed: int = 0,
+        num_train: Annotated[int, Gt(0)] = 2290,
+        num_test: Annotated[int, Gt(0)] = 400,
+        point_fraction: Annotated[float, Gt(0), Le(1)] = 0.5,
+        num_points: Annotated[int, Gt(0)] = 1024,
+        rotations_per_cloud: Annotated[int, Gt(0)] = 10,
+        iterations_per_epoch: Annotated[int, Gt(0)] = 200,
+        test_rotations: Annotated[int, Gt(0)] = 100,
+        num_val: Annotated[int, Ge(0)] = 20,
+        seed: Annotated[int, Ge(0)] = 0,
         cache_dir: str | None = None,
         noise_range: list[float] | None = None,
         keep_range: list[float] | None = None,
     ) -> None:
         super().__init__()
-        if format not in ("pts", "mesh"):
-            raise ConfigValueError("format", f"must be 'pts' or 'mesh', got {format!r}")
-        if not 0.0 < point_fraction <= 1.0:
-            raise ConfigValueError("point_fraction", f"must lie in (0, 1], got {point_fraction}")
-        require_positive_ints(
-            num_train=num_train,
-            num_test=num_test,
-            num_points=num_points,
-            rotations_per_cloud=rotations_per_cloud,
-            iterations_per_epoch=iterations_per_epoch,
-            test_rotations=test_rotations,
-        )
         self.root, self.format = Path(root), format
         self.synset = plain_name(synset, key="synset")
         self.num_train, self.num_test = int(num_train), int(num_test)

@@ -7,7 +7,7 @@ import functools
 import os
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import lightning.pytorch as pl
 import torch
@@ -21,6 +21,9 @@ from rotlearn.lit.state import RunStateHooks
 from rotlearn.logs import logger_at_least
 from rotlearn.nets.autoencoder import ConvAutoEncoder
 from rotlearn.trust import config_target
+
+if TYPE_CHECKING:  # constraints of the config values, checked by rotlearn.config
+    from annotated_types import Gt
 
 __all__ = ["AutoEncoderModule", "fit_autoencoder", "load_autoencoder", "save_autoencoder"]
 
@@ -49,7 +52,7 @@ class AutoEncoderModule(FiniteChecks, RunStateHooks, pl.LightningModule):
         self,
         net: ConvAutoEncoder,
         optimizer: OptimizerFactory | None = None,
-        finite_check_every: int = FINITE_CHECK_EVERY,
+        finite_check_every: Annotated[int, Gt(0)] = FINITE_CHECK_EVERY,
     ) -> None:
         super().__init__()
         self._init_finite_checks(finite_check_every)

@@ -17,10 +17,9 @@ from __future__ import annotations
 import copy
 import functools
 import logging
-import math
 from collections.abc import Iterable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import lightning.pytorch as pl
 import numpy as np
@@ -40,6 +39,9 @@ from rotlearn.ood.evaluation import (
 from rotlearn.ood.scores import SCORES, available_scores
 from rotlearn.ood.source import OODDataSource
 from rotlearn.trust import config_target
+
+if TYPE_CHECKING:  # constraints of the config values, checked by rotlearn.config
+    from annotated_types import Ge, Gt, Le, MinLen
 
 __all__ = ["OODEvaluation", "extra_source"]
 
@@ -109,32 +111,27 @@ class OODEvaluation(pl.Callback):
 
     def __init__(
         self,
-        quantiles: list[float] = (0.25, 0.5, 0.75, 1.0),
+        quantiles: Annotated[list[Annotated[float, Ge(0), Le(1)]], MinLen(1)] = (
+            0.25, 0.5, 0.75, 1.0
+        ),
         scores: list[str] = ("dt", "eigengap", "raw_norm", "autoencoder"),
         autoencoder_ckpt: str | None = None,
         autoencoder_train: dict[str, Any] | None = None,
-        corrupt_fraction: float = 0.5,
-        table: dict[str, float] | None = None,
-        noise_pairs: int = 64,
-        max_train_pairs: int | None = None,
+        corrupt_fraction: Annotated[float, Gt(0), Le(1)] = 0.5,
+        table: dict[str, Annotated[float, Ge(0), Le(1)]] | None = None,
+        noise_pairs: Annotated[int, Ge(0)] = 64,
+        max_train_pairs: Annotated[int, Gt(0)] | None = None,
         unseen_scenes_ood: bool = False,
         extra_sets: dict[str, dict[str, Any]] | None = None,
-        examples: int = 6,
+        examples: Annotated[int, Ge(0)] = 6,
     ) -> None:
         super().__init__()
         self.quantiles = [float(q) for q in quantiles]
-        bad = [q for q in self.quantiles if not 0.0 <= q <= 1.0 or math.isnan(q)]
-        if bad or not self.quantiles:
-            raise ConfigValueError("quantiles", f"each must lie in [0, 1], got {list(quantiles)}")
         unknown = sorted(set(scores) - set(SCORES))
         if unknown:
             raise ConfigValueError("scores", f"unknown {unknown}; choose from {sorted(SCORES)}")
         if autoencoder_ckpt and not Path(autoencoder_ckpt).exists():
             raise ConfigValueError("autoencoder_ckpt", f"{autoencoder_ckpt} does not exist")
-        if not 0.0 < corrupt_fraction <= 1.0:
-            raise ConfigValueError(
-                "corrupt_fraction", f"must lie in (0, 1], got {corrupt_fraction}"
-            )
         self.score_names = list(scores)
         self.autoencoder_ckpt = autoencoder_ckpt
         if isinstance(autoencoder_train, DictConfig):  # plain data: it goes into a checkpoint
@@ -154,9 +151,22 @@ class OODEvaluation(pl.Callback):
                     f"needs a name other than {list(RESERVED_SETS)} and a non-empty mapping of "
                     f"datamodule settings (e.g. {{test_scenes: [indoor]}}), got {overrides!r}",
                 )
-        if int(examples) < 0:
-            raise ConfigValueError("examples", f"must be >= 0, got {examples}")
         self.examples = int(examples)
+
+    @classmethod
+    def check_config(cls, config: dict[str, Any]) -> str | None:
+        """Why a run config cannot use this callback (None: it can): it scores image pairs, so
+        its datamodule must be an `OODDataSource` (KITTI, MAV). Asked by `rotlearn.config`
+        before anything is built."""
+        from hydra.utils import get_class
+
+        data = get_class(config["data"]["_target_"])
+        if isinstance(data, type) and issubclass(data, OODDataSource):
+            return None
+        return (
+            f"needs an image-pair datamodule (an OODDataSource: data=kitti or data=mav); "
+            f"this run's data is {data.__name__}"
+        )
 
     def _autoencoder(self, trainer: pl.Trainer, device: torch.device, head: Any = None):
         """The auto-encoder of the `autoencoder` score: loaded, trained here on the datamodule's
