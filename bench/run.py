@@ -8,6 +8,8 @@
 - bingham: log N(Lambda) and its gradient per sample (bench/bingham.py).
 - kitti_loader: first-time KITTI preprocessing rate and cached pairs/s with 2 workers
   (bench/kitti_loader.py).
+- cli_errors: seconds until a command line's mistake is refused (unknown key or option, missing
+  data, a folder that is no run, ...), each in a fresh process (bench/cli_errors.py; issue 23).
 - predictor: peak memory (RSS) and seconds of `rotlearn.inference.Predictor` on 10k and 100k
   samples of 10 point pairs (PointNet + A head), each in a fresh process: chunking bounds memory.
 - paper: the paper's synthetic experiment (lr 5e-4, 50 epochs, phi_max 180) over 3 seeds per
@@ -31,12 +33,10 @@ import warnings
 from pathlib import Path
 
 import torch
-from hydra import compose, initialize_config_dir
-
 from rotlearn.cli.train import train
+from rotlearn.config import compose
 from rotlearn.heads import HEADS, make_head
 from rotlearn.io import write_json_atomic
-from rotlearn.paths import config_dir
 from timing import machine, median_seconds
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -51,9 +51,7 @@ def _machine() -> dict:
 
 def _run(overrides: list[str], out: Path) -> dict:
     """Train one config; its metrics.json plus the epoch time from timing.json."""
-    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
-        cfg = compose("train", overrides=[f"paths.output_dir={out}", *QUIET, *overrides])
-    metrics = train(cfg)
+    metrics = train(compose([*QUIET, *overrides], output_dir=out))
     timing = json.loads((out / "timing.json").read_text())
     return {**metrics, "epoch_time_s": timing["epoch_time_s"]}
 
@@ -198,6 +196,7 @@ SCRIPTS = {
     "bingham": "bingham.py",
     "rep_layers": "rep_layers.py",
     "kitti_loader": "kitti_loader.py",
+    "cli_errors": "cli_errors.py",
 }  # benchmarks with their own CLI
 DEVICE_SCRIPTS = ("a_layer", "rep_layers")  # those that take --device (the others run on CPU)
 

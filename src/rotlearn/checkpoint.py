@@ -31,6 +31,7 @@ import torch
 from torch import Tensor
 
 from rotlearn.extras import require
+from rotlearn.paths import checkpoint_file
 from rotlearn.trust import UntrustedConfigError, trusted_config
 
 __all__ = [
@@ -59,13 +60,10 @@ class UnsafeCheckpointError(pickle.UnpicklingError, ValueError):
 
 
 def resolve_checkpoint(path: str | os.PathLike) -> Path:
-    """A checkpoint file, or a run directory (meaning its checkpoints/last.ckpt)."""
-    path = Path(path)
-    if path.is_dir():
-        path = path / "checkpoints" / "last.ckpt"
-    if not path.is_file():
-        raise FileNotFoundError(f"no checkpoint at {path}")
-    return path
+    """A checkpoint file, or a run directory (meaning its checkpoints/last.ckpt): see
+    `rotlearn.paths.checkpoint_file` (a sweep directory or another folder is refused, naming
+    what to pass instead)."""
+    return checkpoint_file(path)
 
 
 def load_checkpoint(path: str | os.PathLike, map_location: Any = "cpu") -> dict[str, Any]:

@@ -21,9 +21,9 @@ from tests.conftest import CONFIG_DIR, FAST, config_options, run_cli
 
 
 @pytest.mark.parametrize("experiment", config_options("experiment"))
-def test_every_experiment_composes_and_validates(make_cfg, experiment):
+def test_every_experiment_composes_and_validates(make_cfg, on_disk, experiment):
     cfg = make_cfg([f"experiment={experiment}"])
-    validate(cfg)
+    validate(on_disk(cfg))
     assert cfg.trainer.max_epochs >= 1
     data = {
         "synthetic": "SyntheticWahbaDataModule",

@@ -14,17 +14,18 @@ import logging
 import math
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from rotlearn.checkpoint import SavedRun, load_run
 from rotlearn.errors import ConfigError
-from rotlearn.io import write_json_atomic
-from rotlearn.paths import config_dir
+from rotlearn.paths import checkpoint_file, config_dir
 
-__all__ = ["evaluate", "evaluation_config", "main"]
+if TYPE_CHECKING:
+    from rotlearn.checkpoint import SavedRun
+
+__all__ = ["evaluate", "evaluation_config", "main", "usage"]
 
 log = logging.getLogger("rotlearn")
 
@@ -73,14 +74,22 @@ def evaluation_config(cfg: DictConfig, saved: SavedRun) -> DictConfig:
     return run
 
 
+def _saved_run(cfg: DictConfig) -> SavedRun:
+    """The run `cfg.ckpt` names, read through the one loader (`rotlearn.checkpoint.load_run`)."""
+    from rotlearn.checkpoint import load_run
+
+    try:
+        return load_run(cfg.ckpt)
+    except (FileNotFoundError, ValueError) as exc:  # unsafe file, untrusted config, other task
+        raise ConfigError("ckpt", f"{cfg.ckpt}: {exc}") from None
+
+
 def evaluate(cfg: DictConfig) -> dict[str, Any]:
     """Test the checkpoint `cfg.ckpt` with the OOD callback; writes metrics.json; returns it."""
     from rotlearn.cli.train import build
+    from rotlearn.io import write_json_atomic
 
-    try:
-        saved = load_run(cfg.ckpt)
-    except (FileNotFoundError, ValueError) as exc:  # unsafe file, untrusted config, other task
-        raise ConfigError("ckpt", f"{cfg.ckpt}: {exc}") from None
+    saved = _saved_run(cfg)
     ckpt = saved.path
     run = evaluation_config(cfg, saved)
     model, datamodule, trainer = build(run)
@@ -110,10 +119,63 @@ def _hydra_main(cfg: DictConfig) -> float:
     return metrics.get("test/err_median", math.nan)
 
 
-def main() -> float:
-    """Entry point of `rotlearn-eval`."""
+def usage(root: Path | None = None) -> str:
+    """The `--help` text: what conf/eval.yaml says it takes (its comments and keys). Reads the
+    file only."""
+    text = (Path(root or config_dir()) / "eval.yaml").read_text()
+    head, _, body = text.partition("defaults:")
+    keys = body[body.index("ckpt:") : body.index("\npaths:")]
+    lines = [
+        "rotlearn-eval: test a trained run again, with the OOD evaluation, without retraining.",
+        "",
+        "usage: rotlearn-eval ckpt=<run dir or .ckpt> [key=value ...] [-m]",
+        *(line.removeprefix("# ") for line in head.strip().splitlines()),
+        "",
+        "keys (conf/eval.yaml; null keeps the run's own value):",
+        *(f"  {line}" for line in keys.rstrip().splitlines()),
+        "",
+        "sweep=ood_quantile (with -m): one evaluation per OOD quantile",
+        "outputs: outputs/eval/<time>/ (metrics.json, ood.csv, ood.md, tensorboard/)",
+        "rotlearn-eval --hydra-help: Hydra's own flags",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def _checked(argv: list[str]) -> list[str]:
+    """Refuse, before Hydra makes the evaluation's directory, a command line that cannot work
+    (SystemExit naming the key; nothing is written): no ckpt, a ckpt that is not a run (a sweep
+    directory: its jobs listed), and, for one evaluation, a run config that does not validate
+    with the evaluation's settings (e.g. OOD callbacks on data that is not image pairs).
+    Returns the arguments for Hydra (`+` before a data key that eval.yaml does not list)."""
+    from rotlearn.config import command_line, compose, validate
+
+    values = [a.split("=", 1)[1] for a in argv if a.startswith("ckpt=")]
+    if not values:
+        raise SystemExit("rotlearn-eval: ckpt=<run directory or .ckpt file> is missing (--help)")
+    try:
+        checkpoint_file(values[-1])
+    except FileNotFoundError as exc:
+        raise SystemExit(f"rotlearn-eval: ckpt: {exc} (nothing was written)") from None
+    if any(a.startswith("-") for a in argv):  # -m: each job is checked as it runs
+        return argv
+    try:
+        args = command_line(argv, "new-eval", config_name="eval", check=False)
+        cfg = compose(args, config_name="eval", output_dir="new-eval", check=False)
+        validate(evaluation_config(cfg, _saved_run(cfg)))
+    except ConfigError as exc:
+        raise SystemExit(f"rotlearn-eval: {exc} (nothing was written)") from None
+    return args
+
+
+def main() -> float | None:
+    """Entry point of `rotlearn-eval`; None after `--help`."""
+    argv = sys.argv[1:]
+    if any(a in ("-h", "--help") for a in argv):
+        print(usage(), end="")
+        return None
+    sys.argv[1:] = _checked(argv)
     return _hydra_main()
 
 
 if __name__ == "__main__":
-    sys.exit(main() is None)
+    main()

@@ -17,10 +17,9 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from rotlearn.geometry import angle_deg
 from rotlearn.io import read_number_rows
+from rotlearn.paths import checkpoint_file
 
 __all__ = ["main", "read_point_pairs"]
 
@@ -63,14 +62,29 @@ def main(argv: list[str] | None = None) -> int:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("checkpoint", help="a .ckpt file or a run directory (uses its last.ckpt)")
     parser.add_argument(
-        "input", nargs="+", help="point-cloud pair file (.npy or text), or two image files"
+        "checkpoint", help="a run directory (its checkpoints/last.ckpt) or a .ckpt file"
     )
-    parser.add_argument("--device", default="cpu")
+    parser.add_argument(
+        "input",
+        nargs="+",
+        help="a point-pair file (.npy (N, 6) or (B, N, 6), or text rows 'ux uy uz vx vy vz'), "
+        "or the two image files of an image-pair model",
+    )
+    parser.add_argument(
+        "--device", default="cpu", help="where the model runs: cpu (default), cuda, cuda:1, ..."
+    )
     parser.add_argument("--json", action="store_true", help="print JSON instead of text")
     args = parser.parse_args(argv)
+    try:  # a folder that is no run (or a sweep: its jobs named) is refused before torch loads
+        checkpoint_file(args.checkpoint)
+    except FileNotFoundError as exc:
+        print(f"rotlearn-predict: {exc}", file=sys.stderr)
+        return 2
 
+    import torch
+
+    from rotlearn.geometry import angle_deg
     from rotlearn.inference import load
 
     try:

@@ -161,10 +161,13 @@ def compose(
     return cfg
 
 
-def command_line(args: Sequence[str], output_dir: str = "new-run", config_name: str = "train"):
+def command_line(
+    args: Sequence[str], output_dir: str = "new-run", config_name: str = "train", check: bool = True
+) -> list[str]:
     """Validate the config a command line composes to, before Hydra starts and writes anything;
     returns the arguments for Hydra (with `+` before each component argument its YAML does not
-    list). A sweep (-m) is checked with the first value of each swept key.
+    list). A sweep (-m) is checked with the first value of each swept key; `check=False` only
+    composes (another primary config than train's).
 
     Raises:
         ConfigError: naming the option or key at fault.
@@ -185,7 +188,8 @@ def command_line(args: Sequence[str], output_dir: str = "new-run", config_name: 
     with open_dict(cfg):
         del cfg["hydra"]
         cfg.paths.output_dir = output_dir
-    validate(cfg)
+    if check:
+        validate(cfg)
     added = {o.lstrip("+").split("=", 1)[0] for o in taken if o.startswith("+")}
     fixed = [f"+{a}" if not a.startswith(("+", "~")) and a.split("=", 1)[0] in added else a
              for a in overrides]  # fmt: skip

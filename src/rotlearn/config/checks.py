@@ -156,6 +156,9 @@ def allowed_keys(target: str, group: str) -> list[str] | None:
     return [p.name for p in found if p.name not in SUPPLIED.get(group, ())]
 
 
+_CONDITION = re.compile(r"(?:(\w+)=([^:/{}]+):\s*)?(.*)")  # [key=value: ]path
+
+
 def data_paths(node: dict[str, Any]) -> list[tuple[str, Path]]:
     """(config key, path) of what a data node's root must hold: the root, then each path of its
     datamodule's `layout` (a `{key}` standing for each value of that key; `key=value: path`
@@ -165,22 +168,21 @@ def data_paths(node: dict[str, Any]) -> list[tuple[str, Path]]:
     root = Path(str(node["root"]))
     found = [("data.root", root)]
     for template in class_attribute(node["_target_"], "layout") or []:
-        condition, _, path = template.rpartition(":")
-        key, _, value = condition.partition("=")
-        if condition and str(node.get(key.strip())) != value.strip():
+        key, value, path = _CONDITION.fullmatch(template).groups()
+        if key and str(node.get(key)) != value:
             continue
-        fields = [f for _, f, _, _ in string.Formatter().parse(path.strip()) if f]
+        fields = [f for _, f, _, _ in string.Formatter().parse(path) if f]
         choices = [node[f] if isinstance(node[f], list) else [node[f]] for f in fields]
         for combination in itertools.product(*choices):
             where = f"data.{fields[0]}" if fields else "data.root"
-            found.append((where, root / path.strip().format(**dict(zip(fields, combination)))))
+            found.append((where, root / path.format(**dict(zip(fields, combination)))))
     return found
 
 
 def _check_layout(node: dict[str, Any]) -> None:
     paths = data_paths(node)
     layout = class_attribute(node["_target_"], "layout") or []
-    shown = [re.sub(r"\{(\w+)[^}]*\}", r"<\1>", t.rpartition(":")[2].strip()) for t in layout]
+    shown = [re.sub(r"\{(\w+)[^}]*\}", r"<\1>", _CONDITION.fullmatch(t)[3]) for t in layout]
     expected = f"; it must hold {', '.join(dict.fromkeys(shown))} (data/README.md)" if layout else ""
     if paths and not paths[0][1].is_dir():
         raise ConfigError("data.root", f"no directory {paths[0][1]}{expected}")
