@@ -87,9 +87,8 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args(argv)
-    from timing import machine
-
     from rotlearn.io import write_json_atomic
+    from timing import machine
 
     rows = {}
     with tempfile.TemporaryDirectory() as tmp:
@@ -102,14 +101,17 @@ def main(argv: list[str] | None = None) -> None:
                 done, seconds = run(name, paths, cwd)
                 times.append(seconds)
             line = done.stderr.strip().splitlines()[-1] if done.stderr.strip() else ""
-            rows[name] = {"median_s": statistics.median(times), "exit_code": done.returncode,
-                          "message": line}  # fmt: skip
-    print(f"\nSeconds until a refused command exits (median of {args.repeats}; target {TARGET_S} s)")
+            rows[name] = {
+                "median_s": statistics.median(times),
+                "exit_code": done.returncode,
+                "message": line,
+            }
+    print(f"\nSeconds until a refused command exits (median of {args.repeats}; target {TARGET_S})")
     for name, row in rows.items():
         mark = "" if row["median_s"] <= TARGET_S else "  (over the target)"
         print(f"{name:38s} {row['median_s']:6.2f}{mark}")
-    path = write_json_atomic(RESULTS / "cli_errors.json", {"machine": machine("cpu"),
-                                                           "target_s": TARGET_S, "result": rows})  # fmt: skip
+    result = {"machine": machine("cpu"), "target_s": TARGET_S, "result": rows}
+    path = write_json_atomic(RESULTS / "cli_errors.json", result)
     print(f"-> {path}")
 
 

@@ -25,6 +25,7 @@ import time
 from pathlib import Path
 
 import torch
+
 from rotlearn.cli.train import build
 from rotlearn.config import compose
 from rotlearn.io import write_json_atomic

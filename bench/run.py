@@ -33,6 +33,7 @@ import warnings
 from pathlib import Path
 
 import torch
+
 from rotlearn.cli.train import train
 from rotlearn.config import compose
 from rotlearn.heads import HEADS, make_head

@@ -48,7 +48,7 @@ def checkpoint_file(path: str | os.PathLike) -> Path:
             f"{path} is a sweep directory, not one run: pass one of its jobs, {shown}{more}"
         )
     if any((path / name).is_file() for name in SWEEP_FILES):
-        raise FileNotFoundError(f"{path} is a sweep directory, and none of its jobs has a checkpoint")
+        raise FileNotFoundError(f"{path} is a sweep directory; none of its jobs has a checkpoint")
     raise FileNotFoundError(
         f"{path} is not a rotlearn run: it has no checkpoints/last.ckpt (pass a run directory, "
         "e.g. outputs/runs/<time>, or a .ckpt file)"

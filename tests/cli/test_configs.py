@@ -14,9 +14,8 @@ from lightning.pytorch.loggers import Logger
 from omegaconf import OmegaConf
 
 from rotlearn.cli.train import build
-from rotlearn.config import ConfigError, validate
+from rotlearn.config import ConfigError, register_schemas, schema, validate
 from rotlearn.config.source import marked
-from rotlearn.config.store import register_schemas, schema
 from rotlearn.heads import HEADS, RotationHead
 from tests.conftest import CONFIG_DIR, config_options, demo_overrides
 

@@ -182,7 +182,8 @@ def test_cli_refuses_unknown_rep_listing_options(tmp_path):
 def test_cli_refuses_phi_max_out_of_range_naming_the_key(tmp_path):
     result = run_cli(["data.phi_max_deg=270"], tmp_path)
     assert result.returncode != 0
-    assert "config key data.phi_max_deg: should be less than or equal to 180, got 270" in result.stderr
+    message = "config key data.phi_max_deg: should be less than or equal to 180, got 270"
+    assert message in result.stderr
 
 
 def test_a_bad_value_of_a_new_run_leaves_no_run_directory(tmp_path):

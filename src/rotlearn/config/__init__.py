@@ -5,29 +5,28 @@
     cfg = compose(["rep=a", "loss=bingham", "data=tiny"])  # conf/train.yaml + overrides, validated
     model, datamodule = build(cfg)  # the LightningModule and LightningDataModule, not yet trained
 
-`compose` is Hydra's compose API with rotlearn's answers to the usual mistakes: an unknown option
-(`rep=aa`: the real options and the nearest one) and an unknown key (`optim.lrr=1e-3`, with or
-without `+`: the nearest known key and the allowed ones, instead of Hydra's advice to append it).
-A key that a component takes but its YAML does not list is set without `+`, as the others are.
-`validate` checks every node against its constructor (`rotlearn.config.checks`); `build` validates,
-seeds and instantiates. `rotlearn-train` and `rotlearn-eval` run the same `command_line` check
-before Hydra starts, so a refused command writes nothing. A plain `hydra.compose` on conf/ works
-too: the component schemas its YAML files start from register themselves
-(`rotlearn.config.store`).
+`compose` is Hydra's compose API with rotlearn's answer to an unknown option (`rep=aa`: the real
+options and the nearest) and key (`optim.lrr=1e-3`, with or without `+`: the nearest key and the
+allowed ones, `rotlearn.config.checks`); an argument a component takes is set without `+` even
+where its YAML does not list it. `rotlearn-train` and `rotlearn-eval` check their command line the
+same way (`command_line`) before Hydra starts, so a refused command writes nothing. Each YAML starts
+from its component's defaults, `schema/<target>` in Hydra's ConfigStore (`register_schemas`, which
+rotlearn's Hydra plugin runs wherever Hydra composes, so a plain `hydra.compose` on conf/ works).
 
-Why pydantic (a `TypeAdapter` per argument, strict mode) rather than hydra-zen: the constraints
-live on the constructors' own signatures as `Annotated[int, Gt(0)]` (annotated-types, the
-metadata pydantic reads), the YAML files stay the configs, and one adapter per annotation checks
-`Literal`s, unions, nested lists and bounds with messages that name the expected value. hydra-zen
-would generate dataclass configs from the same signatures and validate them with pydantic when a
-node is instantiated, i.e. after the run has started; here nothing is built before every value is
-known to be right, and no second config representation is needed.
+Why pydantic (a strict `TypeAdapter` per argument) rather than hydra-zen: the constraints live on
+the constructors' own signatures as annotated-types metadata (`Annotated[int, Gt(0)]`), which
+pydantic reads as they are, the YAML files stay the configs, and an adapter checks `Literal`s,
+unions, nested lists and bounds with messages that say what was expected. hydra-zen would generate
+a second, dataclass representation of the same signatures and check it with pydantic when a node
+is instantiated, i.e. once the run has started; here every value is checked before anything is
+built or written.
 """
 
 from __future__ import annotations
 
 import difflib
 from collections.abc import Sequence
+from functools import cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -39,21 +38,31 @@ from hydra.errors import ConfigCompositionException, MissingConfigException  # n
 from omegaconf import DictConfig, OmegaConf, open_dict  # noqa: E402
 
 from rotlearn.config.checks import check_keys, check_values, plain  # noqa: E402
-from rotlearn.config.store import register_schemas  # noqa: E402
+from rotlearn.config.source import marked, parameters  # noqa: E402
 from rotlearn.errors import ConfigError  # noqa: E402
 from rotlearn.paths import config_dir  # noqa: E402
 
 if TYPE_CHECKING:
     import lightning.pytorch as pl
 
-__all__ = ["ConfigError", "build", "command_line", "compose", "options", "validate"]
-
-_ABSENT = object()
+__all__ = ["ConfigError", "build", "command_line", "compose", "register_schemas", "validate"]
 
 
-def options(group: str, root: Path | None = None) -> list[str]:
-    """The options of a config group: the names of conf/<group>/*.yaml."""
-    return sorted(p.stem for p in Path(root or config_dir()).joinpath(group).glob("*.yaml"))
+def schema(target: str) -> dict[str, Any]:
+    """The defaults node of a component: `_target_` and each argument's default (`???` where
+    required), read from its source (`rotlearn.config.source`)."""
+    return {"_target_": target, **{p.name: p.default for p in parameters(target)[0]}}
+
+
+@cache
+def register_schemas() -> tuple[str, ...]:
+    """Store `schema/<dotted name where it is defined>` in Hydra's ConfigStore for every component
+    marked `@config_target` (once per process); returns their names."""
+    from hydra.core.config_store import ConfigStore
+
+    for target in marked():
+        ConfigStore.instance().store(group="schema", name=target, node=schema(target))
+    return marked()
 
 
 def _parse(overrides: Sequence[str]) -> list[Any]:
@@ -62,68 +71,60 @@ def _parse(overrides: Sequence[str]) -> list[Any]:
     return OverridesParser.create().parse_overrides(list(overrides))
 
 
-def _unknown_option(exc: MissingConfigException, overrides: Sequence[str], root: Path) -> None:
-    """A `group=option` of the command line that names no file: ConfigError with the options."""
-    group, _, option = str(exc.missing_cfg_file).rpartition("/")
-    named = {(o.key_or_group.lstrip("/"), str(o.value())) for o in _parse(overrides)}
-    if not group or (group, option) not in named:
-        return
-    real = options(group, root)
-    near = difflib.get_close_matches(option, real, n=1, cutoff=0.5)
-    hint = f"; did you mean {group}={near[0]}?" if near else ""
-    raise ConfigError(group, f"no option {option!r}{hint}; options: {', '.join(real)}") from None
+def _absent(tree: Any, key: str) -> bool:
+    for part in key.split("."):
+        if not isinstance(tree, dict) or part not in tree:
+            return True
+        tree = tree[part]
+    return False
 
 
-def _with_appends(overrides: Sequence[str], base: DictConfig, root: Path) -> list[str]:
-    """`overrides` with a `+` before each plain `key=value` whose key `base` lacks: an argument
-    its YAML does not list is set like the others, and a misspelt key reaches `validate`."""
-    from hydra.core.override_parser.types import OverrideType
-
-    raw = OmegaConf.to_container(base, resolve=False)
-    out = []
-    for override in _parse(overrides):
-        key = override.key_or_group
-        node = raw
-        for part in key.split("."):
-            node = node.get(part, _ABSENT) if isinstance(node, dict) else _ABSENT
-        plain_value = override.type == OverrideType.CHANGE and not root.joinpath(key).is_dir()
-        absent = node is _ABSENT
-        out.append(f"+{override.input_line}" if plain_value and absent else override.input_line)
-    return out
-
-
-def _compose(name: str, overrides: Sequence[str], root: Path) -> tuple[DictConfig, list[str]]:
-    """Hydra's compose (with its `hydra` node) of `overrides` and the overrides it took."""
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_dir
+def _compose(name: str, overrides: list[str], root: Path) -> tuple[DictConfig, list[str]]:
+    """Hydra's compose (with its `hydra` node) and the overrides it took: a `+` before each
+    `key=value` whose key the config lacks (validation then names a misspelt one)."""
+    from hydra import compose, initialize_config_dir
     from hydra.core.override_parser.types import OverrideType
 
     register_schemas()
-    overrides = list(overrides)
+    parsed = _parse(overrides)
+    values = [
+        o
+        for o in parsed
+        if o.type == OverrideType.CHANGE and not root.joinpath(o.key_or_group).is_dir()
+    ]
     with initialize_config_dir(config_dir=str(root), version_base="1.3"):
         try:
             try:
-                return hydra_compose(name, overrides, return_hydra_config=True), overrides
+                return compose(name, overrides, return_hydra_config=True), overrides
             except ConfigCompositionException as exc:
-                if isinstance(exc, MissingConfigException):
+                if isinstance(exc, MissingConfigException) or not values:
                     raise
-                structure = [  # options and additions: what the values are set in
-                    o.input_line
-                    for o in _parse(overrides)
-                    if o.type != OverrideType.CHANGE or root.joinpath(o.key_or_group).is_dir()
-                ]
-                base = hydra_compose(name, structure, return_hydra_config=True)
-                fixed = _with_appends(overrides, base, root)
-                if fixed == overrides:
-                    raise
-                return hydra_compose(name, fixed, return_hydra_config=True), fixed
+                rest = [o.input_line for o in parsed if o not in values]
+                base = OmegaConf.to_container(compose(name, rest, return_hydra_config=True))
+                taken = [f"+{o.input_line}" if o in values and _absent(base, o.key_or_group)
+                         else o.input_line for o in parsed]  # fmt: skip
+                return compose(name, taken, return_hydra_config=True), taken
         except MissingConfigException as exc:
-            _unknown_option(exc, overrides, root)
-            raise
+            group, _, option = str(exc.missing_cfg_file).rpartition("/")
+            if (group, option) not in {(o.key_or_group, str(o.value())) for o in parsed}:
+                raise
+            real = sorted(p.stem for p in root.joinpath(group).glob("*.yaml"))
+            near = difflib.get_close_matches(option, real, n=1, cutoff=0.5)
+            hint = f"; did you mean {group}={near[0]}?" if near else ""
+            raise ConfigError(
+                group, f"no option {option!r}{hint}; options: {', '.join(real)}"
+            ) from None
 
 
-def _is_hydras(override: str) -> bool:
-    return override.lstrip("+~").startswith(("hydra.", "hydra/"))
+def _composed(overrides, output_dir, config_name, root) -> tuple[DictConfig, list[str]]:
+    kept = [o for o in overrides if not o.lstrip("+~").startswith(("hydra.", "hydra/"))]
+    cfg, taken = _compose(config_name, kept, Path(root or config_dir()))
+    run_dir = OmegaConf.select(cfg, "hydra.run.dir")
+    with open_dict(cfg):
+        del cfg["hydra"]
+        if output_dir is not None or OmegaConf.is_interpolation(cfg.paths, "output_dir"):
+            cfg.paths.output_dir = str(output_dir if output_dir is not None else run_dir)
+    return cfg, taken
 
 
 def compose(
@@ -137,25 +138,16 @@ def compose(
     """The config of conf/<config_name>.yaml with `overrides`, as `rotlearn-train` composes it.
 
     Args:
-        overrides: command-line overrides, e.g. ["rep=a", "optim.lr=1e-3"] (Hydra's own keys,
-            `hydra.*`, are left out).
-        output_dir: `paths.output_dir`, where a run of it would write (default: the run
-            directory `rotlearn-train` would make, `outputs/runs/<time>`; nothing is written).
-        config_name: the primary config (conf/train.yaml).
-        root: the config directory (default: rotlearn's conf/).
+        overrides: e.g. ["rep=a", "optim.lr=1e-3"] (Hydra's own `hydra.*` keys are left out).
+        output_dir: `paths.output_dir`, where a run of it would write (default: the directory
+            `rotlearn-train` would make, outputs/runs/<time>; nothing is written here).
+        config_name: the primary config; root: the config directory (default: rotlearn's conf/).
         check: validate it (`validate`); False returns it as composed.
 
     Raises:
         ConfigError: an unknown option or key, or a value its component refuses (naming it).
     """
-    root = Path(root or config_dir())
-    kept = [o for o in overrides if not _is_hydras(o)]
-    cfg, _ = _compose(config_name, kept, root)
-    run_dir = OmegaConf.select(cfg, "hydra.run.dir", default=None)
-    with open_dict(cfg):
-        del cfg["hydra"]
-        if output_dir is not None or OmegaConf.is_interpolation(cfg.get("paths", {}), "output_dir"):
-            cfg.paths.output_dir = str(output_dir if output_dir is not None else run_dir)
+    cfg, _ = _composed(list(overrides), output_dir, config_name, root)
     if check:
         validate(cfg)
     return cfg
@@ -164,44 +156,31 @@ def compose(
 def command_line(
     args: Sequence[str], output_dir: str = "new-run", config_name: str = "train", check: bool = True
 ) -> list[str]:
-    """Validate the config a command line composes to, before Hydra starts and writes anything;
-    returns the arguments for Hydra (with `+` before each component argument its YAML does not
-    list). A sweep (-m) is checked with the first value of each swept key; `check=False` only
-    composes (another primary config than train's).
+    """Compose (and, with `check`, validate) the config of a command line before Hydra starts;
+    returns the arguments for Hydra, with `+` before each component argument that its YAML does
+    not list. A sweep (-m) is checked with the first value of each swept key.
 
     Raises:
-        ConfigError: naming the option or key at fault.
-        hydra.errors.HydraException, omegaconf.errors.OmegaConfBaseException: it does not compose
-            (left for Hydra to report).
+        ConfigError: naming the option or key at fault; Hydra's and OmegaConf's own errors where
+            the command line does not compose (left for Hydra to report).
     """
-    flags = [a for a in args if a.startswith("-")]
-    overrides = [a for a in args if not a.startswith("-") and not _is_hydras(a)]
     first = []
-    for override in _parse(overrides):
-        if override.is_sweep_override():
-            values = list(override.sweep_string_iterator())
-            first.append(f"{override.get_key_element()}={values[0]}")
-        else:
+    for override in _parse([a for a in args if not a.startswith("-")]):
+        if not override.is_sweep_override():
             first.append(override.input_line)
-    root = config_dir()
-    cfg, taken = _compose(config_name, first, root)
-    with open_dict(cfg):
-        del cfg["hydra"]
-        cfg.paths.output_dir = output_dir
+        elif values := list(override.sweep_string_iterator()):
+            first.append(f"{override.get_key_element()}={values[0]}")
+    cfg, taken = _composed(first, output_dir, config_name, None)
     if check:
         validate(cfg)
-    added = {o.lstrip("+").split("=", 1)[0] for o in taken if o.startswith("+")}
-    fixed = [f"+{a}" if not a.startswith(("+", "~")) and a.split("=", 1)[0] in added else a
-             for a in overrides]  # fmt: skip
-    hydras = [a for a in args if not a.startswith("-") and _is_hydras(a)]
-    return [*flags, *fixed, *hydras]
+    added = {o[1:].split("=", 1)[0] for o in taken if o.startswith("+") and o[1:] in first}
+    return [f"+{a}" if a.split("=", 1)[0] in added else a for a in args]
 
 
 def validate(cfg: DictConfig) -> None:
-    """Check every key and value of a composed train config (`rotlearn.config.checks`): first
-    what files alone tell (unknown keys, required arguments, data folders), then each value
-    against its constructor's annotation and the rules that span keys. Builds nothing but the
-    head and the loss (stateless, cheap).
+    """Check every key and value of a composed train config (`rotlearn.config.checks`): what
+    files alone tell (unknown keys, required arguments, data folders), then each value against
+    its constructor's annotation and the rules that span keys. Builds only the head and the loss.
 
     Raises:
         ConfigError: naming the full key, and what was expected or the allowed keys.
@@ -211,25 +190,6 @@ def validate(cfg: DictConfig) -> None:
     check_values(values)
 
 
-def _instantiate(cfg: DictConfig, key: str) -> Any:
-    """Instantiate the node `key`; a component's `ConfigError` (its key relative to the node)
-    comes back with the full key (for the model: the group a `${group}` part comes from)."""
-    from hydra.errors import InstantiationException
-    from hydra.utils import instantiate
-
-    try:
-        return instantiate(cfg[key])
-    except InstantiationException as exc:
-        cause = exc.__cause__
-        if not isinstance(cause, ConfigError):
-            raise
-        part = cause.key.split(".")[0]
-        raw = OmegaConf.to_container(cfg[key], resolve=False).get(part)
-        if isinstance(raw, str) and raw.startswith("${") and raw.endswith("}"):
-            raise ConfigError(f"{raw[2:-1]}{cause.key[len(part):]}", cause.message) from None
-        raise cause.within(key) from None
-
-
 def build(cfg: DictConfig) -> tuple[pl.LightningModule, pl.LightningDataModule]:
     """The model and datamodule of a composed train config: validated, seeded with `cfg.seed`,
     `instantiate(cfg.data)` and `instantiate(cfg.model)` (the regressor with its net, head, loss
@@ -237,13 +197,25 @@ def build(cfg: DictConfig) -> tuple[pl.LightningModule, pl.LightningDataModule]:
     (`run_config`) for its checkpoints.
 
     Raises:
-        ConfigError: see `validate`.
+        ConfigError: see `validate`; a constructor's own (its key under the node's).
     """
     import lightning.pytorch as pl
+    from hydra.errors import InstantiationException
+    from hydra.utils import instantiate
 
     validate(cfg)
     pl.seed_everything(cfg.seed, workers=True, verbose=False)
-    datamodule = _instantiate(cfg, "data")
-    model = _instantiate(cfg, "model")
+    built = []
+    for key in ("data", "model"):
+        try:
+            built.append(instantiate(cfg[key]))
+        except InstantiationException as exc:  # for the model: the group a `${net}` names
+            if not isinstance(cause := exc.__cause__, ConfigError):
+                raise
+            part, _, rest = cause.key.partition(".")
+            raw = str(OmegaConf.to_container(cfg[key]).get(part, ""))
+            node = raw[2:-1] if raw.startswith("${") else f"{key}.{part}"
+            raise ConfigError(f"{node}.{rest}" if rest else node, cause.message) from None
+    datamodule, model = built
     model.run_config = plain(cfg)
     return model, datamodule

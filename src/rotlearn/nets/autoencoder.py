@@ -13,7 +13,11 @@ from rotlearn.nets.pointnet import mlp
 from rotlearn.trust import config_target
 
 if TYPE_CHECKING:  # constraints of the config values, checked by rotlearn.config (pydantic);
-    from annotated_types import Gt, MinLen, MultipleOf  # never evaluated here: torch is all a bare install has
+    from annotated_types import (  # never evaluated here: torch is all a bare install has
+        Gt,
+        MinLen,
+        MultipleOf,
+    )
 
 __all__ = ["ConvAutoEncoder", "conv_decoder", "encoder_sizes"]
 
@@ -70,7 +74,13 @@ class ConvAutoEncoder(nn.Module):
         pair_channels: Annotated[int, Gt(0), MultipleOf(2)] = 6,
         image_size: Annotated[int, Gt(0)] = 224,
         channels: Annotated[Sequence[Annotated[int, Gt(0)]], MinLen(1)] = (
-            64, 128, 256, 512, 1024, 1024, 1024
+            64,
+            128,
+            256,
+            512,
+            1024,
+            1024,
+            1024,
         ),
         hidden: Annotated[int, Gt(0)] = 128,
         latent: Annotated[int, Gt(0)] = 16,

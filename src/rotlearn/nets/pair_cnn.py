@@ -65,7 +65,13 @@ class PairCNN(nn.Module):
         in_channels: Annotated[int, Gt(0)] = 6,
         image_size: Annotated[int, Gt(0)] = 224,
         channels: Annotated[Sequence[Annotated[int, Gt(0)]], MinLen(1)] = (
-            64, 128, 256, 512, 1024, 1024, 1024
+            64,
+            128,
+            256,
+            512,
+            1024,
+            1024,
+            1024,
         ),
         hidden: Annotated[int, Gt(0)] = 512,
     ) -> None:

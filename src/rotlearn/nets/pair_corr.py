@@ -24,7 +24,12 @@ from rotlearn.nets.pointnet import mlp
 from rotlearn.trust import config_target
 
 if TYPE_CHECKING:  # constraints of the config values, checked by rotlearn.config (pydantic);
-    from annotated_types import Ge, Gt, MinLen, MultipleOf  # never evaluated here: torch is all a bare install has
+    from annotated_types import (  # never evaluated here: torch is all a bare install has
+        Ge,
+        Gt,
+        MinLen,
+        MultipleOf,
+    )
 
 __all__ = ["PairCorrelationNet", "correlation"]
 

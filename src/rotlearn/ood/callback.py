@@ -112,7 +112,10 @@ class OODEvaluation(pl.Callback):
     def __init__(
         self,
         quantiles: Annotated[list[Annotated[float, Ge(0), Le(1)]], MinLen(1)] = (
-            0.25, 0.5, 0.75, 1.0
+            0.25,
+            0.5,
+            0.75,
+            1.0,
         ),
         scores: list[str] = ("dt", "eigengap", "raw_norm", "autoencoder"),
         autoencoder_ckpt: str | None = None,
