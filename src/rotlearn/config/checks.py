@@ -31,7 +31,15 @@ from omegaconf.errors import OmegaConfBaseException
 from rotlearn.config.source import MISSING, class_attribute, is_marked, parameters
 from rotlearn.errors import ConfigError
 
-__all__ = ["TOP_LEVEL", "check_keys", "check_values", "data_paths", "library_constraints", "plain"]
+__all__ = [
+    "TOP_LEVEL",
+    "arguments",
+    "check_keys",
+    "check_values",
+    "data_paths",
+    "library_constraints",
+    "plain",
+]
 
 HYDRA_KEYS = ("_target_", "_partial_", "_recursive_", "_convert_", "_args_")
 NODES = (
@@ -102,7 +110,7 @@ def _nodes(values: dict[str, Any]) -> list[tuple[str, str, dict[str, Any]]]:
 
 
 @cache
-def _parameters(target: str, group: str) -> tuple | None:
+def arguments(target: str, group: str) -> tuple | None:
     """What a node of `target` may set in `group`, less what rotlearn passes (None: unchecked):
     a component's arguments (`**kwargs` followed to its bases), a library class's own (and where
     its `**kwargs` go, `KWARGS_TO`)."""
@@ -136,7 +144,7 @@ def check_keys(values: dict[str, Any]) -> None:
         raise ConfigError(name, "is missing")
     refuse_unknown("paths", list(values["paths"] or {}), ["output_dir"])
     for key, group, node in _nodes(values):
-        if (allowed := _parameters(node["_target_"], group)) is None:
+        if (allowed := arguments(node["_target_"], group)) is None:
             continue
         refuse_unknown(key, [k for k in node if k not in HYDRA_KEYS], [p.name for p in allowed])
         for p in (p for p in allowed if node.get(p.name, p.default) == MISSING):
@@ -219,13 +227,11 @@ def _annotation(owner: str, name: str) -> Any:
     if annotation is parameter.empty:
         kind = type(parameter.default)
         return bool if kind is bool else {int: float, float: float, str: str}.get(kind, Any)
+    if not isinstance(annotation, str):
+        return annotation
     constraints = {n: getattr(annotated_types, n) for n in annotated_types.__all__}
     try:  # constraint names are imported for type checkers only (torch is all a bare install has)
-        return (
-            eval(annotation, function.__globals__, constraints)
-            if isinstance(annotation, str)
-            else annotation
-        )
+        return eval(annotation, function.__globals__, constraints)
     except NameError:  # another name imported for type checkers only: any value
         return Any
 
@@ -259,15 +265,15 @@ def _check(key: str, value: Any, annotation: Any) -> None:
     try:
         _adapter(annotation).validate_python(value)
     except ValidationError as exc:
-        for note in (m.description for m in getattr(annotation, "__metadata__", ())
-                     if isinstance(m, FieldInfo) and m.description):  # fmt: skip
-            raise ConfigError(key, f"must be {note}, got {value!r}") from None
-        said = dict.fromkeys(  # "Input should be ...", "List should have ...": per union member
-            re.sub(r"^(Value error, )?(\w+ )?(?=should )", "", e["msg"]).replace(" after valida"
-            "tion", "") + "".join(f" (at [{i}])" for i in e["loc"] if isinstance(i, int))
-            for e in exc.errors(include_url=False)
-        )  # fmt: skip
-        raise ConfigError(key, f"{' or '.join(said)}, got {value!r}") from None
+        for meta in getattr(annotation, "__metadata__", ()):  # what a union means, in words
+            if isinstance(meta, FieldInfo) and meta.description:
+                raise ConfigError(key, f"must be {meta.description}, got {value!r}") from None
+        said = []
+        for error in exc.errors(include_url=False):  # "Input should be ...", "List should have"
+            text = re.sub(r"^(Value error, )?(\w+ )?(?=should )", "", error["msg"])
+            at = "".join(f"[{i}]" for i in error["loc"] if isinstance(i, int))
+            said.append(text.replace(" after validation", "") + (f" (at {at})" if at else ""))
+        raise ConfigError(key, f"{' or '.join(dict.fromkeys(said))}, got {value!r}") from None
 
 
 def check_values(values: dict[str, Any]) -> None:
@@ -282,7 +288,7 @@ def check_values(values: dict[str, Any]) -> None:
         _check(name, values[name], TOP_LEVEL[name])
     for key, group, node in (nodes := _nodes(values)):
         target = node["_target_"]
-        owners = {p.name: p.owner for p in _parameters(target, group) or ()}
+        owners = {p.name: p.owner for p in arguments(target, group) or ()}
         narrowed = library_constraints().get(group, {}) | library_constraints().get(target, {})
         for name in (n for n in node if n in owners):
             _check(
@@ -292,11 +298,9 @@ def check_values(values: dict[str, Any]) -> None:
     for key in ("rep", "loss"):  # stateless and cheap: built to ask the registry and the loss
         try:
             built[key] = instantiate(values[key])
-        except (ConfigError, InstantiationException) as exc:
-            if isinstance(
-                cause := exc if isinstance(exc, ConfigError) else exc.__cause__, ConfigError
-            ):
-                raise cause.within(key) from None
+        except InstantiationException as exc:  # Hydra wraps what the constructor raised
+            if isinstance(exc.__cause__, ConfigError):
+                raise exc.__cause__.within(key) from None
             raise
     head = built["rep"] if "head" in values["model"] else None
     if values.get("calibrate") and (why := TemperatureScaling.refusal(head, values["model"])):
