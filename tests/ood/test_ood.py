@@ -226,7 +226,8 @@ def test_rotlearn_eval_refuses_bad_input(trained_run, tmp_path):
         evaluate(_eval_cfg([f"ckpt={tmp_path / 'nowhere'}"], tmp_path / "e1"))
     with pytest.raises(ConfigError, match="trained with rep=a, not expect_rep=sixd"):
         evaluate(_eval_cfg([f"ckpt={run_dir}", "expect_rep=sixd"], tmp_path / "e2"))
-    with pytest.raises(ConfigError, match=r"callbacks\.ood\.quantiles: each must lie in \[0, 1\]"):
+    with pytest.raises(ConfigError, match=r"callbacks\.ood\.quantiles: should be less than or "
+                       r"equal to 1 \(at \[1\]\), got \[0\.5, 1\.5\]"):  # fmt: skip
         evaluate(_eval_cfg([f"ckpt={run_dir}", "ood.quantiles=[0.5,1.5]"], tmp_path / "e3"))
 
 
@@ -313,14 +314,19 @@ def test_unseen_scenes_count_as_ood(tmp_path, make_cfg):
     assert (clean["n_corrupted"] == 3).all() and (clean["n"] == 6).all()
 
 
-def test_ood_config_keys_are_checked_before_training(make_cfg):
+def test_ood_config_keys_are_checked_before_training(make_cfg, on_disk):
     from rotlearn.config import validate
 
-    validate(make_cfg(["experiment=kitti_ood_demo"]))
-    with pytest.raises(ConfigError, match=r"callbacks\.ood\.quantile: unknown \(did you mean"):
-        validate(make_cfg(["data=kitti", "callbacks=ood", "+callbacks.ood.quantile=[0.5]"]))
-    with pytest.raises(ConfigError, match=r"callbacks\.ood\.noise_pairs: expected int"):
-        validate(make_cfg(["data=kitti", "callbacks=ood", "callbacks.ood.noise_pairs=many"]))
+    validate(on_disk(make_cfg(["experiment=kitti_ood_demo"])))
+    ood = ["data=kitti", "callbacks=ood"]
+    with pytest.raises(ConfigError, match=r"callbacks\.ood\.quantile: unknown key; did you mean"):
+        validate(on_disk(make_cfg([*ood, "+callbacks.ood.quantile=[0.5]"])))
+    with pytest.raises(ConfigError, match=r"callbacks\.ood\.noise_pairs: should be a valid int"):
+        validate(on_disk(make_cfg([*ood, "callbacks.ood.noise_pairs=many"])))
+    with pytest.raises(ConfigError, match=r"callbacks\.ood\.examples: should be greater than or"):
+        validate(on_disk(make_cfg([*ood, "callbacks.ood.examples=-1"])))
+    with pytest.raises(ConfigError, match=r"callbacks\.ood: needs an image-pair datamodule"):
+        validate(make_cfg(["callbacks=ood"]))  # synthetic data: nothing to erase
 
 
 def test_calibrated_threshold_gives_keep_flags_for_image_pairs(trained_run, tiny_kitti, capsys):
