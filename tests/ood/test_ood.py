@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 
 import numpy as np
 import pandas as pd
@@ -216,6 +217,23 @@ def test_rotlearn_eval_reproduces_the_test_error(trained_run, tmp_path):
     assert set(frame["q"]) == {0.5, 0.75}  # the asked quantile and DT's Table I quantile
     assert json.loads((out / "metrics.json").read_text())["rep"] == "a"
     assert not (run_dir / "ood.csv").stat().st_mtime > (out / "ood.csv").stat().st_mtime
+
+
+def test_the_rotlearn_eval_command_checks_the_run_then_evaluates_it(
+    trained_run, tmp_path, monkeypatch
+):
+    """The command line passes its checks (a data key eval.yaml does not list needs no `+`) and
+    evaluates the run where hydra.run.dir says."""
+    from rotlearn.cli.evaluate import main
+
+    run_dir, metrics = trained_run
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "eval"
+    args = [f"ckpt={run_dir}", "ood.quantiles=[0.5]", "data.batch_size=4", f"hydra.run.dir={out}"]
+    monkeypatch.setattr(sys, "argv", ["rotlearn-eval", *args])
+    assert main() == pytest.approx(metrics["test/err_median"], rel=1e-6)
+    assert json.loads((out / "metrics.json").read_text())["rep"] == "a"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["eval", "kitti", "run"]  # nothing else
 
 
 def test_rotlearn_eval_refuses_bad_input(trained_run, tmp_path):

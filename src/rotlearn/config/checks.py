@@ -71,6 +71,7 @@ TOP_LEVEL: dict[str, Any] = {  # conf/train.yaml's keys (and sweep=lr's); seed a
     "report": dict | None,  # rotlearn-report's layout (an experiment's report node)
 }
 _CONDITION = re.compile(r"(?:(\w+)=([^:/{}]+):\s*)?(.*)")  # a layout path: [key=value: ]path
+_PLAIN = re.compile(r"(?!\.\.?$)[^/\\\0]+")  # a file name: no separator, not . or ..
 
 
 def plain(cfg: DictConfig) -> dict[str, Any]:
@@ -130,6 +131,8 @@ def data_paths(node: dict[str, Any]) -> list[tuple[str, Path]]:
         key, value, path = _CONDITION.fullmatch(template).groups()
         fields = [f for _, f, _, _ in string.Formatter().parse(path) if f]
         choices = [node[f] if isinstance(node[f], list) else [node[f]] for f in fields]
+        if any(not _PLAIN.fullmatch(str(c)) for choice in choices for c in choice):
+            continue  # a name that is no plain folder name: the datamodule refuses it itself
         for chosen in itertools.product(*choices) if not key or str(node.get(key)) == value else ():
             where = f"data.{fields[0]}" if fields else "data.root"
             found.append((where, root / path.format(**dict(zip(fields, chosen, strict=True)))))

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Annotated
 
 from torch import Tensor, nn
 
-from rotlearn.nets.pair_cnn import conv_encoder, encoded_size
+from rotlearn.nets.pair_cnn import PAPER_CHANNELS, conv_encoder, encoded_size
 from rotlearn.nets.pointnet import mlp
 from rotlearn.trust import config_target
 
@@ -73,15 +73,7 @@ class ConvAutoEncoder(nn.Module):
         self,
         pair_channels: Annotated[int, Gt(0), MultipleOf(2)] = 6,
         image_size: Annotated[int, Gt(0)] = 224,
-        channels: Annotated[Sequence[Annotated[int, Gt(0)]], MinLen(1)] = (
-            64,
-            128,
-            256,
-            512,
-            1024,
-            1024,
-            1024,
-        ),
+        channels: Annotated[Sequence[Annotated[int, Gt(0)]], MinLen(1)] = PAPER_CHANNELS,
         hidden: Annotated[int, Gt(0)] = 128,
         latent: Annotated[int, Gt(0)] = 16,
     ) -> None:

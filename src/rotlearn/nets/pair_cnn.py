@@ -14,6 +14,9 @@ from rotlearn.trust import config_target
 if TYPE_CHECKING:  # constraints of the config values, checked by rotlearn.config (pydantic);
     from annotated_types import Gt, MinLen  # never evaluated here: torch is all a bare install has
 
+# The paper's convolution widths (section VI-C): 224 -> 2 pixels in seven stride-2 steps.
+PAPER_CHANNELS = (64, 128, 256, 512, 1024, 1024, 1024)
+
 __all__ = ["PairCNN", "conv_encoder", "encoded_size"]
 
 
@@ -64,15 +67,7 @@ class PairCNN(nn.Module):
         out_dim: Annotated[int, Gt(0)],
         in_channels: Annotated[int, Gt(0)] = 6,
         image_size: Annotated[int, Gt(0)] = 224,
-        channels: Annotated[Sequence[Annotated[int, Gt(0)]], MinLen(1)] = (
-            64,
-            128,
-            256,
-            512,
-            1024,
-            1024,
-            1024,
-        ),
+        channels: Annotated[Sequence[Annotated[int, Gt(0)]], MinLen(1)] = PAPER_CHANNELS,
         hidden: Annotated[int, Gt(0)] = 512,
     ) -> None:
         super().__init__()
