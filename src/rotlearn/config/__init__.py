@@ -1,4 +1,5 @@
-"""Floor 4: a run's config composed, validated and built, from a command line, a notebook or a test.
+"""Floor 4: a run's config composed, validated and built, from a command line, a notebook or a
+test::
 
     from rotlearn.config import build, compose
 
@@ -9,9 +10,10 @@
 options and the nearest) and key (`optim.lrr=1e-3`, with or without `+`: the nearest key and the
 allowed ones, `rotlearn.config.checks`); an argument a component takes is set without `+` even
 where its YAML does not list it. `rotlearn-train` and `rotlearn-eval` check their command line the
-same way (`command_line`) before Hydra starts, so a refused command writes nothing. Each YAML starts
-from its component's defaults, `schema/<target>` in Hydra's ConfigStore (`register_schemas`, which
-rotlearn's Hydra plugin runs wherever Hydra composes, so a plain `hydra.compose` on conf/ works).
+same way (`command_line`) before Hydra starts, so a refused command writes nothing. Each YAML
+starts from its component's defaults: `schema/` + its target in Hydra's ConfigStore
+(`register_schemas`, which rotlearn's Hydra plugin runs wherever Hydra composes, so a plain
+`hydra.compose` on conf/ works).
 
 Why pydantic (a strict `TypeAdapter` per argument) rather than hydra-zen: the constraints live on
 the constructors' own signatures as annotated-types metadata (`Annotated[int, Gt(0)]`), which
@@ -56,8 +58,8 @@ def schema(target: str) -> dict[str, Any]:
 
 @cache
 def register_schemas() -> tuple[str, ...]:
-    """Store `schema/<dotted name where it is defined>` in Hydra's ConfigStore for every component
-    marked `@config_target` (once per process); returns their names."""
+    """Store `schema/` + the dotted name where it is defined in Hydra's ConfigStore, for every
+    component marked `@config_target` (once per process); returns their names."""
     from hydra.core.config_store import ConfigStore
 
     for target in marked():
