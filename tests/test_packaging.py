@@ -135,7 +135,7 @@ def test_import_rotlearn_is_light():
 
 @pytest.mark.parametrize(
     "module",
-    ["rotlearn.lit", "rotlearn.cli.train", "rotlearn.data", "rotlearn.metrics"],
+    ["rotlearn.lit", "rotlearn.config", "rotlearn.cli.train", "rotlearn.data", "rotlearn.metrics"],
 )
 def test_modules_of_the_train_extra_name_it(module):
     result = run_without_extras(f"import {module}")

@@ -149,6 +149,8 @@ def _checked(argv: list[str]) -> list[str]:
     Returns the arguments for Hydra (`+` before a data key that eval.yaml does not list)."""
     from rotlearn.config import command_line, compose, validate
 
+    if any(a.startswith("-") and a not in ("-m", "--multirun") for a in argv):
+        return argv  # Hydra's own flags (--cfg, --hydra-help, ...)
     values = [a.split("=", 1)[1] for a in argv if a.startswith("ckpt=")]
     if not values:
         raise SystemExit("rotlearn-eval: ckpt=<run directory or .ckpt file> is missing (--help)")
@@ -156,7 +158,7 @@ def _checked(argv: list[str]) -> list[str]:
         checkpoint_file(values[-1])
     except FileNotFoundError as exc:
         raise SystemExit(f"rotlearn-eval: ckpt: {exc} (nothing was written)") from None
-    if any(a.startswith("-") for a in argv):  # -m: each job is checked as it runs
+    if "-m" in argv or "--multirun" in argv:  # each job is checked as it runs
         return argv
     try:
         args = command_line(argv, "new-eval", config_name="eval", check=False)

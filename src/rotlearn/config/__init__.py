@@ -73,14 +73,6 @@ def _parse(overrides: Sequence[str]) -> list[Any]:
     return OverridesParser.create().parse_overrides(list(overrides))
 
 
-def _absent(tree: Any, key: str) -> bool:
-    for part in key.split("."):
-        if not isinstance(tree, dict) or part not in tree:
-            return True
-        tree = tree[part]
-    return False
-
-
 def _compose(name: str, overrides: list[str], root: Path) -> tuple[DictConfig, list[str]]:
     """Hydra's compose (with its `hydra` node) and the overrides it took: a `+` before each
     `key=value` whose key the config lacks (validation then names a misspelt one)."""
@@ -88,24 +80,20 @@ def _compose(name: str, overrides: list[str], root: Path) -> tuple[DictConfig, l
     from hydra.core.override_parser.types import OverrideType
 
     register_schemas()
-    parsed = _parse(overrides)
-    values = [
-        o
-        for o in parsed
-        if o.type == OverrideType.CHANGE and not root.joinpath(o.key_or_group).is_dir()
-    ]
+    parsed, taken = _parse(overrides), list(overrides)
     with initialize_config_dir(config_dir=str(root), version_base="1.3"):
         try:
-            try:
-                return compose(name, overrides, return_hydra_config=True), overrides
-            except ConfigCompositionException as exc:
-                if isinstance(exc, MissingConfigException) or not values:
-                    raise
-                rest = [o.input_line for o in parsed if o not in values]
-                base = OmegaConf.to_container(compose(name, rest, return_hydra_config=True))
-                taken = [f"+{o.input_line}" if o in values and _absent(base, o.key_or_group)
-                         else o.input_line for o in parsed]  # fmt: skip
-                return compose(name, taken, return_hydra_config=True), taken
+            while True:
+                try:
+                    return compose(name, taken, return_hydra_config=True), taken
+                except ConfigCompositionException as exc:  # "Could not override 'optim.lrr'"
+                    key = getattr(exc.__cause__, "full_key", None)
+                    absent = [i for i, o in enumerate(parsed) if o.type == OverrideType.CHANGE
+                              and not taken[i].startswith("+") and key
+                              and (o.key_or_group + ".").startswith(f"{key}.")]  # fmt: skip
+                    if isinstance(exc, MissingConfigException) or not absent:
+                        raise
+                    taken[absent[0]] = f"+{taken[absent[0]]}"
         except MissingConfigException as exc:
             group, _, option = str(exc.missing_cfg_file).rpartition("/")
             if (group, option) not in {(o.key_or_group, str(o.value())) for o in parsed}:
@@ -113,9 +101,8 @@ def _compose(name: str, overrides: list[str], root: Path) -> tuple[DictConfig, l
             real = sorted(p.stem for p in root.joinpath(group).glob("*.yaml"))
             near = difflib.get_close_matches(option, real, n=1, cutoff=0.5)
             hint = f"; did you mean {group}={near[0]}?" if near else ""
-            raise ConfigError(
-                group, f"no option {option!r}{hint}; options: {', '.join(real)}"
-            ) from None
+            message = f"no option {option!r}{hint}; options: {', '.join(real)}"
+            raise ConfigError(group, message) from None
 
 
 def _composed(overrides, output_dir, config_name, root) -> tuple[DictConfig, list[str]]:
