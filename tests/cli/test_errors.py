@@ -66,7 +66,14 @@ def test_every_case_of_the_benchmark_is_checked():
     assert set(EXPECTED) == set(bench.CASES)
 
 
-@pytest.mark.parametrize("case", list(bench.CASES))
+# These load torch and Lightning before they answer (5-8 s each): `make test-full`. The same
+# refusals are checked in-process by test_validation, test_temperature_scaling and test_ood.
+IMPORTING = ("value out of range", "calibrate without a belief", "likelihood loss without a belief",
+             "eval with OOD on synthetic data")  # fmt: skip
+CASES = [pytest.param(c, marks=pytest.mark.slow) if c in IMPORTING else c for c in bench.CASES]
+
+
+@pytest.mark.parametrize("case", CASES)
 def test_a_mistake_is_refused_in_one_line_writing_nothing(case, folders, tmp_path):
     done, seconds = bench.run(case, folders, cwd=tmp_path)
     code, message = EXPECTED[case]
