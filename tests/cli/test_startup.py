@@ -65,7 +65,9 @@ def test_predict_help_lists_what_it_takes_without_torch():
 
 
 def test_report_imports_without_lightning():
-    _, modules = _modules_after("import rotlearn.cli.report")
+    _, modules = _modules_after(
+        "import rotlearn.cli.report\nfrom rotlearn.report import make_report"
+    )
     assert "lightning" not in modules and "pandas" in modules
 
 

@@ -53,10 +53,13 @@ NODES = (
     "trainer",
 )  # scheduler: or null
 COLLECTIONS = ("logger", "callbacks")  # name -> node
-LIBRARIES = ("torch.optim.", "lightning.")  # library classes checked by their own signatures
+LIBRARIES = ("torch.optim.", "torch.utils.tensorboard.", "lightning.")  # by own signatures
 SUPPLIED = {"optim": {"params"}, "scheduler": {"optimizer"}, "trainer": {"callbacks", "logger"},
             "logger": {"log_dir"}}  # rotlearn passes these  # fmt: skip
-KWARGS_TO = {"lightning.pytorch.loggers.TensorBoardLogger": "torch.utils.tensorboard.SummaryWriter"}
+KWARGS_TO = {  # where a class's **kwargs go
+    "rotlearn.lit.TensorBoardRunLogger": "lightning.pytorch.loggers.TensorBoardLogger",
+    "lightning.pytorch.loggers.TensorBoardLogger": "torch.utils.tensorboard.SummaryWriter",
+}
 TOP_LEVEL: dict[str, Any] = {  # conf/train.yaml's keys (and sweep=lr's); seed and paths required
     "seed": Annotated[int, Ge(0), Le(2**32 - 1)],  # numpy's seed range
     "paths": dict[Literal["output_dir"], Annotated[str, MinLen(1)]],
@@ -113,13 +116,17 @@ def _nodes(values: dict[str, Any]) -> list[tuple[str, str, dict[str, Any]]]:
 @cache
 def arguments(target: str, group: str) -> tuple | None:
     """What a node of `target` may set in `group`, less what rotlearn passes (None: unchecked):
-    a component's arguments (`**kwargs` followed to its bases), a library class's own (and where
-    its `**kwargs` go, `KWARGS_TO`)."""
-    found = parameters(target) if is_marked(target) else None
-    if found is None and target.startswith(LIBRARIES) and (found := parameters(target, False)):
-        extra = parameters(KWARGS_TO[target])[0] if target in KWARGS_TO else None
-        found = found if not found[1] else (found[0] + extra, False) if extra else None
-    return tuple(p for p in found[0] if p.name not in SUPPLIED.get(group, ())) if found else None
+    a component's arguments (`**kwargs` followed to its bases), a library class's own, and where
+    `**kwargs` go to another class (`KWARGS_TO`) that class's arguments too."""
+    if target in KWARGS_TO or (not is_marked(target) and target.startswith(LIBRARIES)):
+        found = parameters(target, bases=False)
+        if found and found[1]:
+            extra = arguments(KWARGS_TO[target], group) if target in KWARGS_TO else None
+            found = (found[0] + extra, False) if extra is not None else None
+    else:
+        found = parameters(target) if is_marked(target) else None
+    kept = [p for p in found[0] if p.name not in SUPPLIED.get(group, ())] if found else None
+    return None if kept is None else tuple({p.name: p for p in reversed(kept)}.values())[::-1]
 
 
 def data_paths(node: dict[str, Any]) -> list[tuple[str, Path]]:
