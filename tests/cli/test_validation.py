@@ -81,7 +81,10 @@ def test_a_bad_value_is_refused_naming_its_key(make_cfg, override, message):
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [
-        (["callbacks=ood", "callbacks.ood.corrupt_fraction=half"], r"callbacks\.ood\.corrupt_f"),
+        (
+            ["data=kitti", "callbacks=ood", "callbacks.ood.corrupt_fraction=half"],
+            r"callbacks\.ood\.corrupt_f",
+        ),
         (["callbacks=ood", "+callbacks.ood.quantile=[1]"], r"did you mean callbacks\.ood\.quant"),
         (["data=kitti", "net.hidden=0"], r"net\.hidden: should be greater than 0, got 0"),
         (["experiment=kitti_autoencoder", "net.latent=-3"], r"net\.latent: should be greater th"),

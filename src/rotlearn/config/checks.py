@@ -7,9 +7,10 @@ required arguments from the source (`rotlearn.config.source`), the data root and
 datamodule's `layout` says it holds (`{key}`: each value of that key; `key=value:` first, a path
 only that value needs). `check_values` validates each value with pydantic against its argument's
 annotation, constraints included (`Annotated[int, Gt(0)]`; library classes: `library_constraints`),
-then the rules that span keys, each declared by the component that needs it: the head and the loss
-are built (the head registry checks name and size, a likelihood loss its head), `calibrate` asks
-`TemperatureScaling.refusal`, and a component's `check_config(config)` judges the whole config.
+then the rules that span keys, each declared by the component that needs it: a component's
+`config_needs` ((key, class, what), ...: the node at `key` defines that class's methods; read
+from the source by `check_keys`), the head and the loss are built (the head registry checks name
+and size, a likelihood loss its head), and `calibrate` asks `TemperatureScaling.refusal`.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from annotated_types import Ge, Gt, Le, Len, Lt, MinLen
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from rotlearn.config.source import MISSING, class_attribute, is_marked, parameters
+from rotlearn.config.source import MISSING, class_attribute, is_marked, parameters, provides
 from rotlearn.errors import ConfigError
 
 __all__ = [
@@ -147,8 +148,8 @@ def data_paths(node: dict[str, Any]) -> list[tuple[str, Path]]:
 
 
 def check_keys(values: dict[str, Any]) -> None:
-    """Pass 1, from files alone: top-level keys, each node's keys and required arguments, the
-    data root and its layout."""
+    """Pass 1, from files alone: top-level keys, each node's keys and required arguments, what
+    its component needs of other nodes (`config_needs`), the data root and its layout."""
     refuse_unknown("", list(values), sorted([*TOP_LEVEL, *NODES, *COLLECTIONS]))
     for name in (n for n in ("seed", "paths") if n not in values):
         raise ConfigError(name, "is missing")
@@ -159,6 +160,16 @@ def check_keys(values: dict[str, Any]) -> None:
         refuse_unknown(key, [k for k in node if k not in HYDRA_KEYS], [p.name for p in allowed])
         for p in (p for p in allowed if node.get(p.name, p.default) == MISSING):
             raise ConfigError(f"{key}.{p.name}", "missing (the constructor needs it)")
+        needs = (
+            class_attribute(node["_target_"], "config_needs")
+            if is_marked(node["_target_"])
+            else None
+        )
+        for other, protocol, what in needs or ():
+            if not provides(target := (values.get(other) or {}).get("_target_", ""), protocol):
+                raise ConfigError(
+                    key, f"needs {what}; this run's {other} is {target.rpartition('.')[2]}"
+                )
     layout = class_attribute(values["data"]["_target_"], "layout") or []
     shown = dict.fromkeys(
         re.sub(r"\{(\w+)[^}]*\}", r"<\1>", _CONDITION.fullmatch(t)[3]) for t in layout
@@ -290,13 +301,13 @@ def check_values(values: dict[str, Any]) -> None:
     """Pass 2, importing the components: every value against its annotation, then the rules
     that span keys."""
     from hydra.errors import InstantiationException
-    from hydra.utils import get_object, instantiate
+    from hydra.utils import instantiate
 
     from rotlearn.lit.calibration import TemperatureScaling
 
     for name in (n for n in TOP_LEVEL if n in values):
         _check(name, values[name], TOP_LEVEL[name])
-    for key, group, node in (nodes := _nodes(values)):
+    for key, group, node in _nodes(values):
         target = node["_target_"]
         owners = {p.name: p.owner for p in arguments(target, group) or ()}
         narrowed = library_constraints().get(group, {}) | library_constraints().get(target, {})
@@ -315,11 +326,3 @@ def check_values(values: dict[str, Any]) -> None:
     head = built["rep"] if "head" in values["model"] else None
     if values.get("calibrate") and (why := TemperatureScaling.refusal(head, values["model"])):
         raise ConfigError("calibrate", why)
-    for key, _, node in nodes:
-        hook = (
-            getattr(get_object(node["_target_"]), "check_config", None)
-            if is_marked(node["_target_"])
-            else None
-        )
-        if hook is not None and (why := hook(values)):
-            raise ConfigError(key, why)

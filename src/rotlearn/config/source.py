@@ -15,7 +15,15 @@ from functools import cache
 from pathlib import Path
 from typing import Any, NamedTuple
 
-__all__ = ["MISSING", "Parameter", "class_attribute", "is_marked", "marked", "parameters"]
+__all__ = [
+    "MISSING",
+    "Parameter",
+    "class_attribute",
+    "is_marked",
+    "marked",
+    "parameters",
+    "provides",
+]
 
 MISSING = "???"  # OmegaConf's mark of a value still to set: a required argument
 
@@ -132,6 +140,18 @@ def class_attribute(target: str, name: str) -> Any:
             ):
                 return _value(module, stmt.value)
     return None
+
+
+def provides(target: str, protocol: str) -> bool:
+    """Whether class `target` (or a base) defines every method of the class `protocol` (both
+    dotted); True where either source is not found (the class is then left to its own checks)."""
+    found, wanted = _find(target), _find(protocol)
+    if found is None or wanted is None or not isinstance(wanted[1], ast.ClassDef):
+        return True
+    methods = {
+        f.name for _, c in _classes(*found) for f in c.body if isinstance(f, ast.FunctionDef)
+    }
+    return all(f.name in methods for f in wanted[1].body if isinstance(f, ast.FunctionDef))
 
 
 def is_marked(target: str) -> bool:

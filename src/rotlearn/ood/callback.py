@@ -119,6 +119,16 @@ class OODEvaluation(pl.Callback):
             `ood_examples.png`; 0: none.
     """
 
+    # What a run config must hold for this callback, (key, class, what) read from this source by
+    # `rotlearn.config` before anything is imported: its datamodule defines OODDataSource's methods.
+    config_needs = (
+        (
+            "data",
+            "rotlearn.ood.source.OODDataSource",
+            "an image-pair datamodule (an OODDataSource: data=kitti or data=mav)",
+        ),
+    )
+
     def __init__(
         self,
         quantiles: Annotated[list[Annotated[float, Ge(0), Le(1)]], MinLen(1)] = (
@@ -166,21 +176,6 @@ class OODEvaluation(pl.Callback):
                 )
         self.examples = int(examples)
         self.results: dict[str, float] = {}  # the run's one-shot results (RunRecords)
-
-    @classmethod
-    def check_config(cls, config: dict[str, Any]) -> str | None:
-        """Why a run config cannot use this callback (None: it can): it scores image pairs, so
-        its datamodule must be an `OODDataSource` (KITTI, MAV). Asked by `rotlearn.config`
-        before anything is built."""
-        from hydra.utils import get_class
-
-        data = get_class(config["data"]["_target_"])
-        if isinstance(data, type) and issubclass(data, OODDataSource):
-            return None
-        return (
-            f"needs an image-pair datamodule (an OODDataSource: data=kitti or data=mav); "
-            f"this run's data is {data.__name__}"
-        )
 
     def _autoencoder(self, trainer: pl.Trainer, device: torch.device, head: Any = None):
         """The auto-encoder of the `autoencoder` score: loaded, trained here on the datamodule's
