@@ -17,7 +17,10 @@ _spec = importlib.util.spec_from_file_location("bench_cli_errors", BENCH)
 bench = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(bench)
 
-BOUND_S = 120  # a hang guard, not the target (that is measured by the benchmark)
+# Generous bounds, not the target (measured by the benchmark): 10 x the target where the answer
+# comes from files (and the checkpoint, read with torch), a hang guard where torch and Lightning
+# load first (5-12 s on a loaded 2-core machine).
+BOUND_S, IMPORTING_BOUND_S = 20, 120
 OPTIONS = "options: a, fisher, quat, sixd, svd9d"
 KITTI = r"it must hold sequences/<train_sequences>/<camera>, poses/<train_sequences>\.txt"
 # case -> (exit code, the one line it ends with)
@@ -66,10 +69,9 @@ def test_every_case_of_the_benchmark_is_checked():
     assert set(EXPECTED) == set(bench.CASES)
 
 
-# These load torch and Lightning before they answer (5-8 s each): `make test-full`. The same
-# refusals are checked in-process by test_validation, test_temperature_scaling and test_ood.
-IMPORTING = ("value out of range", "calibrate without a belief", "likelihood loss without a belief",
-             "eval with OOD on synthetic data")  # fmt: skip
+# These load torch and Lightning before they answer (5-12 s each): `make test-full`. The same
+# refusals are checked in-process by test_validation and test_temperature_scaling.
+IMPORTING = ("value out of range", "calibrate without a belief", "likelihood loss without a belief")
 CASES = [pytest.param(c, marks=pytest.mark.slow) if c in IMPORTING else c for c in bench.CASES]
 
 
@@ -82,4 +84,4 @@ def test_a_mistake_is_refused_in_one_line_writing_nothing(case, folders, tmp_pat
     assert len(lines) == 1 and re.search(message, lines[0]), done.stderr
     assert "Traceback" not in done.stderr + done.stdout
     assert list(tmp_path.iterdir()) == []  # no run, eval or output directory
-    assert seconds < BOUND_S
+    assert seconds < (IMPORTING_BOUND_S if case in IMPORTING else BOUND_S)

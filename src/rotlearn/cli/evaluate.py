@@ -141,6 +141,53 @@ def usage(root: Path | None = None) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _targets(tree: Any):
+    """Every `_target_` value in plain data."""
+    if isinstance(tree, dict):
+        if "_target_" in tree:
+            yield tree["_target_"]
+        tree = list(tree.values())
+    for item in tree if isinstance(tree, list) else ():
+        yield from _targets(item)
+
+
+def _first_look(cfg: DictConfig) -> None:
+    """Refuse what the files alone tell (`rotlearn.config.checks.check_keys`: e.g. OOD callbacks
+    on data that is not image pairs, a data folder that is not there) before the components load.
+    The checkpoint is read with torch only; its config is looked at only where every `_target_`
+    is an allowlisted library class or a rotlearn component (its source marks it
+    `@config_target`), and nothing is built or imported from it; `load_run` then checks it in
+    full (the allowlist by import). Anything else is left to those checks."""
+    from types import SimpleNamespace
+
+    from rotlearn.checkpoint import load_checkpoint
+    from rotlearn.config.checks import check_keys, plain
+    from rotlearn.config.source import class_attribute, is_marked
+    from rotlearn.trust import LIBRARY_TARGETS
+
+    try:
+        saved = load_checkpoint(cfg.ckpt).get("rotlearn_config")
+    except (OSError, ValueError):
+        return  # load_run says why
+    try:  # a deep, odd or foreign config is left to load_run (RecursionError, TypeError, ...)
+        named = [str(t) for t in _targets(saved) if t not in LIBRARY_TARGETS]
+        if "${" in repr(saved) or not all(
+            t.startswith("rotlearn.") and is_marked(t) for t in named
+        ):
+            return
+        model = saved.get("model") or {}
+        task = class_attribute(str(model["_target_"]), "task") if "_target_" in model else None
+        task = task or saved.get("task", "rotation")
+        values = plain(
+            evaluation_config(cfg, SimpleNamespace(config=OmegaConf.create(saved), task=task))
+        )
+    except ConfigError:
+        raise
+    except Exception:
+        return
+    check_keys(values)
+
+
 def _checked(argv: list[str]) -> list[str]:
     """Refuse, before Hydra makes the evaluation's directory, a command line that cannot work
     (SystemExit naming the key; nothing is written): no ckpt, a ckpt that is not a run (a sweep
@@ -163,6 +210,7 @@ def _checked(argv: list[str]) -> list[str]:
     try:
         args = command_line(argv, "new-eval", config_name="eval", check=False)
         cfg = compose(args, config_name="eval", output_dir="new-eval", check=False)
+        _first_look(cfg)
         validate(evaluation_config(cfg, _saved_run(cfg)))
     except ConfigError as exc:
         raise SystemExit(f"rotlearn-eval: {exc} (nothing was written)") from None
