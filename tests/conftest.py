@@ -2,11 +2,17 @@
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
+import json
 import math
 import os
+import shutil
+import signal
 import subprocess
 import sys
-from collections.abc import Callable, Sequence
+import time
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -96,6 +102,91 @@ def checkpoint_epoch(path: Path) -> int:
         return int(torch.load(path, weights_only=True)["epoch"])
     except (OSError, RuntimeError, EOFError, KeyError):
         return -1
+
+
+# -- received runs: one finished run made once per session, copied per test -----------------------
+
+ONE_EPOCH_RUN = ["data=tiny", "trainer=cpu", "trainer.max_epochs=1",
+                 "trainer.enable_progress_bar=false", "logger=csv", *SMALL_NET]  # fmt: skip
+
+
+@pytest.fixture(scope="session")
+def finished_run(tmp_path_factory) -> Path:
+    """A finished one-epoch run made by `rotlearn-train` (checkpoints best and last, CSV log,
+    records, .hydra), once per session; tests copy it (`copy_run`), never change it."""
+    cwd = tmp_path_factory.mktemp("finished")
+    run = cwd / "run"
+    done = run_cli([*ONE_EPOCH_RUN, f"hydra.run.dir={run}"], cwd)
+    assert done.returncode == 0, done.stderr
+    return run
+
+
+def copy_run(source: Path, target: Path, resumable: bool = False) -> Path:
+    """A copy of a run at `target` (its checkpoints still name the source's folder, as a received
+    run's do). `resumable`: as if killed in its second epoch (no metrics.json, status
+    INTERRUPTED)."""
+    shutil.copytree(source, target, symlinks=True)
+    if resumable:
+        (target / "metrics.json").unlink()
+        (target / "status.json").write_text(json.dumps({"status": "INTERRUPTED"}))
+    return target
+
+
+def model_checkpoint(path: Path, overrides: Sequence[str] = ()) -> Path:
+    """A checkpoint at `path` holding the weights of the model the train config with
+    `overrides` builds (epoch 0, no training): what a resume checks a run's last.ckpt against."""
+    from hydra.utils import instantiate
+
+    cfg = compose(["paths.output_dir=.", *overrides], check=False)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save({"epoch": 0, "state_dict": instantiate(cfg.model).state_dict()}, path)
+    return path
+
+
+def tree_hashes(root: Path, skip: Path | None = None) -> dict[str, str]:
+    """sha256 of every file below `root` (symlinks as their target's name, folders as "dir"),
+    by relative path; `skip` (a folder below `root`) left out."""
+    found = {}
+    for path in sorted(root.rglob("*")):
+        if skip is not None and path.is_relative_to(skip):
+            continue
+        if path.is_symlink():
+            found[str(path.relative_to(root))] = f"-> {os.readlink(path)}"
+        elif path.is_file():
+            found[str(path.relative_to(root))] = hashlib.sha256(path.read_bytes()).hexdigest()
+        else:
+            found[str(path.relative_to(root))] = "dir"
+    return found
+
+
+@contextlib.contextmanager
+def unchanged(root: Path) -> Iterator[None]:
+    """Assert that the block changed, added and removed nothing below `root` (its tree's
+    hashes, `tree_hashes`), also when the block raised (a refusal must lose nothing)."""
+    before = tree_hashes(root)
+    try:
+        yield
+    finally:
+        assert tree_hashes(root) == before, f"the tree below {root} changed"
+
+
+@contextlib.contextmanager
+def within(seconds: float) -> Iterator[None]:
+    """Fail the block with TimeoutError when it takes longer than `seconds` (SIGALRM: also a
+    read or an open that would block forever is interrupted)."""
+
+    def expire(signum, frame):
+        raise TimeoutError(f"took longer than {seconds} s")
+
+    previous = signal.signal(signal.SIGALRM, expire)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    start = time.monotonic()
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+    assert time.monotonic() - start < seconds
 
 
 DTYPES = [torch.float32, torch.float64]  # every public function is tested in both

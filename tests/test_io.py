@@ -1,7 +1,10 @@
-"""rotlearn.io's one atomic write: whole or nothing, and the mode the umask allows."""
+"""rotlearn.io: bounded reads (regular files only, a size cap per kind, depth limits, no YAML
+aliases) and the one atomic write: whole or nothing, durable (temp file beside the target, fsync,
+rename), the mode the umask allows, a failed write naming the file and leaving the previous one."""
 
 from __future__ import annotations
 
+import errno
 import os
 import stat
 
@@ -9,7 +12,163 @@ import numpy as np
 import pytest
 import torch
 
-from rotlearn.io import atomic_write, write_json_atomic, write_text_atomic
+from rotlearn import io
+from rotlearn.io import (
+    MAX_BYTES,
+    UnreadableFileError,
+    WriteError,
+    atomic_write,
+    read_bytes,
+    read_json,
+    read_record,
+    read_yaml,
+    rewrite_in_place,
+    write_bytes_atomic,
+    write_json_atomic,
+    write_text_atomic,
+)
+from tests.conftest import within
+
+
+def test_a_named_pipe_is_refused_at_once(tmp_path):
+    fifo = tmp_path / "status.json"
+    os.mkfifo(fifo)
+    with within(5), pytest.raises(UnreadableFileError, match=r"status\.json: a named pipe"):
+        read_record(fifo)
+    with within(5):
+        assert read_json(fifo) is None  # the tolerant reader goes on without it
+
+
+def test_a_device_and_a_folder_are_refused(tmp_path):
+    link = tmp_path / "metrics.json"
+    link.symlink_to("/dev/zero")
+    with within(5), pytest.raises(UnreadableFileError, match="a character device"):
+        read_bytes(link, "JSON record")
+    with pytest.raises(UnreadableFileError, match="a folder"):
+        read_bytes(tmp_path, "JSON record")
+
+
+def test_a_symlink_out_of_its_root_is_refused(tmp_path):
+    outside = tmp_path / "outside.json"
+    outside.write_text("{}")
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "status.json").symlink_to(outside)
+    with pytest.raises(UnreadableFileError, match="outside"):
+        read_record(run / "status.json", root=run)
+    assert read_record(run / "status.json") == {}  # without a root, a symlink is followed
+
+
+def test_each_kind_has_its_cap(tmp_path, monkeypatch):
+    path = tmp_path / "x.json"
+    path.write_text(" " * 100 + "{}")
+    monkeypatch.setitem(MAX_BYTES, "JSON record", 64)
+    with pytest.raises(UnreadableFileError, match=r"too large for a JSON record \(over 64 bytes"):
+        read_record(path)
+    monkeypatch.setitem(MAX_BYTES, "JSON record", 102)
+    assert read_record(path) == {}
+
+
+@pytest.mark.parametrize(
+    ("text", "reason"),
+    [
+        ("[" * 100_000 + "]" * 100_000, "nested too deeply"),
+        ("[" * 100 + "]" * 100, "nested too deeply"),  # parses, but deeper than MAX_DEPTH
+        ("{not json", "not JSON"),
+        (b"\xff\xfe", "not UTF-8"),
+    ],
+)
+def test_malformed_json_is_named(tmp_path, text, reason):
+    path = tmp_path / "status.json"
+    path.write_bytes(text if isinstance(text, bytes) else text.encode())
+    with within(10), pytest.raises(UnreadableFileError, match=reason) as info:
+        read_record(path)
+    assert str(path) in str(info.value)
+
+
+def test_metrics_may_hold_nan(tmp_path):
+    path = tmp_path / "metrics.json"
+    path.write_text('{"test/nll": NaN}')
+    assert read_record(path)["test/nll"] != read_record(path)["test/nll"]
+
+
+def test_a_yaml_alias_bomb_is_refused_unexpanded(tmp_path):
+    """890 bytes that expand to 9^9 = 387 million strings (7.5 GB in the report's flattening)."""
+    lines = ["a: &a [x, x, x, x, x, x, x, x, x]"]
+    pairs = zip("abcdefgh", "bcdefghi", strict=True)
+    lines += [f"{c}: &{c} [" + ", ".join([f"*{p}"] * 9) + "]" for p, c in pairs]
+    path = tmp_path / "config.yaml"
+    path.write_text("\n".join(lines) + "\n")
+    assert path.stat().st_size < 1000
+    with within(5), pytest.raises(UnreadableFileError, match=r"config\.yaml:2: YAML alias \*a"):
+        read_yaml(path)
+
+
+@pytest.mark.parametrize(
+    ("text", "reason"),
+    [
+        ("[" * 100 + "]" * 100, "nested too deeply"),
+        ("[" * 10_000 + "]" * 10_000, "not plain YAML data"),  # the parser's own limit
+        ("!!python/object/apply:os.system ['true']", "not plain YAML data"),
+        ("a: [unclosed", "not plain YAML data"),
+    ],
+)
+def test_yaml_that_is_not_plain_data_is_named(tmp_path, text, reason):
+    path = tmp_path / "config.yaml"
+    path.write_text(text)
+    with within(10), pytest.raises(UnreadableFileError, match=reason) as info:
+        read_yaml(path)
+    assert str(path) in str(info.value)
+
+
+def test_genuine_yaml_reads(tmp_path):
+    path = tmp_path / "overrides.yaml"
+    path.write_text("- data=tiny\n- optim.lr=0.001\n")
+    assert read_yaml(path, "overrides file") == ["data=tiny", "optim.lr=0.001"]
+
+
+# ---- durable writes -----------------------------------------------------------------------------
+
+
+def test_a_symlink_at_the_target_is_replaced_not_written_through(tmp_path):
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious\n")
+    link = tmp_path / "status.json"
+    link.symlink_to(victim)
+    write_text_atomic(link, "{}")
+    assert victim.read_text() == "precious\n" and not link.is_symlink()
+
+
+def test_a_failed_write_names_the_file_and_keeps_the_previous_one(tmp_path, monkeypatch):
+    path = tmp_path / "last.ckpt"
+    path.write_bytes(b"epoch 0")
+    real_write = os.write
+
+    def full_disk(fd, data):
+        real_write(fd, bytes(data[:3]))  # a part reaches the disk, then it is full
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(io.os, "write", full_disk)
+    with pytest.raises(WriteError) as info:
+        write_bytes_atomic(path, b"epoch 1 and much more")
+    assert str(info.value) == (
+        f"cannot write {path}: No space left on device; the previous file is unchanged"
+    )
+    assert info.value.errno == errno.ENOSPC
+    assert path.read_bytes() == b"epoch 0"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["last.ckpt"]  # no temporary file
+
+
+def test_rewrite_in_place_reuses_the_files_blocks(tmp_path):
+    path = tmp_path / "status.json"
+    path.write_text('{"status": "RUNNING", "padding": "' + "x" * 200 + '"}')
+    inode = path.stat().st_ino
+    rewrite_in_place(path, b'{"status": "FAILED"}')
+    assert path.read_text() == '{"status": "FAILED"}' and path.stat().st_ino == inode
+    link = tmp_path / "link.json"
+    link.symlink_to(path)
+    with pytest.raises(WriteError):
+        rewrite_in_place(link, b"{}")  # never written through a symlink
 
 
 @pytest.fixture

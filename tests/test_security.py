@@ -33,7 +33,7 @@ from rotlearn.lit.autoencoder import load_autoencoder
 from rotlearn.ood import OODEvaluation
 from rotlearn.paths import config_dir
 from rotlearn.trust import UntrustedConfigError, check_config, is_trusted_target, trusted_config
-from tests.conftest import SMALL_NET, config_options
+from tests.conftest import SMALL_NET, config_options, model_checkpoint
 
 
 class _Shell:
@@ -296,10 +296,12 @@ OVERRIDE_PAYLOADS = {
 }
 
 
-def _resumable_run(world: World, overrides_yaml: str) -> Path:
+def _resumable_run(world: World, overrides_yaml: str, model: tuple = ("data=tiny",)) -> Path:
+    """A run whose last.ckpt holds the weights of the model `model` builds (what a resume
+    checks), with `overrides_yaml` as its saved overrides."""
     run = world.root / "outputs" / "runs" / "2026-01-01_00-00-00-000000"
     (run / "checkpoints").mkdir(parents=True)
-    torch.save({"epoch": 0, "state_dict": {}}, run / "checkpoints" / "last.ckpt")
+    model_checkpoint(run / "checkpoints" / "last.ckpt", model)
     (run / ".hydra").mkdir()
     (run / ".hydra" / "overrides.yaml").write_text(overrides_yaml)
     return run
@@ -352,7 +354,7 @@ def test_resume_command_refuses_a_hostile_run_and_changes_nothing(world):
 
 
 def test_genuine_saved_overrides_still_resume(world):
-    run = _resumable_run(world, "- data=tiny\n- optim.lr=0.001\n- rep=sixd\n")
+    run = _resumable_run(world, "- data=tiny\n- optim.lr=0.001\n- rep=sixd\n", ("rep=sixd",))
     args = resume_arguments([f"ckpt_path={run}"], runs_root=run.parent)
     assert args[:3] == ["data=tiny", "optim.lr=0.001", "rep=sixd"]
 

@@ -18,11 +18,12 @@ the checkpoint it names.
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os
 import pickle
+import stat
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -31,26 +32,32 @@ import torch
 from torch import Tensor
 
 from rotlearn.extras import require
+from rotlearn.io import MAX_BYTES, read_bytes, write_bytes_atomic
 from rotlearn.paths import checkpoint_file
 from rotlearn.trust import UntrustedConfigError, trusted_config
 
 __all__ = [
     "TEMPERATURE_FILE",
+    "TEMPERATURE_RANGE",
     "THRESHOLDS_FILE",
     "SavedRun",
     "UnsafeCheckpointError",
     "UntrustedConfigError",
+    "check_weights",
     "checkpoint_temperature",
     "load_checkpoint",
     "load_run",
     "read_temperature",
     "read_thresholds",
     "resolve_checkpoint",
+    "save_checkpoint",
 ]
 
 THRESHOLDS_FILE = "ood_thresholds.json"  # beside the checkpoints it calibrates
 TEMPERATURE_FILE = "temperature.json"  # beside the checkpoint whose belief it tempers
-_MAX_RECORD_BYTES = 4096  # either file is a few dozen bytes; anything larger is refused unread
+# A checkpoint's records decompress to at most this many times the file's size: torch writes them
+# uncompressed (ratio 1); a deflated bomb (a few MB that inflate to gigabytes) is refused unread.
+_MAX_INFLATION = 4
 
 log = logging.getLogger("rotlearn")
 
@@ -61,9 +68,64 @@ class UnsafeCheckpointError(pickle.UnpicklingError, ValueError):
 
 def resolve_checkpoint(path: str | os.PathLike) -> Path:
     """A checkpoint file, or a run directory (meaning its checkpoints/last.ckpt): see
-    `rotlearn.paths.checkpoint_file` (a sweep directory or another folder is refused, naming
-    what to pass instead)."""
+    `rotlearn.paths.checkpoint_file`.
+
+    Raises:
+        FileNotFoundError: no checkpoint there, saying what `path` is instead (a sweep
+            directory, naming its jobs, or a folder that holds no run).
+        UnsafeCheckpointError: a run directory whose last.ckpt is a symlink out of the run.
+    """
+    path = Path(path)
+    if path.is_dir():
+        last = path / "checkpoints" / "last.ckpt"
+        real = Path(os.path.realpath(last))
+        if os.path.lexists(last) and not real.is_relative_to(os.path.realpath(path)):
+            raise UnsafeCheckpointError(f"{last}: a symlink to {real}, outside the run; not read")
     return checkpoint_file(path)
+
+
+def save_checkpoint(checkpoint: dict[str, Any], path: str | os.PathLike) -> Path:
+    """Write a checkpoint (tensors and plain data) durably: serialised in memory, then written
+    to a temporary file beside `path`, fsynced and renamed over it
+    (`rotlearn.io.write_bytes_atomic`).
+
+    Raises:
+        WriteError: naming `path` and the cause (a full disk, a quota); the checkpoint that was
+            at `path` is unchanged and loadable.
+    """
+    import io
+
+    buffer = io.BytesIO()
+    torch.save(checkpoint, buffer)
+    return write_bytes_atomic(path, buffer.getbuffer())
+
+
+def _check_archive(path: Path) -> None:
+    """Refuse, before torch reads it, a checkpoint that is not a regular file, is larger than
+    `MAX_BYTES["checkpoint"]`, is not a whole zip archive (a truncated file has no central
+    directory), or whose records would decompress beyond the cap or `_MAX_INFLATION` times
+    the file's size."""
+    cap = MAX_BYTES["checkpoint"]
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
+    with os.fdopen(fd, "rb") as handle:
+        info = os.fstat(handle.fileno())
+        if not stat.S_ISREG(info.st_mode):
+            raise UnsafeCheckpointError(f"{path} is not a regular file; not read")
+        if info.st_size > cap:
+            raise UnsafeCheckpointError(f"{path} is larger than a checkpoint may be ({cap} bytes)")
+        try:
+            members = zipfile.ZipFile(handle).infolist()
+        except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
+            raise UnsafeCheckpointError(
+                f"{path} is not a whole PyTorch checkpoint (a zip archive): truncated, damaged or "
+                f"another kind of file ({exc})"
+            ) from None
+    inflated = sum(m.file_size for m in members)
+    if inflated > min(cap, _MAX_INFLATION * max(info.st_size, 1) + 2**20):
+        raise UnsafeCheckpointError(
+            f"{path}: its records would decompress to {inflated} bytes from a file of "
+            f"{info.st_size}; refusing it unread (a PyTorch checkpoint is stored uncompressed)"
+        )
 
 
 def load_checkpoint(path: str | os.PathLike, map_location: Any = "cpu") -> dict[str, Any]:
@@ -73,13 +135,20 @@ def load_checkpoint(path: str | os.PathLike, map_location: Any = "cpu") -> dict[
         path: a `.ckpt` file or a run directory.
         map_location: as in `torch.load`.
 
+    Before torch reads it, the file must be a regular file of at most `MAX_BYTES["checkpoint"]`
+    bytes and a whole zip archive whose records decompress to at most that many bytes (and at most
+    a few times the file's size), so a truncated, huge or decompression-bomb file is refused at
+    once, naming it.
+
     Raises:
         FileNotFoundError: no such checkpoint.
         UnsafeCheckpointError: the file is not a dict of tensors and plain data: it carries
             objects that only a full unpickler could build (such a file can run code when
-            loaded; rotlearn never loads it), or it is no checkpoint at all.
+            loaded; rotlearn never loads it), or it is no checkpoint at all (truncated, too large,
+            a decompression bomb).
     """
     path = resolve_checkpoint(path)
+    _check_archive(path)
     try:
         checkpoint = torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as exc:
@@ -141,20 +210,112 @@ class SavedRun:
             return str(self.config.get("task", "rotation"))
         return str(getattr(get_class(target), "task", "unknown"))
 
-    def build(self, key: str) -> Any:
-        """Instantiate the config node `key` (e.g. "net", "rep")."""
+    def _instantiate(self, key: str) -> Any:
+        from hydra.errors import InstantiationException
         from hydra.utils import instantiate
         from omegaconf import OmegaConf
 
         node = OmegaConf.select(self.config, key)
         if node is None:
             raise ValueError(f"{self.path}: the saved config has no {key!r} node")
-        return instantiate(node)
+        try:
+            return instantiate(node)
+        except (InstantiationException, TypeError, ValueError) as exc:
+            reason = str(exc).strip().splitlines()
+            raise ValueError(
+                f"{self.path}: the saved config's {key} cannot be built "
+                f"({reason[-1] if reason else type(exc).__name__})"
+            ) from None
+
+    def check_fits(self, key: str, prefix: str | None = None) -> None:
+        """Build the config node `key` on the meta device (no memory is allocated, whatever sizes
+        the config names) and check that the stored weights under `prefix` (default: `key`;
+        "": the whole state_dict) fit it exactly: the same names, shapes and kinds of dtype,
+        floating weights finite (`check_weights`).
+
+        Raises:
+            ValueError: naming the checkpoint and what does not fit.
+        """
+        with torch.device("meta"):
+            module = self._instantiate(key)
+        expected = module.state_dict() if isinstance(module, torch.nn.Module) else {}
+        named = key if prefix is None else prefix
+        check_weights(expected, self._stored(key, prefix), str(self.path), named)
+
+    def build(self, key: str, prefix: str | None = None) -> Any:
+        """Instantiate the config node `key` (e.g. "net", "rep"), after checking on the meta
+        device that the stored weights under `prefix` (default: `key`) fit it (`check_fits`),
+        and load them into it (a module without weights, such as a head, gets none).
+
+        Raises:
+            ValueError: naming the checkpoint: the node cannot be built, or the weights do not
+                fit it (missing, unexpected, another shape, not floating point, not finite).
+        """
+        self.check_fits(key, prefix)
+        built = self._instantiate(key)
+        if isinstance(built, torch.nn.Module):
+            built.load_state_dict(self._stored(key, prefix), strict=True)
+        return built
+
+    def _stored(self, key: str, prefix: str | None) -> dict[str, Tensor]:
+        if prefix == "":
+            return self.state_dict
+        return self.weights(key if prefix is None else prefix)
 
     def weights(self, prefix: str) -> dict[str, Tensor]:
         """The weights of the submodule `prefix` (e.g. "net"), with the prefix removed."""
         start = f"{prefix}."
         return {k[len(start) :]: v for k, v in self.state_dict.items() if k.startswith(start)}
+
+
+def _listed(names: list[str], limit: int = 6) -> str:
+    more = f" and {len(names) - limit} more" if len(names) > limit else ""
+    return ", ".join(names[:limit]) + more
+
+
+def check_weights(
+    expected: dict[str, Tensor], stored: dict[str, Tensor], where: str, prefix: str = ""
+) -> None:
+    """Check stored weights against a module's state_dict (built on the meta device).
+
+    Args:
+        expected: name -> tensor of the module the weights are for (only shapes and dtypes
+            are read).
+        stored: name -> tensor read from a checkpoint.
+        where: the checkpoint, for messages.
+        prefix: the module's name in the checkpoint ("net"), prefixed to names in messages.
+
+    Raises:
+        ValueError: naming `where` and the first names at fault: missing or unexpected names,
+            another shape, a floating tensor stored as integers or bools (or the reverse), or
+            a floating weight that is NaN or infinite in the module's dtype.
+    """
+    full = (lambda name: f"{prefix}.{name}") if prefix else (lambda name: name)
+    missing = sorted(map(full, set(expected) - set(stored)))
+    unexpected = sorted(map(full, set(stored) - set(expected)))
+    if missing or unexpected:
+        parts = [f"missing {_listed(missing)}" if missing else "",
+                 f"unexpected {_listed(unexpected)}" if unexpected else ""]  # fmt: skip
+        raise ValueError(
+            f"{where}: the stored weights do not fit the saved config's model "
+            f"({'; '.join(p for p in parts if p)})"
+        )
+    for name, want in expected.items():
+        have = stored[name]
+        if tuple(have.shape) != tuple(want.shape):
+            raise ValueError(
+                f"{where}: weight {full(name)} is stored with shape {tuple(have.shape)}, but the "
+                f"saved config builds {tuple(want.shape)}"
+            )
+        if want.is_floating_point() != have.is_floating_point() or have.is_complex():
+            kind = "floating point" if want.is_floating_point() else str(want.dtype)
+            raise ValueError(
+                f"{where}: weight {full(name)} is stored as {have.dtype}; it must be {kind}"
+            )
+        if want.is_floating_point() and not bool(torch.isfinite(have.to(want.dtype)).all()):
+            raise ValueError(
+                f"{where}: weight {full(name)} holds NaN or infinite values (in {want.dtype})"
+            )
 
 
 def _number(value: Any) -> bool:
@@ -168,17 +329,18 @@ def _number(value: Any) -> bool:
 
 
 def _read_record(path: Path, what: str) -> Any:
-    """The JSON in `path` (a small record file), refusing a large file unread, NaN and the
-    infinities, and nesting too deep to parse; ValueError naming the file otherwise."""
-    if path.stat().st_size > _MAX_RECORD_BYTES:
-        raise ValueError(f"{path}: too large for a JSON {what} (at most {_MAX_RECORD_BYTES} bytes)")
+    """The JSON in `path` (a small record file, read bounded: `rotlearn.io.read_text`), refusing
+    NaN and the infinities and nesting too deep to parse; ValueError naming the file otherwise."""
+    import json
+
+    data = read_bytes(path, "calibration record", root=path.parent)  # no symlink out of it
 
     def refuse(constant: str) -> None:
         raise ValueError(f"{constant} is not a number")
 
     try:
-        return json.loads(path.read_text(encoding="utf-8"), parse_constant=refuse)
-    except (ValueError, UnicodeDecodeError) as exc:
+        return json.loads(data.decode("utf-8"), parse_constant=refuse)
+    except ValueError as exc:
         raise ValueError(f"{path}: not a JSON {what} ({exc})") from None
     except RecursionError:
         raise ValueError(f"{path}: not a JSON {what} (nested too deeply)") from None
@@ -197,6 +359,12 @@ def _check_ood(ood: Any, path: Path, what: str) -> dict[str, Any]:
             raise ValueError(f"{path}: {what}'s {key} must be a finite number, got {ood[key]!r}")
     if not 0.0 <= ood["q"] <= 1.0:
         raise ValueError(f"{path}: {what}'s q must lie in [0, 1], got {ood['q']!r}")
+    largest = float(torch.finfo(torch.float32).max)  # scores are compared in float32
+    if not -largest <= ood["threshold"] <= largest:
+        raise ValueError(
+            f"{path}: {what}'s threshold must lie within float32's range (|t| <= {largest:.3g}), "
+            f"got {ood['threshold']!r}"
+        )
     return {"score": ood["score"], "threshold": float(ood["threshold"]), "q": float(ood["q"])}
 
 
@@ -208,13 +376,18 @@ def read_thresholds(path: str | os.PathLike) -> dict[str, Any] | None:
             [0, 1]} (the message names the file).
     """
     path = Path(path)
-    if not path.is_file():
+    if not os.path.lexists(path):
         return None
     ood = _read_record(path, "OOD threshold file")
     return _check_ood(ood, path, "the OOD threshold")
 
 
 _TEMPERATURE_KEYS = {"temperature", "checkpoint", "val_nll", "val_nll_uncalibrated", "num_val"}
+# The temperatures a record may hold: A / T and T * A stay finite in float32 for every belief the
+# Bingham code supports (eigenvalue spread up to MAX_DISPERSION), so the tempered beliefs, their DT
+# and their samples are finite numbers. A fit never leaves this range on float32 beliefs.
+TEMPERATURE_RANGE = (1e6 / float(torch.finfo(torch.float32).max),
+                     float(torch.finfo(torch.float32).max) / 1e6)  # fmt: skip
 
 
 def read_temperature(path: str | os.PathLike) -> dict[str, Any] | None:
@@ -226,13 +399,13 @@ def read_temperature(path: str | os.PathLike) -> dict[str, Any] | None:
 
     Raises:
         ValueError: the file is larger than 4096 bytes, not JSON, holds NaN or an infinity, lacks
-            or adds a key, or holds a temperature that is not a finite number > 0 (with a finite
-            1 / T), a checkpoint that is not a plain file name, or a count that is not a positive
-            integer; the message names the file. Nothing is half-read: the record is checked
-            whole before it is returned.
+            or adds a key, or holds a temperature that is not a number in `TEMPERATURE_RANGE`
+            (about 3e-33 to 3e32), a checkpoint that is not a plain file name, or a count that
+            is not a positive integer; the message names the file. Nothing is half-read: the
+            record is checked whole before it is returned.
     """
     path = Path(path)
-    if not path.is_file():
+    if not os.path.lexists(path):
         return None
     record = _read_record(path, "temperature file")
     expected = (
@@ -243,8 +416,12 @@ def read_temperature(path: str | os.PathLike) -> dict[str, Any] | None:
         keys = sorted(map(str, record)) if isinstance(record, dict) else type(record).__name__
         raise ValueError(f"{path}: the temperature record must be {expected}, got {keys}")
     t = record["temperature"]
-    if not _number(t) or not t > 0 or not math.isfinite(1.0 / float(t)):
-        raise ValueError(f"{path}: temperature must be a finite number > 0, got {t!r}")
+    low, high = TEMPERATURE_RANGE
+    if not _number(t) or not low <= t <= high:
+        raise ValueError(
+            f"{path}: temperature must be a number in [{low:.3g}, {high:.3g}] (A / T must stay "
+            f"finite in float32), got {t!r}"
+        )
     name = record["checkpoint"]
     if not isinstance(name, str) or not name or Path(name).name != name or name in (".", ".."):
         raise ValueError(f"{path}: checkpoint must be a checkpoint's file name, got {name!r}")

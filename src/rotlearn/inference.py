@@ -250,6 +250,10 @@ class Predictor:
         if not bool(torch.isfinite(raw).all()):
             raise FloatingPointError("the network output is not finite for these inputs")
         p = self.head(raw).with_temperature(self.temperature)
+        if p.A is not None and not bool(torch.isfinite(p.A).all()):
+            raise FloatingPointError(
+                f"the belief tempered by the temperature {self.temperature:g} is not finite"
+            )
         return p.R, p.q, p.dispersion, p.dt, p.A, getattr(p, "F", None)
 
 
@@ -263,7 +267,10 @@ def load(
     Goes through `rotlearn.checkpoint.load_run`: the file is read with
     `torch.load(weights_only=True)` (pickled code is refused: `UnsafeCheckpointError`) and the
     saved config may only name allowlisted components (`UntrustedConfigError`, naming the key),
-    checked before the network and head are rebuilt from it. The belief's temperature fitted
+    checked before the network and head are rebuilt from it; the stored weights are checked
+    against the network the config describes, built first on the meta device (names, shapes,
+    floating point, finite), so no size named in the file is allocated before it is known to
+    match the weights (`SavedRun.build`). The belief's temperature fitted
     for this checkpoint (`calibrate=true`: `checkpoints/temperature.json`, read strictly) is
     applied to every estimate.
     """
@@ -271,8 +278,7 @@ def load(
     from omegaconf import OmegaConf
 
     run = load_run(ckpt_path, task="rotation")
-    net, head = run.build("net"), run.build("rep")
-    net.load_state_dict(run.weights("net"))
+    net, head = run.build("net"), run.build("rep", prefix="head")  # weights checked, then loaded
     config = OmegaConf.to_container(run.config)
     return Predictor(
         net, head, config, ood=run.ood, device=device, chunk_elements=chunk_elements,

@@ -1,19 +1,26 @@
-"""File I/O: crash-safe writing (a reader sees the old file or the whole new one, never a part),
-reading rows of numbers with errors that name the file and line, and the checks every dataset
-reader shares: finite values, plain names and paths that stay inside their root.
+"""File I/O at the run directory's boundary: bounded reads (a regular file only, a size cap per
+kind of file, YAML without aliases, JSON and YAML with a depth limit), durable writes (a reader
+sees the old file or the whole new one, never a part, also after a crash or a full disk), reading
+rows of numbers with errors that name the file and line, and the checks every dataset reader
+shares: finite values, plain names and paths that stay inside their root.
 
-Every file rotlearn writes itself (records, tables, figures, caches, the auto-encoder's weights)
-goes through `atomic_write`, the one write-temporary-then-rename: it is created with the mode the
-umask allows (0644 under umask 022, like a file `open` creates), so a colleague in a shared
-folder can read the results."""
+Every file rotlearn writes itself (records, tables, figures, caches, checkpoints) goes through
+`atomic_write`, the one write-temporary-then-rename: the temporary file is created beside the
+target with the mode the umask allows (0644 under umask 022, like a file `open` creates), so a
+colleague in a shared folder can read the results; it is fsynced, renamed, and its folder fsynced;
+a failed write (a full disk, a quota) is a `WriteError` naming the file and the cause, and leaves
+the previous file as it was."""
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
+import logging
 import os
 import re
 import secrets
+import stat
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
@@ -23,35 +30,314 @@ import numpy as np
 from rotlearn.errors import ConfigValueError
 
 __all__ = [
+    "MAX_BYTES",
+    "MAX_DEPTH",
+    "UnreadableFileError",
+    "WriteError",
     "atomic_write",
     "cache_file",
     "parse_number_rows",
+    "parse_yaml",
     "plain_name",
+    "read_bytes",
+    "read_cached_array",
     "read_json",
+    "read_manifest",
     "read_number_rows",
+    "read_record",
+    "read_table",
+    "read_text",
     "read_text_lines",
+    "read_yaml",
     "require_finite",
     "resolve_inside",
+    "rewrite_in_place",
     "strict_int",
+    "write_bytes_atomic",
     "write_json_atomic",
     "write_text_atomic",
 ]
 
+log = logging.getLogger("rotlearn")
+
 _INT = re.compile(r"[+-]?[0-9]+")
+_KIB, _MIB, _GIB = 2**10, 2**20, 2**30
+
+# The most bytes rotlearn reads from one file of each kind: what a genuine file needs, with room.
+# A larger file is refused unread (a file that grows past it while being read, too).
+MAX_BYTES: dict[str, int] = {
+    "JSON record": 16 * _MIB,  # status.json, metrics.json, timing.json, jobs.json, test_errors.json
+    "YAML config": 4 * _MIB,  # .hydra/config.yaml and hydra.yaml
+    "overrides file": 256 * _KIB,  # .hydra/overrides.yaml: one run's command line
+    "CSV table": 256 * _MIB,  # ood.csv, ood_samples.csv, csv/metrics.csv
+    "text file": 256 * _MIB,  # a dataset's text files (poses, frame lists, point clouds)
+    "checkpoint": 4 * _GIB,  # a .ckpt on disk, and its records once decompressed
+    "calibration record": 4 * _KIB,  # checkpoints/temperature.json, ood_thresholds.json
+    "TensorBoard events": 1 * _GIB,  # a run's tensorboard/ folder, all event files together
+}
+MAX_DEPTH = 64  # nesting of a JSON or YAML document (rotlearn's own files nest a few levels)
 
 
-def read_json(path: str | os.PathLike) -> Any:
-    """The JSON data of a record file (metrics.json, status.json, ...), or None where it is
-    missing, unreadable or not JSON (a run killed mid-write, a damaged or foreign file)."""
+class UnreadableFileError(ValueError):
+    """A file that rotlearn refuses to read: not a regular file (a FIFO, a device, a folder),
+    larger than its kind's cap, outside the folder it must stay in, or not well-formed data of
+    its kind (nested too deeply, a YAML alias). The message names the file."""
+
+
+class WriteError(OSError):
+    """A durable write failed (a full disk, a quota, permissions): the message names the file
+    and the cause; the file that was there before is unchanged."""
+
+    def __init__(self, code: int | None, message: str) -> None:
+        super().__init__(code, message)
+        self.message = message
+
+    def __str__(self) -> str:
+        return self.message
+
+
+# ---- bounded reads ------------------------------------------------------------------------------
+
+
+def _what(mode: int) -> str:
+    for test, name in ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a named pipe (FIFO)"),
+                       (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+                       (stat.S_ISSOCK, "a socket")):  # fmt: skip
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
+def read_bytes(path: str | os.PathLike, kind: str, root: str | os.PathLike | None = None) -> bytes:
+    """The bytes of a regular file, at most `MAX_BYTES[kind]` of them.
+
+    The file is opened without blocking (a named pipe is refused at once, never waited on) and
+    read in chunks up to the cap, so neither a FIFO, a device such as /dev/zero, nor an endless
+    or huge file can hang the reader or fill its memory.
+
+    Args:
+        path: the file.
+        kind: a key of `MAX_BYTES` ("JSON record", "YAML config", ...), for the cap and messages.
+        root: if given, `path` resolved (symlinks and `..` followed) must lie inside it.
+
+    Raises:
+        FileNotFoundError: no such file (the message names it).
+        UnreadableFileError: not a regular file, larger than the cap, or outside `root`.
+        OSError: it cannot be read (permissions, I/O error).
+    """
+    path = Path(path)
+    cap = MAX_BYTES[kind]
+    if root is not None:
+        real, real_root = Path(os.path.realpath(path)), Path(os.path.realpath(root))
+        if not real.is_relative_to(real_root):
+            raise UnreadableFileError(
+                f"{path}: resolves to {real}, outside {real_root}; refusing to read it"
+            )
+    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
     try:
-        return json.loads(Path(path).read_text(encoding="utf-8"))
-    except (OSError, ValueError):  # ValueError: JSON or UTF-8 decoding
+        fd = os.open(path, flags)
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{path}: no such file") from None
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            raise UnreadableFileError(f"{path}: {_what(mode)}, not a regular file; not read")
+        chunks, total = [], 0
+        while chunk := os.read(fd, min(_MIB, cap + 1 - total)):
+            chunks.append(chunk)
+            total += len(chunk)
+            if total > cap:
+                raise UnreadableFileError(
+                    f"{path}: too large for a {kind} (over {cap} bytes); not read"
+                )
+        return b"".join(chunks)
+    finally:
+        os.close(fd)
+
+
+def read_text(path: str | os.PathLike, kind: str, root: str | os.PathLike | None = None) -> str:
+    """`read_bytes` decoded as UTF-8.
+
+    Raises:
+        as `read_bytes`; UnreadableFileError naming the file and line where it is not UTF-8.
+    """
+    data = read_bytes(path, kind, root)
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = data[: exc.start].count(b"\n") + 1
+        raise UnreadableFileError(f"{path}:{line}: not UTF-8 text (byte {exc.start})") from None
+
+
+def _depth(tree: Any) -> int:
+    """The nesting depth of plain data (lists and dicts), without recursion."""
+    deepest, stack = 0, [(tree, 1)]
+    while stack:
+        node, depth = stack.pop()
+        if isinstance(node, dict | list):
+            deepest = max(deepest, depth)
+            if depth > MAX_DEPTH:
+                return depth
+            stack.extend(
+                (v, depth + 1) for v in (node.values() if isinstance(node, dict) else node)
+            )
+    return deepest
+
+
+def read_record(
+    path: str | os.PathLike, root: str | os.PathLike | None = None, kind: str = "JSON record"
+) -> Any:
+    """The JSON data of a record file (status.json, metrics.json, ...), read bounded
+    (`read_bytes`). NaN and the infinities are accepted (metrics may be NaN).
+
+    Raises:
+        FileNotFoundError: no such file.
+        UnreadableFileError: not a regular file, too large, outside `root`, not UTF-8, not JSON,
+            or nested deeper than `MAX_DEPTH`; the message names the file.
+    """
+    text = read_text(path, kind, root)
+    try:
+        data = json.loads(text)
+    except RecursionError:
+        data = None
+        deep = True
+    except ValueError as exc:
+        raise UnreadableFileError(f"{path}: not JSON ({exc})") from None
+    else:
+        deep = _depth(data) > MAX_DEPTH
+    if deep:
+        raise UnreadableFileError(f"{path}: JSON nested too deeply (over {MAX_DEPTH} levels)")
+    return data
+
+
+def read_json(
+    path: str | os.PathLike, root: str | os.PathLike | None = None, kind: str = "JSON record"
+) -> Any:
+    """`read_record`, or None where the file is missing or refused (a run killed before it wrote
+    the file, a damaged or foreign one): for readers that go on without it. A refused file is
+    logged as a warning naming it and why."""
+    try:
+        return read_record(path, root, kind)
+    except FileNotFoundError:
         return None
+    except (OSError, ValueError) as exc:
+        log.warning("%s (ignored)", exc)
+        return None
+
+
+def read_manifest(path: str | os.PathLike) -> Any:
+    """A dataset cache's `.json` manifest (`read_record`, bounded), or None where it is missing
+    or cannot be read (a named pipe, too large, not JSON): the cache is then rebuilt."""
+    try:
+        return read_record(path)
+    except (OSError, ValueError):
+        return None
+
+
+def read_cached_array(
+    path: str | os.PathLike, dtype: Any, shape: tuple[int | None, ...]
+) -> np.ndarray | None:
+    """A dataset cache's `.npy` array, memory-mapped read-only (never unpickled), if it is a
+    regular file holding `dtype` of `shape` (None: any length on that axis); None otherwise (a
+    foreign, damaged or hostile cache: it is rebuilt)."""
+    if not Path(path).is_file():
+        return None
+    try:
+        array = np.load(path, mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError):
+        return None
+    fits = array.dtype == np.dtype(dtype) and array.ndim == len(shape)
+    if not fits or any(n is not None and n != m for n, m in zip(shape, array.shape, strict=True)):
+        return None
+    return array
+
+
+def read_table(path: str | os.PathLike, root: str | os.PathLike | None = None) -> Any:
+    """A CSV file as a pandas DataFrame, read bounded (`read_text`, "CSV table").
+
+    Raises:
+        FileNotFoundError, UnreadableFileError: as `read_text`; ValueError naming the file when
+            pandas cannot parse it.
+    """
+    import io
+
+    import pandas as pd
+
+    text = read_text(path, "CSV table", root)
+    try:
+        return pd.read_csv(io.StringIO(text))
+    except (ValueError, pd.errors.ParserError) as exc:
+        raise UnreadableFileError(f"{path}: not a CSV table ({exc})") from None
+
+
+def parse_yaml(text: str, where: str) -> Any:
+    """Plain data of a YAML document: no tags beyond YAML's own (safe loading), no aliases (a
+    file rotlearn writes has none; an alias can multiply a small file into gigabytes), nesting
+    at most `MAX_DEPTH`.
+
+    Raises:
+        UnreadableFileError: naming `where` (and the line) when it is not such YAML.
+    """
+    import yaml
+
+    loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+    depth = 0
+    try:
+        for event in yaml.parse(text, Loader=loader):
+            if isinstance(event, yaml.AliasEvent):
+                line = event.start_mark.line + 1 if event.start_mark else "?"
+                raise UnreadableFileError(
+                    f"{where}:{line}: YAML alias *{event.anchor}: aliases are refused in files "
+                    "rotlearn reads"
+                )
+            if isinstance(event, yaml.CollectionStartEvent):
+                depth += 1
+                if depth > MAX_DEPTH:
+                    raise UnreadableFileError(
+                        f"{where}: YAML nested too deeply (over {MAX_DEPTH} levels)"
+                    )
+            elif isinstance(event, yaml.CollectionEndEvent):
+                depth -= 1
+        return yaml.load(text, Loader=loader)
+    except yaml.YAMLError as exc:
+        first = str(exc).strip().splitlines()
+        raise UnreadableFileError(f"{where}: not plain YAML data ({' '.join(first)})") from None
+
+
+def read_yaml(
+    path: str | os.PathLike, kind: str = "YAML config", root: str | os.PathLike | None = None
+) -> Any:
+    """`parse_yaml` of a file read bounded (`read_text`).
+
+    Raises:
+        FileNotFoundError: no such file.
+        UnreadableFileError: as `read_bytes` and `parse_yaml`, naming the file.
+    """
+    return parse_yaml(read_text(path, kind, root), str(path))
+
+
+# ---- durable writes -----------------------------------------------------------------------------
+
+
+def _fsync_dir(folder: Path) -> None:
+    """Make a rename in `folder` durable (where the platform can: not on Windows)."""
+    try:
+        fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    except OSError:
+        return  # Windows: folders cannot be opened; the rename is as durable as it gets
+    try:
+        os.fsync(fd)
+    except OSError as exc:
+        if exc.errno not in (errno.EINVAL, errno.ENOTSUP, errno.EBADF):
+            raise
+    finally:
+        os.close(fd)
 
 
 def _new_temporary(path: Path) -> Path:
     """A new empty file beside `path` (hidden, same suffix, so writers that add one, such as
-    `numpy.save`, keep its name), created with mode 0666 minus the umask."""
+    `numpy.save`, keep its name), created with mode 0666 minus the umask, never through a
+    symlink (`O_EXCL`)."""
     flags = os.O_CREAT | os.O_EXCL | os.O_WRONLY | getattr(os, "O_CLOEXEC", 0)
     while True:
         tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp{path.suffix}")
@@ -62,12 +348,18 @@ def _new_temporary(path: Path) -> Path:
         return tmp
 
 
+def _write_error(path: Path, exc: OSError) -> WriteError:
+    kept = "; the previous file is unchanged" if os.path.lexists(path) else ""
+    return WriteError(exc.errno, f"cannot write {path}: {exc.strerror or exc}{kept}")
+
+
 @contextlib.contextmanager
 def atomic_write(path: str | os.PathLike) -> Iterator[Path]:
-    """Write `path` whole or not at all: yields the path of a new, empty temporary file beside
-    `path` for any writer to fill (text, `numpy.save`, `torch.save`, a figure, a memmap); when
-    the block ends, the file is synced to disk and renamed over `path`. If the block raises,
-    the temporary file is removed and `path` is left as it was.
+    """Write `path` whole or not at all, durably: yields the path of a new, empty temporary file
+    beside `path` for any writer to fill (text, `numpy.save`, a figure, a memmap); when the block
+    ends, the file is synced to disk, renamed over `path` (a symlink there is replaced, never
+    written through) and the folder synced. If the block raises, the temporary file is removed
+    and `path` is left as it was.
 
     The file gets the mode the umask allows (0644 under umask 022), as `open` gives a new file.
 
@@ -75,10 +367,17 @@ def atomic_write(path: str | os.PathLike) -> Iterator[Path]:
 
         with atomic_write(run_dir / "table.npy") as tmp:
             np.save(tmp, table)
+
+    Raises:
+        WriteError: an OSError while creating, filling, syncing or renaming the file (a full
+            disk, a quota, permissions), naming `path` and the cause; `path` is unchanged.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _new_temporary(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = _new_temporary(path)
+    except OSError as exc:
+        raise _write_error(path, exc) from None
     try:
         yield tmp
         fd = os.open(tmp, os.O_RDONLY)
@@ -87,9 +386,30 @@ def atomic_write(path: str | os.PathLike) -> Iterator[Path]:
         finally:
             os.close(fd)
         os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
+        _fsync_dir(path.parent)
+    except BaseException as exc:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        if isinstance(exc, OSError) and not isinstance(exc, WriteError):
+            raise _write_error(path, exc) from None
         raise
+
+
+def write_bytes_atomic(path: str | os.PathLike, data: bytes | bytearray | memoryview) -> Path:
+    """`data` into `path`, durably (`atomic_write`).
+
+    Raises:
+        WriteError: as `atomic_write`.
+    """
+    with atomic_write(path) as tmp:
+        fd = os.open(tmp, os.O_WRONLY | getattr(os, "O_BINARY", 0))
+        try:
+            view = memoryview(data).cast("B")
+            while view:
+                view = view[os.write(fd, view[: 64 * _MIB]) :]
+        finally:
+            os.close(fd)
+    return Path(path)
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
@@ -102,6 +422,37 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
 def write_json_atomic(path: str | os.PathLike, data: Any) -> Path:
     """`write_text_atomic` of `data` as indented JSON."""
     return write_text_atomic(path, json.dumps(data, indent=2, sort_keys=True) + "\n")
+
+
+def rewrite_in_place(path: str | os.PathLike, data: bytes) -> Path:
+    """Overwrite an existing regular file's bytes in place, then cut it to `data`'s length: the
+    fallback for a small record that must change on a full disk (a status that says FAILED),
+    where `write_bytes_atomic` cannot create its temporary file. The file's own blocks are
+    reused, so no new space is needed while `data` is not longer than what the file holds (a
+    record of a few hundred bytes in one block). Not atomic: a crash midway can leave a mix.
+
+    Raises:
+        WriteError: naming `path` and the cause (also when it is not an existing regular file).
+    """
+    path = Path(path)
+    flags = os.O_WRONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
+    try:
+        fd = os.open(path, flags | getattr(os, "O_BINARY", 0))
+        try:
+            if not stat.S_ISREG(os.fstat(fd).st_mode):
+                raise OSError(errno.EINVAL, "not a regular file")
+            view = memoryview(data).cast("B")
+            os.lseek(fd, 0, os.SEEK_SET)
+            rest = view
+            while rest:
+                rest = rest[os.write(fd, rest) :]
+            os.ftruncate(fd, len(view))
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+    except OSError as exc:
+        raise WriteError(exc.errno, f"cannot write {path}: {exc.strerror or exc}") from None
+    return path
 
 
 # ---- numbers ------------------------------------------------------------------------------------
@@ -208,20 +559,16 @@ def read_number_rows(
 
 
 def read_text_lines(path: Path) -> list[str]:
-    """The lines of a UTF-8 text file.
+    """The lines of a UTF-8 text file (a dataset's), read bounded (`read_text`, "text file").
 
     Raises:
         FileNotFoundError: no such file.
-        ValueError: naming the file (and the line) when it is not UTF-8 text.
+        ValueError: naming the file (and the line) when it is not UTF-8 text, not a regular
+            file or too large.
     """
-    if not path.is_file():
+    if not os.path.lexists(path):
         raise FileNotFoundError(f"no input file at {path}")
-    data = path.read_bytes()
-    try:
-        return data.decode("utf-8").splitlines()
-    except UnicodeDecodeError as exc:
-        line = data[: exc.start].count(b"\n") + 1
-        raise ValueError(f"{path}:{line}: not UTF-8 text (byte {exc.start})") from None
+    return read_text(path, "text file").splitlines()
 
 
 # ---- names and paths ----------------------------------------------------------------------------

@@ -11,7 +11,14 @@ from pathlib import Path
 import pytest
 
 from rotlearn.cli.resume import keep_earlier_records, resume_arguments
-from tests.conftest import RESUMABLE, SMALL_NET, checkpoint_epoch, start_cli
+from tests.conftest import (
+    RESUMABLE,
+    SMALL_NET,
+    checkpoint_epoch,
+    copy_run,
+    model_checkpoint,
+    start_cli,
+)
 
 
 def test_sigkill_then_resume_matches_an_uninterrupted_run(tmp_path):
@@ -44,7 +51,7 @@ def test_sigkill_then_resume_matches_an_uninterrupted_run(tmp_path):
 def _fake_run(root: Path, name: str, overrides: list[str]) -> Path:
     run = root / name
     (run / "checkpoints").mkdir(parents=True)
-    (run / "checkpoints" / "last.ckpt").write_bytes(b"")
+    model_checkpoint(run / "checkpoints" / "last.ckpt", overrides)
     (run / ".hydra").mkdir()
     (run / ".hydra" / "overrides.yaml").write_text("".join(f"- {o}\n" for o in overrides))
     return run
@@ -58,8 +65,8 @@ def test_resume_arguments_continue_the_run_with_its_own_overrides(tmp_path):
         "rep=quat",
         "optim.lr=0.001",
         "trainer.max_epochs=9",
-        f"ckpt_path={(new / 'checkpoints' / 'last.ckpt').resolve()}",
-        f"hydra.run.dir={new.resolve()}",
+        f"ckpt_path='{(new / 'checkpoints' / 'last.ckpt').resolve()}'",  # quoted for Hydra
+        f"hydra.run.dir='{new.resolve()}'",
     ]
     assert resume_arguments([f"ckpt_path={old}"])[0] == "rep=sixd"
     assert resume_arguments(["rep=a"]) == ["rep=a"]
@@ -92,9 +99,6 @@ def test_a_finished_run_is_not_resumed(make_cfg):
 
 # --- issue 13: a refused resume changes nothing; a completed run only trains longer -----------
 
-ONE_EPOCH = ["data=tiny", "trainer.max_epochs=1", "trainer.enable_progress_bar=false",
-             "logger=csv", *SMALL_NET]  # fmt: skip
-
 
 def _hashes(run: Path) -> dict[str, str]:
     """sha256 of every file below `run`, by relative path."""
@@ -105,19 +109,18 @@ def _hashes(run: Path) -> dict[str, str]:
     }
 
 
-def _completed_run(cwd: Path, name: str) -> Path:
-    """A finished one-epoch run, made by the CLI in `<cwd>/outputs/runs/<name>`."""
-    run = cwd / "outputs" / "runs" / name
-    job = start_cli([*ONE_EPOCH, f"hydra.run.dir={run}"], cwd)
-    assert job.wait(timeout=300) == 0, job.stderr.read()
+def _completed_run(finished_run: Path, cwd: Path, name: str) -> Path:
+    """A finished one-epoch run made by the CLI (the session's, copied) in
+    `<cwd>/outputs/runs/<name>`."""
+    run = copy_run(finished_run, cwd / "outputs" / "runs" / name)
     assert json.loads((run / "status.json").read_text())["status"] == "COMPLETED"
     return run
 
 
 @pytest.fixture(scope="module")
-def completed(tmp_path_factory) -> Path:
+def completed(tmp_path_factory, finished_run) -> Path:
     cwd = tmp_path_factory.mktemp("completed")
-    _completed_run(cwd, "2026-01-02_00-00-00-000000")
+    _completed_run(finished_run, cwd, "2026-01-02_00-00-00-000000")
     return cwd
 
 
@@ -161,13 +164,13 @@ def test_ckpt_path_last_skips_completed_runs_and_names_its_pick(tmp_path, capsys
     newer = _fake_run(tmp_path, "2026-01-02_00-00-00-000000", ["rep=quat"])
     (newer / "metrics.json").write_text(json.dumps({"epochs": 3}))
     args = resume_arguments(["ckpt_path=last"], runs_root=tmp_path)
-    assert args[-1] == f"hydra.run.dir={older.resolve()}" and args[0] == "rep=sixd"
+    assert args[-1] == f"hydra.run.dir='{older.resolve()}'" and args[0] == "rep=sixd"
     said = capsys.readouterr().err
     assert f"resuming {older}" in said and "skipped 1 newer COMPLETED" in said
 
 
-def test_a_completed_run_trains_longer_and_keeps_its_earlier_records(tmp_path):
-    run = _completed_run(tmp_path, "2026-01-03_00-00-00-000000")
+def test_a_completed_run_trains_longer_and_keeps_its_earlier_records(tmp_path, finished_run):
+    run = _completed_run(finished_run, tmp_path, "2026-01-03_00-00-00-000000")
     records = ["metrics.json", "status.json", "timing.json", "test_errors.json",
                ".hydra/config.yaml", ".hydra/overrides.yaml", ".hydra/hydra.yaml"]  # fmt: skip
     before = {name: (run / name).read_bytes() for name in records}

@@ -206,6 +206,33 @@ def test_mav_nan_quaternion_names_the_line(demo_data, tmp_path):
     refuses(lambda: mav(root, cache), tmp_path, cache, ValueError, pattern)
 
 
+def test_mav_a_repeated_time_stamp_with_another_pose_names_both_lines(demo_data, tmp_path):
+    """The first pose used to win silently; which one is right is unknown."""
+    root, cache = copy_demo(demo_data, "mav", tmp_path), tmp_path / "cache"
+    path = root / "pose" / "data.csv"
+    lines = path.read_text().splitlines()
+    stamp, *position, qw, qx, qy, qz = lines[6].split(",")
+    conflicting = ",".join([stamp, *position, qx, qw, qz, qy])  # another rotation
+    path.write_text("\n".join([*lines, conflicting]) + "\n")
+    pattern = rf"pose/data\.csv:{len(lines) + 1}: time stamp {stamp.strip()} repeats line 7"
+    refuses(lambda: mav(root, cache), tmp_path, cache, ValueError, pattern)
+
+
+def test_mav_a_repeated_identical_pose_is_read_once(demo_data, tmp_path):
+    from rotlearn.data import read_pose_file
+
+    root = copy_demo(demo_data, "mav", tmp_path)
+    path = root / "pose" / "data.csv"
+    stamps, quats = read_pose_file(path)
+    lines = path.read_text().splitlines()
+    stamp, *rest = lines[6].split(",")
+    flipped = [f"{-float(v)}" for v in rest[-4:]]  # -q: the same rotation
+    path.write_text("\n".join([*lines, lines[6], ",".join([stamp, *rest[:-4], *flipped])]) + "\n")
+    again, quats_again = read_pose_file(path)
+    np.testing.assert_array_equal(again, stamps)
+    np.testing.assert_array_equal(quats_again, quats)
+
+
 @pytest.mark.parametrize(
     ("line", "pattern"),
     [

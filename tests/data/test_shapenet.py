@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import os
 from types import SimpleNamespace
 
 import numpy as np
@@ -11,7 +13,7 @@ import torch
 from rotlearn.cli.train import train
 from rotlearn.data import ShapeNetDataModule, read_point_file, sample_meshes
 from rotlearn.geometry import quat_to_rotmat
-from tests.conftest import SMALL_NET
+from tests.conftest import SMALL_NET, tree_hashes, within
 
 TRAIN, VAL, TEST = 0, 1, 2
 
@@ -73,6 +75,36 @@ def test_meshes_are_sampled_once_and_cached(demo_data, tmp_path):
     paths = sorted(demo_data["mesh"].glob("*/*/models/model_normalized.obj"))[:2]
     other = sample_meshes(paths, 32, tmp_path / "other", seed=1)
     assert other.shape == (2, 32, 3) and np.isfinite(other).all()
+
+
+def test_a_crafted_mesh_cache_is_rebuilt_not_trusted_and_never_hangs(demo_data, tmp_path):
+    """A dataset may ship its cache folder: a manifest that is a named pipe (it used to hang the
+    unbounded read), or a matching manifest beside an array of another shape or with NaN, is
+    sampled again; the meshes are not touched."""
+    paths = sorted(demo_data["mesh"].glob("*/*/models/model_normalized.obj"))[:2]
+    meshes = tree_hashes(demo_data["mesh"])
+    genuine = sample_meshes(paths, 16, tmp_path / "genuine")
+    cache = tmp_path / "cache"
+    manifest = {"files": [str(p) for p in paths], "num_points": 16, "seed": 0}
+    for craft in (
+        lambda: (
+            cache.with_suffix(".json").unlink(),
+            os.mkfifo(cache.with_suffix(".json")),
+            np.save(cache.with_suffix(".npy"), genuine),
+        ),
+        lambda: np.save(cache.with_suffix(".npy"), np.zeros((2, 8, 3), np.float32)),
+        lambda: np.save(cache.with_suffix(".npy"), np.full((2, 16, 3), np.nan, np.float32)),
+        lambda: np.save(cache.with_suffix(".npy"), genuine.astype(np.float64)),
+    ):
+        for suffix in (".json", ".npy"):
+            cache.with_suffix(suffix).unlink(missing_ok=True)
+        cache.with_suffix(".json").write_text(json.dumps(manifest))
+        craft()
+        with within(60):
+            clouds = sample_meshes(paths, 16, cache)
+        np.testing.assert_array_equal(clouds, genuine)
+        assert np.load(cache.with_suffix(".npy")).dtype == np.float32
+    assert tree_hashes(demo_data["mesh"]) == meshes
 
 
 def test_a_missing_dataset_names_the_root(tmp_path):

@@ -10,6 +10,8 @@ status.json are PENDING).
 from __future__ import annotations
 
 import contextlib
+import errno
+import json
 import logging
 from collections import Counter
 from pathlib import Path
@@ -20,12 +22,13 @@ from hydra.core.utils import JobReturn, JobStatus
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from rotlearn.io import read_json, write_json_atomic
+from rotlearn.io import WriteError, read_json, rewrite_in_place, write_json_atomic
 from rotlearn.logs import logger_at_least
 
 __all__ = [
     "JobStatusCallback",
     "ReportCallback",
+    "end_failed_job",
     "planned_jobs",
     "record_job",
     "summarise_jobs",
@@ -117,6 +120,17 @@ def planned_jobs(config: DictConfig) -> list[dict[str, Any]] | None:
     ]
 
 
+def _write_status(path: Path, record: dict[str, Any]) -> None:
+    """status.json, durably; on a full disk (or quota) rewritten in place instead, so that a run
+    that failed for want of space still says so (`rotlearn.io.rewrite_in_place`)."""
+    try:
+        write_json_atomic(path, record)
+    except WriteError as exc:
+        if exc.errno not in (errno.ENOSPC, errno.EDQUOT) or not path.is_file():
+            raise
+        rewrite_in_place(path, (json.dumps(record, indent=2, sort_keys=True) + "\n").encode())
+
+
 def record_job(job_dir: str | Path, status: str, **fields: Any) -> dict[str, Any]:
     """Write `<job_dir>/status.json` (status, the job's number and overrides when run by Hydra,
     `error`, and `fields`) and, in a multirun, rebuild the sweep's jobs.json. Returns the record."""
@@ -129,7 +143,7 @@ def record_job(job_dir: str | Path, status: str, **fields: Any) -> dict[str, Any
         "error": None,
         **fields,
     }
-    write_json_atomic(Path(job_dir) / "status.json", record)
+    _write_status(Path(job_dir) / "status.json", record)
     mode = OmegaConf.select(hydra_cfg, "mode") if hydra_cfg is not None else None
     if getattr(mode, "name", None) == "MULTIRUN":
         summary = summarise_jobs(hydra_cfg.sweep.dir)
@@ -138,6 +152,32 @@ def record_job(job_dir: str | Path, status: str, **fields: Any) -> dict[str, Any
             *(summary[k] for k in ("completed", "failed", "interrupted", "running", "pending")),
         )
     return record
+
+
+def end_failed_job(run_dir: str | Path, exc: BaseException, prog: str) -> None:
+    """End a single run that failed on its input or its machine (a config value, a file, a full
+    disk): its status.json says FAILED with the cause, and the command ends with one line naming
+    it (SystemExit, exit code 1) instead of a traceback. Returns without doing anything in a
+    multirun (Hydra records the job FAILED and goes on with the next), on a rank other than 0,
+    and with HYDRA_FULL_ERROR=1 (the traceback is kept)."""
+    import os
+
+    from hydra.types import RunMode
+
+    from rotlearn.cli.rundir import is_child_rank
+
+    hydra_cfg = HydraConfig.get() if HydraConfig.initialized() else None
+    multirun = hydra_cfg is not None and hydra_cfg.mode == RunMode.MULTIRUN
+    if multirun or os.environ.get("HYDRA_FULL_ERROR") == "1" or is_child_rank():
+        return
+    lines = str(exc).strip().splitlines()
+    message = lines[0] if lines else type(exc).__name__
+    try:
+        record_job(run_dir, "FAILED", error=f"{type(exc).__name__}: {message}")
+    except OSError as write_error:
+        message += f" (status.json not written: {write_error})"
+    log.error("%s", message)
+    raise SystemExit(f"{prog}: {message} (run {run_dir}: FAILED)") from None
 
 
 class JobStatusCallback(Callback):

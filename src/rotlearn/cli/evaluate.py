@@ -30,9 +30,11 @@ __all__ = ["evaluate", "evaluation_config", "main", "usage"]
 log = logging.getLogger("rotlearn")
 
 DEFAULT_OOD = config_dir() / "callbacks" / "ood.yaml"
-# What the evaluation keeps of the trained run's trainer config (how it computes, not where it
-# writes: outputs go to the evaluation's own directory).
-SAVED_TRAINER_KEYS = ("_target_", "accelerator", "devices", "precision", "deterministic")
+# What the evaluation keeps of the trained run's trainer config: how it computes, not where it
+# writes (outputs go to the evaluation's own directory) nor on what (the devices are the
+# evaluation's command line's: trainer.accelerator, trainer.devices; default auto and one).
+SAVED_TRAINER_KEYS = ("_target_", "precision", "deterministic")
+DEFAULT_DEVICES = {"accelerator": "auto", "devices": 1}
 
 
 def _set(node: DictConfig | None) -> dict[str, Any]:
@@ -44,7 +46,8 @@ def _set(node: DictConfig | None) -> dict[str, Any]:
 def evaluation_config(cfg: DictConfig, saved: SavedRun) -> DictConfig:
     """The saved run config (already checked: `rotlearn.checkpoint.load_run`) with the
     evaluation's overrides, OOD callback and output paths. Of the saved trainer config only the
-    keys in `SAVED_TRAINER_KEYS` are kept; the rest comes from the evaluation's own command line."""
+    keys in `SAVED_TRAINER_KEYS` are kept; the devices and the rest come from the evaluation's
+    own command line (a checkpoint never chooses how many processes are launched)."""
     if saved.task != "rotation":
         raise ConfigError("ckpt", f"{cfg.ckpt}: a {saved.task} checkpoint, not a rotation model")
     run = OmegaConf.create(OmegaConf.to_container(saved.config))
@@ -61,7 +64,10 @@ def evaluation_config(cfg: DictConfig, saved: SavedRun) -> DictConfig:
     run.data.pop("cache_dir", None)  # caches go where this command line says, or under data.root
     run.data = OmegaConf.merge(run.data, _set(cfg.data))
     trainer = {k: v for k, v in run.trainer.items() if k in SAVED_TRAINER_KEYS}
-    run.trainer = OmegaConf.merge(trainer, _set(cfg.trainer), {"default_root_dir": out})
+    trainer["_target_"] = "lightning.pytorch.Trainer"
+    run.trainer = OmegaConf.merge(
+        trainer, DEFAULT_DEVICES, _set(cfg.trainer), {"default_root_dir": out}
+    )
     run.logger = {
         "tensorboard": {
             "_target_": "rotlearn.lit.TensorBoardRunLogger",
@@ -92,6 +98,10 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     saved = _saved_run(cfg)
     ckpt = saved.path
     run = evaluation_config(cfg, saved)
+    try:  # the weights against the model the config describes, built on the meta device first
+        saved.check_fits("model", prefix="")
+    except ValueError as exc:
+        raise ConfigError("ckpt", str(exc)) from None
     model, datamodule, trainer = build(run)
     model.load_state_dict(saved.state_dict)
     model.belief_temperature = saved.temperature  # the test metrics and OOD scores use it
@@ -106,9 +116,12 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
 
 @hydra.main(version_base="1.3", config_path=str(config_dir()), config_name="eval")
 def _hydra_main(cfg: DictConfig) -> float:
+    from rotlearn.cli.callbacks import end_failed_job
+
     try:
         metrics = evaluate(cfg)
-    except ConfigError as exc:
+    except (OSError, ValueError, ArithmeticError) as exc:  # the input's or the machine's fault
+        end_failed_job(cfg.paths.output_dir, exc, "rotlearn-eval")  # a bug keeps its traceback
         log.error("rotlearn-eval: %s", exc)
         raise
     log.info(
@@ -191,7 +204,8 @@ def _first_look(cfg: DictConfig) -> None:
 def _checked(argv: list[str]) -> list[str]:
     """Refuse, before Hydra makes the evaluation's directory, a command line that cannot work
     (SystemExit naming the key; nothing is written): no ckpt, a ckpt that is not a run (a sweep
-    directory: its jobs listed), and, for one evaluation, a run config that does not validate
+    directory: its jobs listed), an evaluation or sweep directory that exists and is not empty,
+    and, for one evaluation, a run config that does not validate
     with the evaluation's settings (e.g. OOD callbacks on data that is not image pairs).
     Returns the arguments for Hydra (`+` before a data key that eval.yaml does not list)."""
     from rotlearn.config import command_line, compose, validate
@@ -205,6 +219,10 @@ def _checked(argv: list[str]) -> list[str]:
         checkpoint_file(values[-1])
     except FileNotFoundError as exc:
         raise SystemExit(f"rotlearn-eval: ckpt: {exc} (nothing was written)") from None
+    from rotlearn.cli.rundir import is_child_rank, refuse_an_existing_output_dir
+
+    if not is_child_rank():  # another rank repeats rank 0's command line, already checked
+        refuse_an_existing_output_dir(argv, "eval", "rotlearn-eval")
     if "-m" in argv or "--multirun" in argv:  # each job is checked as it runs
         return argv
     try:
@@ -218,7 +236,8 @@ def _checked(argv: list[str]) -> list[str]:
 
 
 def main() -> float | None:
-    """Entry point of `rotlearn-eval`; None after `--help`."""
+    """Entry point of `rotlearn-eval`; None after `--help`. A new evaluation never writes into an
+    existing, non-empty directory (`_checked`)."""
     argv = sys.argv[1:]
     if any(a in ("-h", "--help") for a in argv):
         print(usage(), end="")

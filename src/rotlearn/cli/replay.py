@@ -4,22 +4,40 @@
 from `<run>/.hydra/overrides.yaml`. That file is data someone may have sent: an override such as
 `net._target_=torch.load`, `+net.f._target_=builtins.open` or `hydra.callbacks.x._target_=...`
 would run code when Hydra composes and instantiates the run. `saved_overrides` reads the file as
-plain YAML (nothing resolved), refuses Hydra's own keys and sweeps (a run's saved overrides hold
-neither), composes the run's config from them, and checks the whole composed config with
-`rotlearn.trust.check_config` BEFORE Hydra starts: nothing is written and nothing is built from a
-refused file.
+plain YAML, bounded (a regular file inside the run, at most 256 KiB, no aliases: `rotlearn.io`),
+at most `MAX_OVERRIDES` strings, and refuses Hydra's own keys and sweeps (a run's saved overrides
+hold neither). `replayed_config` composes the config that will run from them and the user's new
+overrides, exactly as Hydra will, and checks it whole with `rotlearn.trust.trusted_config` BEFORE
+Hydra starts: nothing is written and nothing is built from a refused file. `quoted` makes a path
+(the run directory, the checkpoint) a safe override value whatever characters it holds.
 """
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
-import yaml
-
+from rotlearn.io import UnreadableFileError, read_yaml
 from rotlearn.paths import config_dir
 from rotlearn.trust import UntrustedConfigError, trusted_config
 
-__all__ = ["saved_overrides"]
+__all__ = ["quoted", "replayed_config", "saved_overrides"]
+
+MAX_OVERRIDES = 1000  # one run's command line; a file with more is not a run's
+MAX_OVERRIDE_CHARS = 8192  # one override's text
+
+
+def quoted(value: str) -> str:
+    """`value` as a quoted Hydra override value that Hydra and OmegaConf read back as exactly
+    `value`, whatever characters it holds (any a file name may have: spaces, quotes, `=`, `,`,
+    non-ASCII letters, backslashes, `${`): `key=` + quoted(path) is a safe override.
+
+    OmegaConf reads `\\${` as a literal `${` (and doubles backslashes before one); Hydra's
+    quoted strings then escape each quote and the backslashes before a quote or the end.
+    """
+    text = re.sub(r"(\\*)\$\{", lambda m: m.group(1) * 2 + "\\${", value)
+    text = re.sub(r"(\\*)(?='|$)", lambda m: m.group(1) * 2, text)
+    return "'" + text.replace("'", "\\'") + "'"
 
 
 def _parse(overrides: list[str], source: Path) -> None:
@@ -43,45 +61,65 @@ def _parse(overrides: list[str], source: Path) -> None:
             )
 
 
-def saved_overrides(run_dir: str | Path, config_name: str = "train") -> list[str]:
-    """The overrides a run was started with, checked as untrusted data.
+def saved_overrides(run_dir: str | Path) -> list[str]:
+    """The overrides a run was started with, read as untrusted data (not yet composed: see
+    `replayed_config`).
 
     Args:
         run_dir: the run directory (holding `.hydra/overrides.yaml`).
-        config_name: the primary config the run was composed from.
 
     Returns:
         The saved overrides, in order, as strings.
 
     Raises:
         FileNotFoundError: the run has no `.hydra/overrides.yaml`.
-        UntrustedConfigError: naming the file and the key path or override at fault: not a list
-            of strings, a Hydra key or a sweep, an override that does not compose, or a composed
-            config with a `_target_` off the allowlist or an interpolation it brought in.
+        UntrustedConfigError: naming the file and the override at fault: not a regular file
+            inside the run, too large, not YAML (or with aliases), not a list of at most
+            `MAX_OVERRIDES` strings, a Hydra key or a sweep.
+    """
+    source = Path(run_dir) / ".hydra" / "overrides.yaml"
+    try:
+        overrides = read_yaml(source, "overrides file", root=run_dir) or []
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{run_dir} is not a rotlearn run (no {source})") from None
+    except UnreadableFileError as exc:
+        raise UntrustedConfigError(str(exc)) from None
+    if not isinstance(overrides, list) or not all(isinstance(o, str) for o in overrides):
+        raise UntrustedConfigError(f"{source}: expected a list of override strings")
+    if len(overrides) > MAX_OVERRIDES or any(len(o) > MAX_OVERRIDE_CHARS for o in overrides):
+        raise UntrustedConfigError(
+            f"{source}: more than {MAX_OVERRIDES} overrides, or one longer than "
+            f"{MAX_OVERRIDE_CHARS} characters: not one run's command line"
+        )
+    _parse(overrides, source)
+    return overrides
+
+
+def replayed_config(args: list[str], run_dir: str | Path, config_name: str = "train"):
+    """The config Hydra will run for the command line `args` (the run's saved overrides, then
+    the user's) in `run_dir`, composed exactly as Hydra composes it (Hydra's own keys aside;
+    `paths.output_dir` resolved to the run directory, as Hydra resolves it, unless an override
+    sets it), and checked with `rotlearn.trust.trusted_config` before anything is built from it.
+
+    Raises:
+        UntrustedConfigError: naming the run's overrides file and the key path at fault: the
+            overrides do not compose, or the composed config names a `_target_` off the allowlist
+            or holds an interpolation an override brought in.
     """
     from hydra import compose, initialize_config_dir
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
     import rotlearn.cli.resolvers  # noqa: F401  (the configs' own resolvers)
+    from rotlearn.cli.rundir import place_output_dir
 
     source = Path(run_dir) / ".hydra" / "overrides.yaml"
-    if not source.is_file():
-        raise FileNotFoundError(f"{run_dir} is not a rotlearn run (no {source})")
-    try:
-        overrides = yaml.safe_load(source.read_text()) or []
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        raise UntrustedConfigError(f"{source}: not YAML: {exc}") from None
-    if not isinstance(overrides, list) or not all(isinstance(o, str) for o in overrides):
-        raise UntrustedConfigError(f"{source}: expected a list of override strings")
-    _parse(overrides, source)
+    overrides = [a for a in args if not a.lstrip("+~").startswith(("hydra.", "hydra/"))]
     try:
         with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
-            cfg = compose(
-                config_name=config_name,
-                overrides=[*overrides, f"paths.output_dir={Path(run_dir).resolve()}"],
-            )
+            cfg = compose(config_name=config_name, overrides=overrides)
     except (HydraException, OmegaConfBaseException) as exc:
         raise UntrustedConfigError(f"{source}: the overrides do not compose: {exc}") from None
-    trusted_config(cfg, source)
-    return overrides
+    place_output_dir(cfg, run_dir)
+    trusted_config(cfg, source)  # resolved and walked; nothing is built from a refused config
+    return cfg

@@ -7,7 +7,9 @@ import math
 import numpy as np
 from omegaconf import OmegaConf
 
-__all__ = ["gpu_precision", "loguniform_trial", "register_resolvers"]
+__all__ = ["MAX_TRIALS", "gpu_precision", "loguniform_trial", "register_resolvers"]
+
+MAX_TRIALS = 1_000_000  # trials of one sweep (a config read from a run cannot ask for more memory)
 
 
 def loguniform_trial(trial: int, trials: int, seed: int, low: float, high: float) -> float:
@@ -20,6 +22,8 @@ def loguniform_trial(trial: int, trials: int, seed: int, low: float, high: float
     """
     trial, trials, seed = int(trial), int(trials), int(seed)
     low, high = float(low), float(high)
+    if trials > MAX_TRIALS:  # the permutation below holds `trials` numbers
+        raise ValueError(f"trials must be at most {MAX_TRIALS}, got {trials}")
     if not 0 <= trial < trials:
         raise ValueError(f"trial must lie in [0, {trials}), got {trial}")
     if not 0 < low < high:

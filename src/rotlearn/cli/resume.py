@@ -1,35 +1,65 @@
 """Continuing a run: `rotlearn-train ckpt_path=<run dir | .ckpt | last>`.
 
-`resume_arguments` rewrites the command line so that Hydra continues the run in its own directory
-with its own saved overrides (checked as untrusted data: `rotlearn.cli.replay`). Every refusal
-happens there, before Hydra writes anything, so a refused resume leaves the run byte-identical.
-`keep_earlier_records` moves an attempt's records into `history/<n>/` before a resume trains, and
-`checkpoint_to_resume` picks the checkpoint `fit` starts from (a requeued SLURM job continues its
-own run).
+`plan_resume` turns the command line into the one Hydra runs: the run's own saved overrides
+(checked as untrusted data: `rotlearn.cli.replay`), the new ones, the checkpoint and the run
+directory (quoted, so a path with any characters resumes). The run directory is untrusted too.
+Every check happens there, before Hydra writes anything, so a refused resume leaves the run
+byte-identical:
+
+- the run tree holds only files and folders, no symlink out of it (`rundir.check_run_tree`);
+- no other process holds the run's lock (`rotlearn.locks`; the holder is named);
+- a COMPLETED run only trains longer;
+- the config that will run, composed exactly as Hydra will compose it, validates, and writes
+  only inside the run (`rundir.check_placement`);
+- the checkpoint is a whole, bounded checkpoint (`rotlearn.checkpoint.load_checkpoint`) whose
+  checkpoint callbacks' states name only the run's own checkpoint files
+  (`rotlearn.lit.boundary.checked_checkpoint_states`).
+
+`keep_earlier_records` moves an attempt's records into `history/<n>/` (whole or not at all)
+before a resume trains, and `checkpoint_to_resume` picks the checkpoint `fit` starts from (a
+requeued SLURM job continues its own run).
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
-import shutil
+import secrets
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 from lightning.fabric.plugins.environments import SLURMEnvironment
 from omegaconf import DictConfig
 
-from rotlearn.checkpoint import load_checkpoint, resolve_checkpoint
-from rotlearn.cli.replay import saved_overrides
-from rotlearn.io import read_json
+from rotlearn.checkpoint import (
+    UnsafeCheckpointError,
+    check_weights,
+    load_checkpoint,
+    resolve_checkpoint,
+)
+from rotlearn.cli.replay import quoted, replayed_config, saved_overrides
+from rotlearn.cli.rundir import check_placement, check_run_tree, user_keys
+from rotlearn.errors import ConfigError
+from rotlearn.io import UnreadableFileError, read_bytes, read_record, write_bytes_atomic
+from rotlearn.locks import RunLockedError, check_free
 from rotlearn.trust import UntrustedConfigError
 
-__all__ = ["checkpoint_to_resume", "keep_earlier_records", "resume_arguments"]
+__all__ = [
+    "Resume",
+    "checkpoint_to_resume",
+    "keep_earlier_records",
+    "plan_resume",
+    "requeued_on_slurm",
+    "resume_arguments",
+    "run_of",
+]
 
 log = logging.getLogger("rotlearn")
 
 
-def _requeued_on_slurm() -> bool:
+def requeued_on_slurm() -> bool:
     """A SLURM job that was requeued (preemption, time-out) and runs again in its own directory:
     it continues that run (Lightning's hpc checkpoint, else last.ckpt) instead of refusing it."""
     restarts = os.environ.get("SLURM_RESTART_COUNT", "0")
@@ -49,7 +79,7 @@ def checkpoint_to_resume(cfg: DictConfig, run_dir: Path) -> str | None:
         log.info("resuming from %s", resume)
         return resume
     if (run_dir / "checkpoints").exists():
-        if _requeued_on_slurm():
+        if requeued_on_slurm():
             if list(run_dir.glob("hpc_ckpt_*.ckpt")):
                 return None  # Lightning restores its SIGUSR1 (hpc) checkpoint itself
             last = run_dir / "checkpoints" / "last.ckpt"
@@ -71,43 +101,83 @@ def _refuse(message: str) -> SystemExit:
     return SystemExit(f"rotlearn-train: {message}")
 
 
+def _record(run_dir: Path, name: str) -> dict:
+    """A record of the run as a dict ({} where it has none), read bounded.
+
+    Raises:
+        UnreadableFileError: naming the file: not a regular file, too large, not a JSON object.
+    """
+    try:
+        data = read_record(run_dir / name, root=run_dir)
+    except FileNotFoundError:
+        return {}
+    if not isinstance(data, dict):
+        raise UnreadableFileError(
+            f"{run_dir / name}: not a JSON object (a {type(data).__name__}); not a run's record"
+        )
+    return data
+
+
 def _is_completed(run_dir: Path) -> bool:
     """A run that finished (metrics.json written, or status.json says COMPLETED)."""
-    status = read_json(run_dir / "status.json") or {}
-    return (run_dir / "metrics.json").exists() or status.get("status") == "COMPLETED"
+    return os.path.lexists(run_dir / "metrics.json") or (
+        _record(run_dir, "status.json").get("status") == "COMPLETED"
+    )
 
 
 def _epochs_finished(run_dir: Path) -> int:
     """How many epochs a run trained: metrics.json's `epochs`, else last.ckpt's epoch + 1."""
-    metrics = read_json(run_dir / "metrics.json") or {}
-    if isinstance(metrics.get("epochs"), int):
-        return metrics["epochs"]
+    epochs = _record(run_dir, "metrics.json").get("epochs")
+    if isinstance(epochs, int) and not isinstance(epochs, bool):
+        return epochs
     try:
         return int(load_checkpoint(run_dir)["epoch"]) + 1
-    except (OSError, RuntimeError, KeyError, ValueError):
+    except (OSError, RuntimeError, KeyError, ValueError, TypeError):
         return 0
 
 
+def _skip_reason(run: Path) -> str | None:
+    """Why `ckpt_path=last` passes over a run (None: it can be resumed)."""
+    try:
+        if _is_completed(run):
+            return "COMPLETED"
+        check_free(run)
+        load_checkpoint(run)
+    except RunLockedError as exc:
+        return str(exc)
+    except (OSError, ValueError) as exc:
+        return f"cannot be resumed: {exc}"
+    return None
+
+
 def _newest_resumable_run(root: Path) -> Path:
-    """The newest run under `root` with a last.ckpt that is not COMPLETED (named on stderr)."""
+    """The newest run under `root` with a last.ckpt that loads and that is neither COMPLETED nor
+    in use by another process; the pick and the runs skipped on the way are named on stderr."""
     runs = sorted(p.parent.parent for p in root.glob("*/checkpoints/last.ckpt"))
-    completed = [run for run in runs if _is_completed(run)]
-    resumable = [run for run in runs if run not in completed]
-    if not resumable:
-        why = (
-            f"; {len(completed)} have one but are COMPLETED (newest: {completed[-1]})"
-            if completed
-            else ""
-        )
-        raise _refuse(
-            f"ckpt_path=last, but no run under {root} can be resumed (a last.ckpt and not "
-            f"COMPLETED){why}. A completed run only trains longer: "
-            "ckpt_path=<run dir> trainer.max_epochs=<more epochs>"
-        )
-    skipped = [run for run in completed if run.name > resumable[-1].name]
-    note = f"; skipped {len(skipped)} newer COMPLETED run(s)" if skipped else ""
-    print(f"rotlearn-train: ckpt_path=last: resuming {resumable[-1]}{note}", file=sys.stderr)
-    return resumable[-1]  # run directories are named by their start time
+    skipped: list[tuple[Path, str]] = []
+    for run in reversed(runs):  # run directories are named by their start time
+        reason = _skip_reason(run)
+        if reason is None:
+            completed = sum(r == "COMPLETED" for _, r in skipped)
+            notes = [f"skipped {completed} newer COMPLETED run(s)"] if completed else []
+            notes += [f"skipped {p}: {r}" for p, r in skipped if r != "COMPLETED"]
+            note = f"; {'; '.join(notes)}" if notes else ""
+            print(f"rotlearn-train: ckpt_path=last: resuming {run}{note}", file=sys.stderr)
+            return run
+        skipped.append((run, reason))
+    completed = [p for p, r in skipped if r == "COMPLETED"]
+    others = [f"{p}: {r}" for p, r in skipped if r != "COMPLETED"]
+    why = (
+        f"; {len(completed)} have one but are COMPLETED (newest: {completed[0]})"
+        if completed
+        else ""
+    )
+    why += "".join(f"; skipped {o}" for o in others)
+    raise _refuse(
+        f"ckpt_path=last, but no run under {root} can be resumed (a last.ckpt that loads, not "
+        f"COMPLETED, not in use){why}. A completed run only trains longer: "
+        "ckpt_path=<run dir> trainer.max_epochs=<more epochs>"
+    )
 
 
 def _checkpoint_of(value: str, runs_root: Path) -> Path:
@@ -116,14 +186,15 @@ def _checkpoint_of(value: str, runs_root: Path) -> Path:
         return resolve_checkpoint(_newest_resumable_run(runs_root))
     try:
         return resolve_checkpoint(value)
-    except FileNotFoundError as exc:
+    except (FileNotFoundError, UnsafeCheckpointError) as exc:
         raise _refuse(f"ckpt_path: {exc}") from None
 
 
 def _saved_overrides(run_dir: Path) -> list[str]:
     """The run's own command-line overrides, read from `<run_dir>/.hydra/overrides.yaml`
     (without its ckpt_path): the settings a resume continues with. The run directory is untrusted
-    data: they pass the allowlist gate (`rotlearn.cli.replay.saved_overrides`) first."""
+    data: they are read bounded and parsed (`rotlearn.cli.replay.saved_overrides`), and composed
+    and checked against the allowlist with the new overrides (`replay.replayed_config`)."""
     try:
         return [o for o in saved_overrides(run_dir) if not o.startswith("ckpt_path=")]
     except (FileNotFoundError, UntrustedConfigError) as exc:
@@ -154,57 +225,167 @@ def _refuse_rewriting_a_completed_run(run_dir: Path, previous: list[str], new: l
         raise _refuse(f"{head}{given}; {longer}, above {done}")
 
 
-def _refuse_an_invalid_config(run_dir: Path, args: list[str]) -> None:
-    """Compose and validate the resumed run's config before Hydra writes anything into it."""
-    from rotlearn.config import command_line
+def _model_checkpoints(cfg: DictConfig) -> list:
+    """The run's checkpoint callbacks, built from the (validated) config: they build nothing
+    on disk, and know the state key and folder of their saved state."""
+    from hydra.utils import instantiate
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    nodes = cfg.get("callbacks") or {}
+    built = [instantiate(node) for node in nodes.values() if node and "ModelCheckpoint" in str(
+        node.get("_target_", ""))]  # fmt: skip
+    return [cb for cb in built if isinstance(cb, ModelCheckpoint)]
+
+
+def _check_the_weights(cfg: DictConfig, checkpoint: dict, ckpt: Path) -> None:
+    """The checkpoint's weights fit the model the config builds (built on the meta device:
+    nothing allocated): names, shapes, floating point, finite (`rotlearn.checkpoint.check_weights`).
+
+    Raises:
+        UnsafeCheckpointError: naming the checkpoint and the weights at fault.
+    """
+    import torch
+    from hydra.utils import instantiate
+
+    state_dict = checkpoint.get("state_dict")
+    if not isinstance(state_dict, dict) or not all(
+        isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in state_dict.items()
+    ):
+        raise UnsafeCheckpointError(f"{ckpt}: state_dict must map names to tensors")
+    with torch.device("meta"):
+        model = instantiate(cfg.model)
+    try:
+        check_weights(model.state_dict(), state_dict, str(ckpt))
+    except ValueError as exc:
+        raise UnsafeCheckpointError(str(exc)) from None
+
+
+def _check_the_config_that_runs(run_dir: Path, args: list[str], new: list[str], ckpt: Path) -> None:
+    """Compose the resumed run's config exactly as Hydra will and check it against the allowlist
+    (`replay.replayed_config`), then validate it, check that it writes only inside the run, and
+    that the checkpoint and its callbacks' states are sound."""
+    from rotlearn.config import validate
+    from rotlearn.lit.boundary import checked_checkpoint_states
 
     try:
-        command_line(args, str(run_dir))
-    except Exception as exc:  # any composition or validation error: nothing was written
+        cfg = replayed_config(args, run_dir)
+    except UntrustedConfigError as exc:
+        raise _refuse(f"ckpt_path: {exc}") from None
+    try:
+        validate(cfg)
+        check_placement(cfg, run_dir, trusted=user_keys(new))
+        checkpoint = load_checkpoint(ckpt)
+        checked_checkpoint_states(checkpoint, _model_checkpoints(cfg), run_dir, ckpt)
+        _check_the_weights(cfg, checkpoint, ckpt)
+    except (ConfigError, UnsafeCheckpointError, UnreadableFileError) as exc:
         raise _refuse(f"refusing to resume {run_dir}: {exc}") from None
+    except Exception as exc:  # a config that does not compose or build: nothing was written
+        reason = str(exc).strip().splitlines()
+        raise _refuse(
+            f"refusing to resume {run_dir}: {reason[0] if reason else type(exc).__name__}"
+        ) from None
 
 
-def resume_arguments(argv: list[str], runs_root: Path = Path("outputs/runs")) -> list[str]:
-    """Rewrite a command line with `ckpt_path=...` so that Hydra continues that run in its own
-    directory with its own overrides: `[saved overrides, new overrides, ckpt_path=<file>,
-    hydra.run.dir=<run dir>]`. Other command lines are returned unchanged.
+@dataclass(frozen=True)
+class Resume:
+    """A resume that passed every check: `args` is the command line Hydra runs (the saved
+    overrides, the new ones, `ckpt_path=<checkpoint>`, `hydra.run.dir=<run_dir>`)."""
 
-    Every refusal happens here, before Hydra writes into the run directory, so a refused resume
-    leaves it byte-identical (SystemExit naming the run): -m, no such checkpoint, not a rotlearn
-    run, a COMPLETED run resumed with other settings or without more `trainer.max_epochs`, a
-    config that does not compose or validate. `ckpt_path=last` is the newest run under
-    `runs_root` that has a last.ckpt and is not COMPLETED (named on stderr)."""
+    args: list[str]
+    run_dir: Path
+    checkpoint: Path
+
+
+def plan_resume(argv: list[str], runs_root: Path = Path("outputs/runs")) -> Resume | None:
+    """The resume a command line with `ckpt_path=...` asks for (None: not a resume).
+
+    Every refusal happens here, before Hydra writes into the run directory (module docstring),
+    as a SystemExit of one line naming the run and the file or key at fault: -m, no such
+    checkpoint, not a rotlearn run, a symlink out of the run or a special file in it, a run in
+    use by another process (naming it), a COMPLETED run resumed with other settings or without
+    more `trainer.max_epochs`, a config that does not compose, validate or stay inside the run,
+    a checkpoint that does not load or whose state names files outside the run.
+    `ckpt_path=last` is the newest run under `runs_root` that has a last.ckpt that loads and is
+    neither COMPLETED nor in use (named on stderr)."""
     values = [a.split("=", 1)[1] for a in argv if a.startswith("ckpt_path=")]
     if not values or values[-1] in ("", "null", "None"):
-        return argv
+        return None
     if "-m" in argv or "--multirun" in argv:
         raise _refuse("ckpt_path resumes one run; it cannot be used with -m")
     ckpt = _checkpoint_of(values[-1], runs_root)
-    run_dir = ckpt.parent.parent if ckpt.parent.name == "checkpoints" else ckpt.parent
-    # the run's saved overrides: read here, in one step, before they are used
-    previous = _saved_overrides(run_dir)
+    run_dir = run_of(ckpt).resolve()
+    if "${" in str(ckpt.resolve()):
+        raise _refuse(
+            f"cannot resume {run_dir}: Hydra reads '${{' in a run directory's path as an "
+            "interpolation, even quoted (its runtime.output_dir); rename the folder without '${'"
+        )
     new = [a for a in argv if not a.startswith("ckpt_path=")]
-    _refuse_rewriting_a_completed_run(run_dir, previous, new)
-    args = [*previous, *new, f"ckpt_path={ckpt.resolve()}", f"hydra.run.dir={run_dir.resolve()}"]
-    _refuse_an_invalid_config(run_dir, args)
-    return args
+    try:
+        check_run_tree(run_dir)
+        check_free(run_dir)
+        previous = _saved_overrides(run_dir)  # read here, in one step, before they are used
+        _refuse_rewriting_a_completed_run(run_dir, previous, new)
+        args = [*previous, *new, f"ckpt_path={quoted(str(ckpt.resolve()))}",
+                f"hydra.run.dir={quoted(str(run_dir))}"]  # fmt: skip
+        _check_the_config_that_runs(run_dir, args, new, ckpt.resolve())
+    except RunLockedError as exc:
+        raise _refuse(f"refusing to resume: {exc}") from None
+    except UnreadableFileError as exc:
+        raise _refuse(f"refusing to resume {run_dir}: {exc}") from None
+    except SystemExit:
+        _refuse_if_in_use(run_dir)  # a resume in another process may be changing the run
+        raise
+    return Resume(args, run_dir, ckpt.resolve())
+
+
+def run_of(ckpt: Path) -> Path:
+    """The run directory of a checkpoint file (`<run>/checkpoints/<name>.ckpt`, or beside it)."""
+    return ckpt.parent.parent if ckpt.parent.name == "checkpoints" else ckpt.parent
+
+
+def _refuse_if_in_use(run_dir: Path) -> None:
+    try:
+        check_free(run_dir)
+    except RunLockedError as exc:
+        raise _refuse(f"refusing to resume: {exc}") from None
+
+
+def resume_arguments(argv: list[str], runs_root: Path = Path("outputs/runs")) -> list[str]:
+    """The command line Hydra runs for `argv`: `plan_resume(argv).args` for a resume,
+    `argv` unchanged otherwise."""
+    plan = plan_resume(argv, runs_root)
+    return argv if plan is None else plan.args
+
+
+def _copy_bounded(source: Path, target: Path) -> None:
+    """Copy a config file of the run (read bounded: a YAML config) durably."""
+    write_bytes_atomic(target, read_bytes(source, "YAML config", root=source.parent.parent))
 
 
 def keep_earlier_records(run_dir: Path) -> Path | None:
-    """Before a resume trains: move the run's records (metrics.json, status.json, timing.json,
-    test_errors.json) and copy its `.hydra/*.yaml` into `<run_dir>/history/<n>/` (n = 1, 2, ...
-    per resume), so the new attempt never overwrites them. Returns that folder (None when the
-    run had no records)."""
-    records = [run_dir / name for name in _RECORDS if (run_dir / name).exists()]
-    configs = sorted((run_dir / ".hydra").glob("*.yaml"))
+    """Before a resume trains (holding the run's lock): move the run's records (metrics.json,
+    status.json, timing.json, test_errors.json) and copy its `.hydra/*.yaml` into
+    `<run_dir>/history/<n>/` (n = 1, 2, ... per resume), so the new attempt never overwrites
+    them. The folder is assembled under a hidden name and renamed into place, so it appears
+    whole or not at all; the records leave the run only after that (an attempt killed midway
+    leaves its hidden `.<n>.*.partial` folder, and every record in place). Returns the folder
+    (None when the run had no records)."""
+    records = [run_dir / name for name in _RECORDS if os.path.lexists(run_dir / name)]
+    configs = sorted(p for p in (run_dir / ".hydra").glob("*.yaml") if p.is_file())
     if not records and not configs:
         return None
     history = run_dir / "history"
-    n = 1 + max((int(p.name) for p in history.glob("*") if p.name.isdigit()), default=0)
+    history.mkdir(exist_ok=True)
+    n = 1 + max((int(p.name) for p in history.iterdir() if p.name.isdigit()), default=0)
     target = history / str(n)
-    (target / ".hydra").mkdir(parents=True)
+    staging = history / f".{n}.{secrets.token_hex(4)}.partial"
+    (staging / ".hydra").mkdir(parents=True)  # the mode the umask allows
     for path in configs:  # copied: the run keeps a config until Hydra writes the new one
-        shutil.copy2(path, target / ".hydra" / path.name)
+        _copy_bounded(path, staging / ".hydra" / path.name)
+    for path in records:  # linked, then unlinked from the run once the folder is in place
+        os.link(path, staging / path.name, follow_symlinks=False)
+    os.rename(staging, target)
     for path in records:
-        os.replace(path, target / path.name)
+        with contextlib.suppress(FileNotFoundError):
+            path.unlink()
     return target

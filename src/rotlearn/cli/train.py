@@ -77,34 +77,55 @@ def usage(root: Path | None = None) -> str:
 
 @hydra.main(version_base="1.3", config_path=str(config_dir()), config_name="train")
 def _hydra_main(cfg: DictConfig) -> float:
+    from rotlearn.cli.callbacks import end_failed_job
     from rotlearn.cli.training import report, train
 
-    metrics = train(cfg)
+    try:
+        metrics = train(cfg)
+    except (OSError, ValueError, ArithmeticError) as exc:  # the input's or the machine's fault
+        end_failed_job(cfg.paths.output_dir, exc, "rotlearn-train")  # a bug keeps its traceback
+        raise
     report(cfg, metrics)
     # what sweepers (Optuna) minimise: the validation median error, never a test number
     return metrics.get("val/err_median", metrics.get("val/loss", math.nan))
 
 
-def _checked(argv: list[str]) -> list[str]:
-    """The command line of a new run (or sweep), validated before Hydra creates its directory
-    (`rotlearn.config.command_line`): a bad option, key or value exits naming it, having written
-    nothing. Returns the arguments for Hydra, with `+` before each component argument that its
-    YAML does not list. Flags such as --cfg and resumes (`rotlearn.cli.resume` validates those)
-    pass unchecked; a command line that does not compose is left for Hydra to report."""
+def _refuse_an_invalid_new_run(argv: list[str]) -> list[str]:
+    """Before Hydra creates anything for a new run (or sweep): validate the command line
+    (`rotlearn.config.command_line`: a bad option, key or value exits naming it; a sweep with
+    the first value of each swept key), refuse a run or sweep directory that already exists and
+    is not empty, then build a single run's datamodule and (on the meta device: nothing
+    allocated) its model, so that a bad value leaves nothing behind (SystemExit naming the key).
+    Returns the arguments for Hydra, with `+` before each component argument that its YAML does
+    not list. A config that does not compose is left for Hydra to report (before it writes
+    anything); flags such as --cfg or --info are Hydra's."""
     from hydra.errors import HydraException
+    from hydra.types import RunMode
     from omegaconf.errors import OmegaConfBaseException
 
     from rotlearn.config import ConfigError, command_line
 
-    flags = [a for a in argv if a.startswith("-") and a not in ("-m", "--multirun")]
-    if flags or any(a.startswith("ckpt_path=") for a in argv):
+    if any(a.startswith("-") and a not in ("-m", "--multirun") for a in argv):
         return argv
     try:
-        return command_line(argv, "new-run")
+        argv = command_line(argv, "new-run")
     except (HydraException, OmegaConfBaseException):
         return argv
     except ConfigError as exc:
         raise SystemExit(f"rotlearn-train: {exc} (nothing was written)") from None
+    from rotlearn.cli.resume import requeued_on_slurm  # loads Lightning: after the fast checks
+    from rotlearn.cli.rundir import refuse_an_existing_output_dir
+
+    cfg = refuse_an_existing_output_dir(argv, "train", "rotlearn-train", requeued_on_slurm())
+    if cfg is None or "-m" in argv or "--multirun" in argv or cfg.hydra.mode == RunMode.MULTIRUN:
+        return argv
+    from rotlearn.cli.training import check_buildable
+
+    try:
+        check_buildable(cfg)
+    except ConfigError as exc:
+        raise SystemExit(f"rotlearn-train: {exc} (nothing was written)") from None
+    return argv
 
 
 def main() -> float | None:
@@ -114,16 +135,55 @@ def main() -> float | None:
     if any(a in HELP_FLAGS for a in argv):
         print(usage(), end="")
         return None
-    argv = _checked(argv)
-    from rotlearn.cli.resume import keep_earlier_records, resume_arguments
+    from rotlearn.cli.rundir import is_child_rank
 
-    args = resume_arguments(argv)
-    if args != argv:  # a resume that will train: its last argument is hydra.run.dir=<run dir>
-        kept = keep_earlier_records(Path(args[-1].split("=", 1)[1]))
-        if kept is not None:
-            print(f"rotlearn-train: the run's earlier records are kept in {kept}", file=sys.stderr)
-    sys.argv[1:] = args
+    if not is_child_rank():  # another rank repeats rank 0's command line, already checked
+        _refuse_a_run_in_use(argv)
+        sys.argv[1:] = _checked_command_line(argv)
     return _hydra_main()
+
+
+def _refuse_a_run_in_use(argv: list[str]) -> None:
+    """A resume of a run that another process trains is refused at once, before the slow
+    imports and checks (`rotlearn.locks`; the full check follows in `plan_resume`)."""
+    from rotlearn.locks import RunLockedError, check_free
+
+    values = [a.split("=", 1)[1] for a in argv if a.startswith("ckpt_path=")]
+    if not values or values[-1] in ("", "null", "None", "last"):
+        return
+    run = Path(values[-1])
+    if not run.is_dir():  # a checkpoint file: <run>/checkpoints/<name>.ckpt, or beside it
+        run = run.parent.parent if run.parent.name == "checkpoints" else run.parent
+    try:
+        check_free(run)
+    except RunLockedError as exc:
+        raise SystemExit(f"rotlearn-train: refusing to resume: {exc}") from None
+
+
+def _checked_command_line(argv: list[str]) -> list[str]:
+    """The command line Hydra runs, after every check that must come before Hydra writes
+    anything: a resume's (`rotlearn.cli.resume.plan_resume`), then its lock on the run and its
+    earlier records moved to history/<n>/; a new run's (`_refuse_an_invalid_new_run`)."""
+    if not any(a.startswith("ckpt_path=") for a in argv):  # before the resume's slow imports
+        return _refuse_an_invalid_new_run(argv)
+    from rotlearn.cli.resume import keep_earlier_records, plan_resume
+    from rotlearn.locks import RunLockedError, hold_run
+
+    plan = plan_resume(argv)
+    if plan is None:
+        return _refuse_an_invalid_new_run(argv)
+    if any(a.startswith("-") for a in argv):  # --cfg, --info: Hydra shows, nothing trains
+        return plan.args
+    try:
+        hold_run(plan.run_dir)  # until this process ends
+    except RunLockedError as exc:
+        raise SystemExit(f"rotlearn-train: refusing to resume: {exc}") from None
+    except ValueError as exc:  # the lock file is a symlink or not a regular file
+        raise SystemExit(f"rotlearn-train: refusing to resume {plan.run_dir}: {exc}") from None
+    kept = keep_earlier_records(plan.run_dir)
+    if kept is not None:
+        print(f"rotlearn-train: the run's earlier records are kept in {kept}", file=sys.stderr)
+    return plan.args
 
 
 if __name__ == "__main__":

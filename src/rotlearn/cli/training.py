@@ -22,22 +22,26 @@ import hydra
 import lightning.pytorch as pl
 import torch
 from hydra.errors import InstantiationException
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from rotlearn import config
 from rotlearn.checkpoint import load_checkpoint
 from rotlearn.cli.callbacks import PLANNED, record_job
 from rotlearn.cli.resume import checkpoint_to_resume
+from rotlearn.cli.rundir import is_child_rank
 from rotlearn.errors import ConfigError
 from rotlearn.io import plain_name, read_json
 from rotlearn.lit import (
+    CheckpointStateGuard,
     EpochLosses,
     InterruptRecorder,
     ModelSummary,
     ProgressBar,
+    RunCheckpointIO,
     RunRecords,
     TemperatureScaling,
 )
+from rotlearn.locks import hold_run, release_run
 from rotlearn.report.identity import hparams_record, run_name, swept_keys
 from rotlearn.report.tensorboard import EVENTS_DIR, event_runs
 
@@ -152,12 +156,34 @@ def _loggers(cfg: DictConfig, config: dict[str, Any], runtime: _Runtime) -> list
     return _instantiate_all(cfg, "logger", **named)
 
 
+def check_buildable(cfg: DictConfig) -> None:
+    """Validate a composed config and build what checks its values in its constructor (the
+    datamodule, and the model on the meta device: no memory is allocated for its weights)
+    without writing anything, so that `rotlearn-train` refuses a bad value before Hydra creates
+    the run directory. Only a `ConfigError` counts: anything else the real build reports.
+
+    Raises:
+        ConfigError: naming the full key.
+    """
+    config.validate(cfg)
+    _instantiate(cfg, "data")
+    with torch.device("meta"):
+        try:
+            _instantiate(cfg, "model")
+        except ConfigError:
+            raise
+        except Exception:
+            pass
+
+
 def build(cfg: DictConfig) -> tuple[pl.LightningModule, pl.LightningDataModule, pl.Trainer]:
     """Model, datamodule and trainer for a composed config: `rotlearn.config.build` (validated,
     seeded; the model with its net, head, loss, optimizer and scheduler, or the auto-encoder)
     and a trainer with the configured callbacks plus the run's record keeping
-    (`InterruptRecorder`, `EpochLosses`, and `RunRecords` last, with the run's HPARAMS record),
-    whatever `callbacks=` says; `calibrate: true` adds the post-hoc temperature fit
+    (`InterruptRecorder`, `EpochLosses`, and `RunRecords` last, with the run's HPARAMS record) and
+    the guard of restored checkpoint states (`CheckpointStateGuard`), whatever `callbacks=` says,
+    and rotlearn's checkpoint I/O (`RunCheckpointIO`: durable writes, bounded loads, deletes only
+    the run's own checkpoints); `calibrate: true` adds the post-hoc temperature fit
     (`rotlearn.lit.calibration.TemperatureScaling`); `trainer.enable_model_summary` gives
     rotlearn's `ModelSummary` (in a sweep, job 0 only: once per sweep) and
     `trainer.enable_progress_bar` its `ProgressBar` (training loss and last validation error). A
@@ -165,7 +191,7 @@ def build(cfg: DictConfig) -> tuple[pl.LightningModule, pl.LightningDataModule, 
     model, datamodule = config.build(cfg)
     runtime = _Runtime()
     callbacks = _instantiate_all(cfg, "callbacks")
-    callbacks += [InterruptRecorder(), EpochLosses()]
+    callbacks += [InterruptRecorder(), EpochLosses(), CheckpointStateGuard(cfg.paths.output_dir)]
     if OmegaConf.select(cfg, "calibrate", default=False):
         callbacks.append(TemperatureScaling(cfg.paths.output_dir))
     summary = OmegaConf.select(cfg, "trainer.enable_model_summary", default=True)
@@ -175,12 +201,15 @@ def build(cfg: DictConfig) -> tuple[pl.LightningModule, pl.LightningDataModule, 
         callbacks.append(ProgressBar())
     hparams = hparams_record(model.run_config, runtime.overrides, runtime.choices)
     callbacks.append(RunRecords(cfg.paths.output_dir, hparams))  # last: it reads the others
+    plugins = OmegaConf.select(cfg, "trainer.plugins") or []
+    plugins = list(plugins) if isinstance(plugins, list | ListConfig) else [plugins]
     trainer = _instantiate(
         cfg,
         "trainer",
         callbacks=callbacks,
         logger=_loggers(cfg, model.run_config, runtime) or False,
         enable_model_summary=False,  # the summary is the callback above
+        plugins=[*plugins, RunCheckpointIO(cfg.paths.output_dir)],  # durable, bounded, inside
     )
     return model, datamodule, trainer
 
@@ -257,18 +286,31 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     timing.json, test_errors.json) are written by `RunRecords` when testing ends. A SIGTERM or
     SIGINT during `fit` or `test` stops the run at a batch boundary: `checkpoints/last.ckpt` stays
     the end of the last finished epoch, `status.json` says INTERRUPTED (signal, that epoch, the
-    resume command) and `RunInterrupted` exits 143 (SIGTERM) or 130 (SIGINT)."""
+    resume command) and `RunInterrupted` exits 143 (SIGTERM) or 130 (SIGINT).
+
+    The process holds the run's lock while it trains (`rotlearn.locks`: a second process that
+    would train the same run is refused, naming this one); other ranks of a distributed run
+    share their rank 0's."""
     run_dir = Path(cfg.paths.output_dir)
-    resume = checkpoint_to_resume(cfg, run_dir)
-    torch.set_float32_matmul_precision(cfg.float32_matmul_precision)
-    model, datamodule, trainer = build(cfg)
-    with _console_lines(), _interruptions_recorded(trainer, run_dir):
-        trainer.fit(model, datamodule=datamodule, ckpt_path=resume, weights_only=True)
-        best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
-        ckpt_path = best if cfg.test_ckpt == "best" and best else None
-        trainer.test(
-            model, datamodule=datamodule, ckpt_path=ckpt_path, verbose=False, weights_only=True
-        )
+    run_dir.mkdir(parents=True, exist_ok=True)
+    child = is_child_rank()
+    if not child:
+        hold_run(run_dir)
+    try:
+        resume = checkpoint_to_resume(cfg, run_dir)
+        torch.set_float32_matmul_precision(cfg.float32_matmul_precision)
+        model, datamodule, trainer = build(cfg)
+        with _console_lines(), _interruptions_recorded(trainer, run_dir):
+            trainer.fit(model, datamodule=datamodule, ckpt_path=resume, weights_only=True)
+            callback = trainer.checkpoint_callback
+            best = callback.best_model_path if callback else ""
+            ckpt_path = best if cfg.test_ckpt == "best" and best else None
+            trainer.test(
+                model, datamodule=datamodule, ckpt_path=ckpt_path, verbose=False, weights_only=True
+            )
+    finally:
+        if not child:
+            release_run(run_dir)
     return next(cb for cb in trainer.callbacks if isinstance(cb, RunRecords)).metrics
 
 

@@ -2,8 +2,10 @@
 
 A frame cache is an `.npy` array (N, C, S, S) uint8 beside a `.json` manifest (the source files,
 their sizes and modification times, and the preprocessing). It is reused, memory-mapped, while
-the manifest matches; otherwise it is rebuilt with a progress bar. It is written to a temporary
-file and renamed into place, so an error or an interrupt never leaves a half-written cache.
+the manifest matches and the array is (N, C, S, S) uint8 for the N frames (a dataset may ship a
+foreign or hostile cache); otherwise it is rebuilt with a progress bar. It is written to a
+temporary file and renamed into place, so an error or an interrupt never leaves a half-written
+cache.
 """
 
 from __future__ import annotations
@@ -15,34 +17,84 @@ from pathlib import Path
 
 import numpy as np
 
+from rotlearn.data.image_header import check_frame
 from rotlearn.extras import import_extra
-from rotlearn.io import atomic_write, write_text_atomic
+from rotlearn.io import atomic_write, read_cached_array, read_manifest, write_text_atomic
 
 __all__ = [
+    "DECODER",
     "frame_cache",
+    "read_frame",
     "read_image",
     "resize_center_crop",
     "resize_square",
 ]
 
 Preprocess = Callable[[np.ndarray], np.ndarray]
+DECODER = 2  # in each cache's manifest: caches of an earlier decoder (16-bit frames read as black)
+# are rebuilt
 
 
-def read_image(path: Path, gray: bool = False) -> np.ndarray:
-    """An image file as uint8: (H, W, 3) RGB, or (H, W) for `gray`.
+def read_frame(path: Path, gray: bool = False) -> tuple[np.ndarray, str]:
+    """An image file as uint8, and how its values were stored.
+
+    The header is checked against the pixel budget before anything is decoded
+    (`rotlearn.data.image_header.check_frame`). The file is decoded at its own bit depth and
+    channel count, then converted: 16-bit values are scaled to 8 bits (v / 257, rounded), except
+    when every value fits in 8 bits (8-bit values stored in 16-bit files, as some exports write
+    them: OpenCV's own 8-bit reading would shift them to black), which are kept; colour to gray
+    with OpenCV's luma weights, gray to three equal channels, an alpha channel dropped.
+
+    Returns:
+        (H, W, 3) RGB, or (H, W) for `gray`, uint8; and "8-bit", "16-bit" or "8-bit values in
+        16 bits".
 
     Raises:
         FileNotFoundError: naming the file, if it is missing.
-        ValueError: naming the file, if it is not a decodable image (empty, truncated, garbage).
+        ValueError: naming the file: over the pixel budget, not an image format rotlearn reads,
+            not decodable (empty, truncated, garbage), or of another sample type (floating
+            point, 32-bit).
     """
     cv2 = import_extra("cv2", "reading and resizing images")
 
-    if not Path(path).is_file():
-        raise FileNotFoundError(f"{path}: no such image file")
-    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR)
+    check_frame(path)
+    image = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
     if image is None or image.size == 0:
         raise ValueError(f"{path}: cannot be read as an image (empty, truncated or corrupt)")
-    return image if gray else cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+    if image.dtype == np.uint16:
+        if int(image.max()) <= 255:
+            image, depth = image.astype(np.uint8), "8-bit values in 16 bits"
+        else:
+            image = ((image.astype(np.uint32) * 255 + 32767) // 65535).astype(np.uint8)
+            depth = "16-bit"
+    elif image.dtype == np.uint8:
+        depth = "8-bit"
+    else:
+        raise ValueError(
+            f"{path}: {image.dtype} samples; rotlearn reads 8- and 16-bit integer images"
+        )
+    channels = 1 if image.ndim == 2 else image.shape[2]
+    if channels not in (1, 3, 4):
+        raise ValueError(f"{path}: {channels} channels; rotlearn reads 1, 3 or 4")
+    if channels == 1:
+        image = image.reshape(image.shape[:2])
+        return (image if gray else cv2.cvtColor(image, cv2.COLOR_GRAY2RGB)), depth
+    codes = {(3, True): cv2.COLOR_BGR2GRAY, (4, True): cv2.COLOR_BGRA2GRAY,
+             (3, False): cv2.COLOR_BGR2RGB, (4, False): cv2.COLOR_BGRA2RGB}  # fmt: skip
+    code = codes[channels, gray]
+    return cv2.cvtColor(image, code), depth
+
+
+def read_image(path: Path, gray: bool = False) -> np.ndarray:
+    """An image file as uint8: (H, W, 3) RGB, or (H, W) for `gray` (`read_frame`, any bit
+    depth and channel count, the pixel budget checked before decoding).
+
+    Raises:
+        FileNotFoundError: naming the file, if it is missing.
+        ValueError: naming the file, if it is too large, not a decodable image (empty,
+            truncated, garbage) or of a sample type rotlearn does not read.
+    """
+    return read_frame(path, gray)[0]
 
 
 def resize_square(image: np.ndarray, size: int) -> np.ndarray:
@@ -118,26 +170,30 @@ def frame_cache(
 
     Raises:
         FileNotFoundError: naming the first missing file (nothing is left in the cache).
-        ValueError: naming the first file that cannot be decoded, or whose size differs from
-            the first frame's (nothing is left in the cache).
+        ValueError: naming the first file that cannot be decoded or is over the pixel budget,
+            or whose size or bit depth differs from the first frame's (nothing is left in the
+            cache).
     """
     array_path, manifest_path = cache.with_suffix(".npy"), cache.with_suffix(".json")
-    manifest = _manifest(files, {**recipe, "gray": gray})
-    if (
-        manifest_path.is_file()
-        and array_path.is_file()
-        and json.loads(manifest_path.read_text()) == manifest
-    ):
-        return np.load(array_path, mmap_mode="r")
+    manifest = _manifest(files, {**recipe, "gray": gray, "decoder": DECODER})
+    if read_manifest(manifest_path) == manifest:
+        cached = read_cached_array(array_path, np.uint8, (len(files), 1 if gray else 3, None, None))
+        if cached is not None and cached.shape[2] == cached.shape[3]:
+            return cached
     from tqdm import tqdm
 
     manifest_path.unlink(missing_ok=True)
     with atomic_write(array_path) as tmp:
-        out = first = None
+        out = first = depth = None
         for i, path in enumerate(tqdm(files, desc=desc, unit="frame", mininterval=1.0)):
-            image = read_image(path, gray)
-            first = image if first is None else first
+            image, kind = read_frame(path, gray)
+            first, depth = (image, kind) if first is None else (first, depth)
             require_same_size(image, first, files, i)
+            if kind != depth:
+                raise ValueError(
+                    f"{path}: frame {i} holds {kind}, but frame 0 ({files[0].name}) holds "
+                    f"{depth}: the frames of one sequence must share one bit depth"
+                )
             frame = preprocess(image)
             frame = frame[None] if gray else frame.transpose(2, 0, 1)
             if out is None:

@@ -87,7 +87,9 @@ def read_pose_file(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
 
     Raises:
         ValueError: naming the file and line of a row whose time stamp is not an integer, whose
-            quaternion is not four finite numbers or is not unit (to 10 %).
+            quaternion is not four finite numbers or is not unit (to 10 %), or whose time stamp
+            repeats another row's with another orientation (a repeat of the same pose is kept
+            once).
     """
     path = Path(path)
     stamps, quats, lines = [], [], []
@@ -112,7 +114,24 @@ def read_pose_file(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     quats = wxyz[:, [1, 2, 3, 0]]
     stamps = np.asarray(stamps, dtype=np.int64)
     order = np.argsort(stamps, kind="stable")
-    return stamps[order], quats[order]
+    stamps, quats, lines, unit = (
+        stamps[order],
+        quats[order],
+        lines[order],
+        quats[order] / norm[order, None],
+    )
+    same = np.flatnonzero(stamps[1:] == stamps[:-1])  # row i + 1 repeats row i's time stamp
+    agree = np.abs(np.sum(unit[same] * unit[same + 1], axis=1)) >= 1.0 - 1e-9  # q and -q agree
+    if not agree.all():
+        i = same[~agree][0]
+        a, b = sorted((int(lines[i]), int(lines[i + 1])))
+        raise ValueError(
+            f"{path}:{b}: time stamp {stamps[i]} repeats line {a} with another orientation; "
+            f"{int((~agree).sum())} such conflict(s) in all (which pose is right is unknown)"
+        )
+    keep = np.ones(len(stamps), dtype=bool)
+    keep[same + 1] = False  # the same pose twice: one is kept
+    return stamps[keep], quats[keep]
 
 
 def match_poses(frame_stamps: np.ndarray, pose_stamps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -37,6 +37,8 @@ from rotlearn.io import (
     cache_file,
     parse_number_rows,
     plain_name,
+    read_cached_array,
+    read_manifest,
     read_number_rows,
     read_text_lines,
     resolve_inside,
@@ -131,14 +133,17 @@ def read_mesh(path: str | os.PathLike):
 def sample_meshes(paths: list[Path], num_points: int, cache: Path, seed: int = 0) -> np.ndarray:
     """Surface samples of meshes, (M, num_points, 3) float32, cached in `cache` (.npy + .json).
 
-    The cache is reused only if its manifest lists the same files, point count and seed. Each
-    mesh is checked by `read_mesh`; an error leaves no cache behind.
+    The cache is reused only if its manifest (read bounded) lists the same files, point count
+    and seed and its array holds (M, num_points, 3) finite float32; anything else in the cache
+    folder (a named pipe, a huge or foreign file) is rebuilt over. Each mesh is checked by
+    `read_mesh`; an error leaves no cache behind.
     """
     manifest = {"files": [str(p) for p in paths], "num_points": num_points, "seed": seed}
     array_path, manifest_path = cache.with_suffix(".npy"), cache.with_suffix(".json")
-    fresh = manifest_path.is_file() and json.loads(manifest_path.read_text()) == manifest
-    if fresh and array_path.is_file():
-        return np.load(array_path)
+    if read_manifest(manifest_path) == manifest:
+        cached = read_cached_array(array_path, np.float32, (len(paths), num_points, 3))
+        if cached is not None and np.isfinite(cached).all():
+            return np.array(cached)
     trimesh = import_extra("trimesh", "reading meshes")
     from tqdm import tqdm
 

@@ -5,6 +5,7 @@ from rotlearn.extras import require
 require("train", "rotlearn.lit")
 
 from rotlearn.lit.autoencoder import AutoEncoderModule, load_autoencoder
+from rotlearn.lit.boundary import CheckpointStateGuard, RunCheckpointIO
 from rotlearn.lit.calibration import TemperatureScaling
 from rotlearn.lit.callbacks import (
     EpochLosses,
@@ -19,12 +20,14 @@ from rotlearn.lit.tensorboard import TensorBoardRunLogger
 
 __all__ = [
     "AutoEncoderModule",
+    "CheckpointStateGuard",
     "EpochLosses",
     "EpochTimer",
     "InterruptRecorder",
     "ModelSummary",
     "ProgressBar",
     "RotationRegressor",
+    "RunCheckpointIO",
     "RunRecords",
     "TemperatureScaling",
     "TensorBoardRunLogger",

@@ -14,9 +14,8 @@ import torch
 from torch import Tensor, nn
 from torchmetrics import MeanMetric
 
-from rotlearn.checkpoint import load_run
+from rotlearn.checkpoint import check_weights, load_run, save_checkpoint
 from rotlearn.errors import ConfigValueError
-from rotlearn.io import atomic_write
 from rotlearn.lit.finite import FINITE_CHECK_EVERY, FiniteChecks
 from rotlearn.lit.state import RunStateHooks
 from rotlearn.logs import logger_at_least
@@ -145,8 +144,8 @@ def load_autoencoder(
             f"{run.path} is not an auto-encoder checkpoint: its run has task={run.task!r} "
             "(train one with model=autoencoder, e.g. experiment=kitti_autoencoder)"
         )
-    module = AutoEncoderModule(run.build("net"))
-    module.load_state_dict(run.state_dict)
+    module = AutoEncoderModule(run.build("net"))  # the net's weights checked, then loaded
+    check_weights(module.state_dict(), run.state_dict, str(run.path))  # and nothing else stored
     module.run_config = OmegaConf.to_container(run.config)
     return module.to(device).eval()
 
@@ -208,8 +207,8 @@ def _nested_trainer(
 
 def save_autoencoder(module: AutoEncoderModule, path: str | os.PathLike) -> Path:
     """Write `module`'s weights and `run_config` as a checkpoint that `load_autoencoder` reads
-    (tensors and plain data only), atomically; returns the path."""
-    path = Path(path)
-    with atomic_write(path) as tmp:
-        torch.save({"state_dict": module.state_dict(), "rotlearn_config": module.run_config}, tmp)
-    return path
+    (tensors and plain data only), durably (`rotlearn.checkpoint.save_checkpoint`); returns the
+    path."""
+    return save_checkpoint(
+        {"state_dict": module.state_dict(), "rotlearn_config": module.run_config}, path
+    )

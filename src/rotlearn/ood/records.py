@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 
 from rotlearn.checkpoint import THRESHOLDS_FILE
-from rotlearn.io import write_json_atomic, write_text_atomic
+from rotlearn.io import read_table, write_json_atomic, write_text_atomic
 
 __all__ = ["SAMPLES_FILE", "read_samples", "write_samples", "write_tables", "write_thresholds"]
 
@@ -47,7 +47,7 @@ def read_samples(path: str | os.PathLike) -> dict[str, dict[str, Tensor]]:
     Raises:
         ValueError: naming the file, if it lacks the set or error column.
     """
-    frame = pd.read_csv(path)
+    frame = read_table(path)  # bounded: a regular file of at most MAX_BYTES["CSV table"]
     if not {"set", "error"} <= set(frame.columns):
         raise ValueError(f"{path}: not an OOD samples file (needs the columns set and error)")
     sets = {}

@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from rotlearn.io import write_text_atomic
+from rotlearn.io import read_json, read_table, write_text_atomic
 from rotlearn.report import figures, tables
 from rotlearn.report.runs import collect_runs, label_without
 from rotlearn.report.tensorboard import read_curve
@@ -129,10 +129,11 @@ def _grouping_note(done: pd.DataFrame, grouping: list[str], layout: Mapping[str,
 def _curve(run: Path, key: str) -> np.ndarray | None:
     """Per-epoch values of a metric, from the run's CSV log or else its TensorBoard events."""
     csv = run / "csv" / "metrics.csv"
-    if csv.is_file():
+    if os.path.lexists(csv):
         try:
-            frame = pd.read_csv(csv)
-        except (OSError, ValueError, pd.errors.ParserError):
+            frame = read_table(csv, root=run)  # bounded: a regular file inside the run
+        except (OSError, ValueError) as exc:
+            log.warning("%s (ignored)", exc)
             frame = pd.DataFrame()
         if key in frame and "epoch" in frame:
             values = frame.dropna(subset=[key]).groupby("epoch")[key].last()
@@ -203,11 +204,9 @@ def _plots(done, runs, layout, out: Path, files: dict[str, Path]) -> list[str]:
 
 def _errors(runs: pd.DataFrame) -> np.ndarray:
     """The per-sample test errors of runs (`test_errors.json`), pooled."""
-    from rotlearn.io import read_json
-
     errors: list[float] = []
     for d in runs["dir"]:
-        values = read_json(Path(d) / "test_errors.json")
+        values = read_json(Path(d) / "test_errors.json", root=d)
         if isinstance(values, list):
             errors.extend(float(v) for v in values if isinstance(v, (int, float)))
     return np.asarray(errors, dtype=float)
@@ -318,10 +317,10 @@ def _ood_frames(done: pd.DataFrame) -> list[tuple[pd.Series, pd.DataFrame]]:
     frames = []
     for _, run in done.iterrows():
         path = Path(run["dir"]) / "ood.csv"
-        if path.is_file():
+        if os.path.lexists(path):
             try:
-                frames.append((run, pd.read_csv(path)))
-            except (OSError, ValueError, pd.errors.ParserError) as exc:
+                frames.append((run, read_table(path, root=run["dir"])))
+            except (OSError, ValueError) as exc:
                 log.warning("report: %s unreadable (%s); skipped", path, exc)
     return frames
 

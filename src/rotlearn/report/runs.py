@@ -14,6 +14,7 @@ else as `key=value` (`optim.lr=0.001`).
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -21,6 +22,7 @@ from typing import Any
 import pandas as pd
 import yaml
 
+from rotlearn import io
 from rotlearn.io import read_json
 from rotlearn.report.identity import parse_override, short_value
 
@@ -38,16 +40,31 @@ DEFAULT_REPORT: dict[str, Any] = {
     "trial_keys": ["seed", "data.seed", "trial"],
     "plots": [{"kind": "curves"}],
 }
+log = logging.getLogger("rotlearn")
 NOT_SETTINGS = ("hydra", "paths", "report")  # per-run paths, and the report layout itself
 _MISSING = "-"
 
 
-def read_yaml(path: Path) -> Any:
-    """Plain data of a YAML file (never resolved, no tags); None if unreadable."""
+def read_yaml(path: Path, kind: str = "YAML config") -> Any:
+    """Plain data of a run's YAML file (never resolved, no tags, no aliases, nesting and size
+    capped, a regular file inside the run: `rotlearn.io.read_yaml`); None if missing or refused
+    (a warning names the file and why)."""
     try:
-        return yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError, UnicodeDecodeError):
+        return io.read_yaml(path, kind, root=path.parent.parent)
+    except FileNotFoundError:
         return None
+    except (OSError, ValueError) as exc:
+        log.warning("%s (ignored)", exc)
+        return None
+
+
+def _record(run: Path, name: str) -> dict[str, Any]:
+    """A JSON record of a run as a dict (read bounded: `rotlearn.io.read_json`): {} where it is
+    missing, refused or not a JSON object (a warning names the file)."""
+    data = read_json(run / name, root=run)
+    if data is not None and not isinstance(data, dict):
+        log.warning("%s: not a JSON object (a %s); ignored", run / name, type(data).__name__)
+    return data if isinstance(data, dict) else {}
 
 
 def flatten(tree: Any, prefix: str = "") -> dict[str, Any]:
@@ -133,12 +150,9 @@ def collect_runs(
     for sweep, run in runs:
         cfg = read_yaml(run / ".hydra" / "config.yaml")
         cfg = cfg if isinstance(cfg, dict) else {}
-        overrides = read_yaml(run / ".hydra" / "overrides.yaml")
+        overrides = read_yaml(run / ".hydra" / "overrides.yaml", "overrides file")
         overrides = [str(o) for o in overrides] if isinstance(overrides, list) else []
-        metrics = read_json(run / "metrics.json")
-        metrics = metrics if isinstance(metrics, dict) else {}
-        status = read_json(run / "status.json")
-        status = status if isinstance(status, dict) else {}
+        metrics, status = _record(run, "metrics.json"), _record(run, "status.json")
         state = status.get("status") or ("COMPLETED" if metrics else "INCOMPLETE")
         rows.append(
             {
@@ -258,7 +272,7 @@ def _settings(
 def _unstarted_jobs(root: Path, seen: set[str]) -> list[dict[str, Any]]:
     """Rows for the jobs that `<root>/jobs.json` lists but that have no run directory (yet): those
     that never ran (PENDING), or died before Hydra wrote their config."""
-    summary = read_json(root / "jobs.json")
+    summary = read_json(root / "jobs.json", root=root)
     jobs = summary.get("jobs", []) if isinstance(summary, dict) else []
     rows = []
     for job in jobs if isinstance(jobs, list) else []:

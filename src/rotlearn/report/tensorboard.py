@@ -23,9 +23,12 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 from pathlib import Path
 
 import numpy as np
+
+from rotlearn.io import MAX_BYTES
 
 __all__ = [
     "ERROR_STATS",
@@ -37,6 +40,7 @@ __all__ = [
     "tensorboard_place",
 ]
 
+log = logging.getLogger("rotlearn")
 EVENTS_DIR = "tensorboard"  # below the run directory
 STAGES = ("train", "val", "test")
 SESSION_RUN = "test"  # the sub-run that holds the HPARAMS session
@@ -69,6 +73,27 @@ def event_runs(run_dir: str | Path) -> list[Path]:
     return named or [root]
 
 
+def _readable_events(run_dir: Path) -> bool:
+    """Whether TensorBoard may read the run's event files: regular files inside the run, at most
+    `MAX_BYTES["TensorBoard events"]` in all (TensorBoard reads them unbounded; a named pipe
+    would hang it). A warning names what is refused."""
+    root = run_dir / EVENTS_DIR
+    if not root.is_dir():
+        return True  # nothing to read
+    total, real_run = 0, Path(os.path.realpath(run_dir))
+    for path in root.rglob("*"):
+        if path.is_dir() and not path.is_symlink():
+            continue
+        if not (path.is_file() and Path(os.path.realpath(path)).is_relative_to(real_run)):
+            log.warning("%s: not a regular file inside the run; its events are not read", path)
+            return False
+        total += path.stat().st_size
+    if total > MAX_BYTES["TensorBoard events"]:
+        log.warning("%s: over %d bytes of events; not read", root, MAX_BYTES["TensorBoard events"])
+        return False
+    return True
+
+
 def read_curve(run_dir: str | Path, key: str) -> np.ndarray | None:
     """Per-epoch values of the metric `key` (e.g. "val/err_mean") from a run's TensorBoard
     events, in step order (one value per epoch; a step logged twice, as a resumed run may, keeps
@@ -78,6 +103,8 @@ def read_curve(run_dir: str | Path, key: str) -> np.ndarray | None:
     from rotlearn.logs import logger_at_least
 
     run, tag = tensorboard_place(key)
+    if not _readable_events(Path(run_dir)):
+        return None
     for folder in event_runs(run_dir):
         for where, name in ((folder / run, tag), (folder, key)):  # the layout, then a flat one
             if not where.is_dir():

@@ -1,0 +1,265 @@
+"""The run directory as the boundary, checked from the command line before Hydra writes anything.
+
+- `check_run_tree`: a run directory someone may have sent holds only regular files and folders,
+  and no symlink that resolves outside it.
+- `output_paths` / `check_placement`: every place a run writes (`paths.*`,
+  `trainer.default_root_dir`, each logger's folder, each checkpoint callback's folder and file
+  name, `data.cache_dir`) lies inside the run; a resume refuses a config that would write
+  elsewhere, unless the user's own command line set that key.
+- `compose_command_line` / `refuse_an_existing_output_dir`: a new run or sweep never writes into
+  an existing, non-empty directory (refused before Hydra creates or writes anything).
+- `is_child_rank`: a process started by Lightning or SLURM for another rank of a distributed run,
+  which repeats its rank 0's command line and must not repeat its checks.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from rotlearn.errors import ConfigError
+from rotlearn.io import UnreadableFileError
+
+__all__ = [
+    "check_placement",
+    "check_run_tree",
+    "compose_command_line",
+    "is_child_rank",
+    "output_paths",
+    "place_output_dir",
+    "refuse_an_existing_output_dir",
+    "user_keys",
+]
+
+MAX_RUN_ENTRIES = 100_000  # files and folders a run directory may hold (a scan is bounded)
+_RANK_VARIABLES = ("LOCAL_RANK", "RANK", "SLURM_PROCID", "JSM_NAMESPACE_RANK")
+_LONE_PATH_KEYS = ("output_dir", "default_root_dir", "cache_dir", "log_dir", "root_dir")
+_LOGGER_PARTS = ("save_dir", "name", "version", "sub_dir")
+
+
+def is_child_rank() -> bool:
+    """Whether this process is a rank other than 0 of a distributed run (its launcher set one of
+    LOCAL_RANK, RANK, SLURM_PROCID, JSM_NAMESPACE_RANK to a value other than 0)."""
+    return any(os.environ.get(name, "0") not in ("", "0") for name in _RANK_VARIABLES)
+
+
+def check_run_tree(run_dir: str | os.PathLike) -> None:
+    """Refuse a run directory that holds a symlink resolving outside it, or anything but
+    regular files and folders (a named pipe, a device, a socket), or more than
+    `MAX_RUN_ENTRIES` entries. Symlinks are not followed while scanning.
+
+    Raises:
+        UnreadableFileError: naming the entry at fault.
+    """
+    run = Path(os.path.realpath(run_dir))
+    count = 0
+    for folder, dirs, files in os.walk(run, followlinks=False):
+        for name in [*dirs, *files]:
+            count += 1
+            if count > MAX_RUN_ENTRIES:
+                raise UnreadableFileError(
+                    f"{run}: more than {MAX_RUN_ENTRIES} files and folders; not a run directory"
+                )
+            path = Path(folder) / name
+            if path.is_symlink():
+                target = Path(os.path.realpath(path))
+                if not target.is_relative_to(run):
+                    raise UnreadableFileError(
+                        f"{path}: a symlink to {target}, outside the run {run}; refused"
+                    )
+            elif not (path.is_dir() or path.is_file()):
+                raise UnreadableFileError(
+                    f"{path}: neither a regular file nor a folder (a FIFO, device or socket); "
+                    "a run directory holds only files and folders"
+                )
+
+
+def _text(value: Any) -> str | None:
+    return None if value is None or value == "" else str(value)
+
+
+def output_paths(cfg: DictConfig) -> list[tuple[tuple[str, ...], str]]:
+    """Every place the config makes a run write, as (the config keys that make up the path, the
+    path), values resolved: each `paths.*` value; every node's `output_dir`,
+    `default_root_dir`, `cache_dir`, `log_dir`, `root_dir`; a logger's
+    `save_dir/name/version/sub_dir`; a checkpoint callback's `dirpath` and `dirpath/filename`.
+    The `hydra` node is Hydra's own and left out."""
+    tree = {
+        str(k): OmegaConf.to_container(v, resolve=True) if OmegaConf.is_config(v) else v
+        for k, v in cfg.items_ex(resolve=True)
+        if k != "hydra"
+    }
+    found: list[tuple[tuple[str, ...], str]] = []
+    for name, value in (tree.get("paths") or {}).items():
+        if _text(value) is not None:
+            found.append(((f"paths.{name}",), str(value)))
+    stack = [(key, node) for key, node in tree.items() if key not in ("hydra", "paths")]
+    while stack:
+        key, node = stack.pop()
+        if isinstance(node, list):
+            stack.extend((f"{key}.{i}", v) for i, v in enumerate(node))
+        if not isinstance(node, dict):
+            continue
+        stack.extend((f"{key}.{k}", v) for k, v in node.items())
+        for part in _LONE_PATH_KEYS:
+            if _text(node.get(part)) is not None:
+                found.append(((f"{key}.{part}",), str(node[part])))
+        if _text(node.get("save_dir")) is not None:
+            parts = [p for p in _LOGGER_PARTS if _text(node.get(p)) is not None]
+            found.append((tuple(f"{key}.{p}" for p in parts),
+                          os.path.join(*(str(node[p]) for p in parts))))  # fmt: skip
+        if _text(node.get("dirpath")) is not None:
+            found.append(((f"{key}.dirpath",), str(node["dirpath"])))
+            if _text(node.get("filename")) is not None:
+                path = os.path.join(str(node["dirpath"]), str(node["filename"]))
+                found.append(((f"{key}.dirpath", f"{key}.filename"), path))
+    return found
+
+
+def user_keys(overrides: Iterable[str]) -> set[str]:
+    """The config keys that value overrides set (group choices, `hydra.*` and flags left out)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    keys = set()
+    for text in overrides:
+        if text.startswith("-"):
+            continue
+        parsed = OverridesParser.create().parse_overrides([text])[0]
+        key = parsed.key_or_group
+        if "." in key and not key.startswith("hydra."):
+            keys.add(key)
+    return keys
+
+
+def check_placement(
+    cfg: DictConfig, run_dir: str | os.PathLike, trusted: Iterable[str] = ()
+) -> None:
+    """Refuse a config that writes outside `run_dir` (a resume continues in its own directory).
+
+    Args:
+        cfg: the composed config, `paths.output_dir` resolved.
+        run_dir: the run directory.
+        trusted: config keys the user's own command line set; a path made only of such keys
+            may lie anywhere.
+
+    Raises:
+        ConfigError: naming the key(s), the path and where it resolves (symlinks and `..`
+            followed); also when `paths.output_dir` is not the run directory itself.
+    """
+    run = Path(os.path.realpath(run_dir))
+    trusted = set(trusted)
+
+    def set_by_user(key: str) -> bool:
+        return any(key == t or key.startswith(f"{t}.") for t in trusted)
+
+    output_dir = OmegaConf.select(cfg, "paths.output_dir")
+    if output_dir is None or Path(os.path.realpath(output_dir)) != run:
+        raise ConfigError(
+            "paths.output_dir", f"is {output_dir!r}; a resumed run's outputs go to its own "
+            f"directory {run}"
+        )  # fmt: skip
+    for keys, path in output_paths(cfg):
+        real = Path(os.path.realpath(path))
+        if real.is_relative_to(run) or all(set_by_user(k) for k in keys):
+            continue
+        raise ConfigError(
+            " + ".join(keys),
+            f"{path} resolves to {real}, outside the run {run}; a resumed run writes only "
+            "inside its own directory (set the key on your own command line to write elsewhere)",
+        )
+
+
+def compose_command_line(argv: list[str], config_name: str) -> DictConfig | None:
+    """The config of a command line with its Hydra node (`return_hydra_config`), sweeps left
+    out, as Hydra would compose it; None where it does not compose (Hydra reports that itself,
+    before writing anything)."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    from rotlearn.paths import config_dir
+
+    if GlobalHydra.instance().is_initialized():
+        return None
+    try:
+        parsed = OverridesParser.create().parse_overrides([a for a in argv if a[:1] != "-"])
+        overrides = [o.input_line for o in parsed if not o.is_sweep_override()]
+        with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
+            cfg = compose(config_name, overrides, return_hydra_config=True)
+    except (HydraException, OmegaConfBaseException):
+        return None
+    return cfg
+
+
+@contextlib.contextmanager
+def _hydra_config(cfg: DictConfig) -> Iterator[None]:
+    """`hydra:` interpolations resolve against `cfg` inside the block (Hydra's own global is
+    restored after it)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    holder = HydraConfig.instance()
+    previous = holder.cfg
+    holder.set_config(cfg)
+    try:
+        yield
+    finally:
+        holder.cfg = previous
+
+
+def _non_empty(path: Path) -> bool:
+    try:
+        return path.is_dir() and any(path.iterdir())
+    except OSError:
+        return True
+    return False
+
+
+def refuse_an_existing_output_dir(
+    argv: list[str], config_name: str, prog: str, allow: bool = False
+) -> DictConfig | None:
+    """Refuse (SystemExit, one line) a command line whose run or sweep directory already exists
+    and is not empty: a new run never writes into another's directory. Returns the composed
+    config (None where it does not compose), `paths.output_dir` set to the run directory for a
+    single run.
+
+    Args:
+        argv: the command line (no `ckpt_path`: resumes are `rotlearn.cli.resume`'s).
+        config_name: the primary config ("train", "eval").
+        prog: the command's name, for the message.
+        allow: skip the refusal (a SLURM job requeued into its own directory).
+    """
+    from hydra.types import RunMode
+
+    cfg = compose_command_line(argv, config_name)
+    if cfg is None:
+        return None
+    multirun = "-m" in argv or "--multirun" in argv or cfg.hydra.mode == RunMode.MULTIRUN
+    with _hydra_config(cfg):
+        folder = Path(cfg.hydra.sweep.dir if multirun else cfg.hydra.run.dir)
+    if _non_empty(folder) and not allow:
+        what = "sweep" if multirun else "run"
+        hint = "" if multirun else f" (to continue the run in it: {prog} ckpt_path={folder})"
+        raise SystemExit(
+            f"{prog}: {folder} already exists and is not empty; a new {what} never writes into "
+            f"an existing directory{hint}; nothing was written"
+        )
+    if not multirun:
+        place_output_dir(cfg, folder.absolute())
+    return cfg
+
+
+def place_output_dir(cfg: DictConfig, run_dir: str | os.PathLike) -> DictConfig:
+    """Set `paths.output_dir` as Hydra will resolve it when the run starts in `run_dir` (its
+    default, `${hydra:runtime.output_dir}`, only resolves inside a running Hydra app); a value
+    an override set is left as it is. Returns `cfg`, changed in place."""
+    node = cfg.paths._get_node("output_dir") if "paths" in cfg else None
+    if node is not None and node._value() == "${hydra:runtime.output_dir}":
+        cfg.paths.output_dir = str(run_dir)
+    return cfg

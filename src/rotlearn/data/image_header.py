@@ -1,0 +1,172 @@
+"""An image file's size from its header, read before any pixel is decoded.
+
+A frame of 30000 x 30000 pixels is under a megabyte as a PNG and several gigabytes decoded, so
+every frame's width and height are read from its header first and checked against
+`MAX_PIXELS` (`check_frame`). The readers take a few bytes from the file's start (JPEG: they walk
+its segment headers, skipping each segment's body), from a regular file only. Formats:
+PNG, JPEG, BMP, PNM (PBM, PGM, PPM), WebP and TIFF; any other is refused, naming the file.
+"""
+
+from __future__ import annotations
+
+import os
+import stat
+import struct
+from pathlib import Path
+from typing import BinaryIO
+
+__all__ = ["MAX_PIXELS", "check_frame", "image_size"]
+
+MAX_PIXELS = 2**26  # 67 Mpx: an 8K x 8K frame; 16-bit RGB, 400 MB decoded
+_JPEG_FRAMES = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+_MAX_JPEG_SEGMENTS = 4096
+
+
+def _png(f: BinaryIO, head: bytes) -> tuple[int, int] | None:
+    if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
+        return struct.unpack(">II", head[16:24])
+    return None
+
+
+def _jpeg(f: BinaryIO, head: bytes) -> tuple[int, int] | None:
+    if head[:2] != b"\xff\xd8":
+        return None
+    f.seek(2)
+    for _ in range(_MAX_JPEG_SEGMENTS):
+        if f.read(1) != b"\xff":
+            return None
+        marker, fill = f.read(1), 0
+        while marker == b"\xff" and fill < 65536:  # fill bytes before a marker
+            marker, fill = f.read(1), fill + 1
+        if not marker or marker == b"\xff":
+            return None
+        code = marker[0]
+        if code in (0xD8, 0x01) or 0xD0 <= code <= 0xD7:  # markers without a length
+            continue
+        length_bytes = f.read(2)
+        if len(length_bytes) < 2:
+            return None
+        (length,) = struct.unpack(">H", length_bytes)
+        if code in _JPEG_FRAMES:
+            data = f.read(5)
+            if len(data) < 5:
+                return None
+            height, width = struct.unpack(">HH", data[1:5])
+            return width, height
+        if code in (0xD9, 0xDA) or length < 2:  # end of image, or the scan before a frame header
+            return None
+        f.seek(length - 2, os.SEEK_CUR)
+    return None
+
+
+def _bmp(f: BinaryIO, head: bytes) -> tuple[int, int] | None:
+    if head[:2] != b"BM" or len(head) < 26:
+        return None
+    width, height = struct.unpack("<ii", head[18:26])
+    return abs(width), abs(height)
+
+
+def _pnm(f: BinaryIO, head: bytes) -> tuple[int, int] | None:
+    if len(head) < 3 or head[0:1] != b"P" or head[1:2] not in b"123456":
+        return None
+    words: list[bytes] = []
+    for line in head[2:].split(b"\n"):
+        words += line.split(b"#", 1)[0].split()
+        if len(words) >= 2:
+            break
+    try:
+        return int(words[0]), int(words[1])
+    except (IndexError, ValueError):
+        return None
+
+
+def _webp(f: BinaryIO, head: bytes) -> tuple[int, int] | None:
+    if head[:4] != b"RIFF" or head[8:12] != b"WEBP" or len(head) < 30:
+        return None
+    chunk = head[12:16]
+    if chunk == b"VP8 ":
+        width, height = struct.unpack("<HH", head[26:30])
+        return width & 0x3FFF, height & 0x3FFF
+    if chunk == b"VP8L":
+        bits = int.from_bytes(head[21:25], "little")
+        return (bits & 0x3FFF) + 1, ((bits >> 14) & 0x3FFF) + 1
+    if chunk == b"VP8X":
+        return int.from_bytes(head[24:27], "little") + 1, int.from_bytes(head[27:30], "little") + 1
+    return None
+
+
+def _tiff(f: BinaryIO, head: bytes) -> tuple[int, int] | None:
+    order = {b"II*\x00": "<", b"MM\x00*": ">"}.get(head[:4])
+    if order is None:
+        return None
+    (offset,) = struct.unpack(order + "I", head[4:8])
+    f.seek(offset)
+    count_bytes = f.read(2)
+    if len(count_bytes) < 2:
+        return None
+    (count,) = struct.unpack(order + "H", count_bytes)
+    size: dict[int, int] = {}
+    for _ in range(min(count, 4096)):
+        entry = f.read(12)
+        if len(entry) < 12:
+            break
+        tag, kind = struct.unpack(order + "HH", entry[:4])
+        if tag in (256, 257):
+            fmt = order + ("H" if kind == 3 else "I")
+            size[tag] = struct.unpack(fmt, entry[8:10] if kind == 3 else entry[8:12])[0]
+    if 256 in size and 257 in size:
+        return size[256], size[257]
+    return None
+
+
+_READERS = {"PNG": _png, "JPEG": _jpeg, "BMP": _bmp, "PNM": _pnm, "WebP": _webp, "TIFF": _tiff}
+
+
+def image_size(path: str | os.PathLike) -> tuple[int, int, str]:
+    """(width, height, format) of an image file, from its header alone.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: naming the file: not a regular file, or not an image in one of the formats
+            read here (or a header too damaged to give a size).
+    """
+    path = Path(path)
+    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
+    try:
+        fd = os.open(path, flags | getattr(os, "O_BINARY", 0))
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{path}: no such image file") from None
+    with os.fdopen(fd, "rb") as f:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise ValueError(f"{path}: not a regular file; not read as an image")
+        head = f.read(64)
+        for name, reader in _READERS.items():
+            f.seek(0)
+            try:
+                size = reader(f, head)
+            except (struct.error, OSError, ValueError):
+                size = None
+            if size is not None:
+                return int(size[0]), int(size[1]), name
+    known = ", ".join(_READERS)
+    raise ValueError(
+        f"{path}: cannot be read as an image: no {known} header (empty, damaged, or another format)"
+    )
+
+
+def check_frame(path: str | os.PathLike) -> tuple[int, int]:
+    """(width, height) of an image file, if its header says at most `MAX_PIXELS` pixels.
+
+    Raises:
+        ValueError: naming the file and its size in pixels when it is larger than the budget,
+            or as `image_size`.
+    """
+    width, height, kind = image_size(path)
+    if width * height > MAX_PIXELS:
+        raise ValueError(
+            f"{path}: a {kind} of {width} x {height} pixels, over the budget of {MAX_PIXELS} "
+            "pixels per frame; not decoded"
+        )
+    if width == 0 or height == 0:
+        raise ValueError(f"{path}: a {kind} of {width} x {height} pixels (empty); not decoded")
+    return width, height

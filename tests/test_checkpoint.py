@@ -1,0 +1,157 @@
+"""rotlearn.checkpoint: what a checkpoint may make rotlearn allocate or compute. Sizes in its
+config are checked against its weights on the meta device before anything is built; weights
+must be floating point and finite; missing or extra weights and another net's config are named;
+truncated, oversized and decompression-bomb files are refused unread. Each refusal changes
+nothing below the test's folder (the crafted file and everything beside it: `unchanged`)."""
+
+from __future__ import annotations
+
+import resource
+import zipfile
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+import rotlearn
+from rotlearn.checkpoint import UnsafeCheckpointError, load_checkpoint, load_run
+from rotlearn.io import MAX_BYTES
+from tests.conftest import unchanged, within
+
+
+@pytest.fixture
+def crafted(finished_run, tmp_path):
+    """edit(checkpoint dict) -> a copy of the finished run's last.ckpt with the edit applied."""
+
+    def make(edit) -> str:
+        checkpoint = torch.load(finished_run / "checkpoints" / "last.ckpt", weights_only=True)
+        edit(checkpoint)
+        path = tmp_path / "checkpoints" / "last.ckpt"
+        path.parent.mkdir(exist_ok=True)
+        torch.save(checkpoint, path)
+        return str(path)
+
+    return make
+
+
+def _set(key: str, value):
+    return lambda c: (
+        OmegaConf.update(config := OmegaConf.create(c["rotlearn_config"]), key, value)
+        or c.update(rotlearn_config=OmegaConf.to_container(config))
+    )
+
+
+def test_sizes_in_the_config_are_checked_before_anything_is_allocated(crafted, tmp_path):
+    """net.head_channels=[1000000, 128] once allocated 4.9 GB before the shapes were checked."""
+    path = crafted(_set("net.head_channels", [1_000_000, 128]))
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    with unchanged(tmp_path), within(20), pytest.raises(ValueError, match="shape") as info:
+        rotlearn.load(path)
+    grown_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024
+    assert path in str(info.value) and grown_mb < 500
+
+
+@pytest.mark.parametrize("dtype", [torch.int64, torch.bool, torch.complex64])
+def test_weights_must_be_floating_point(crafted, tmp_path, dtype):
+    def edit(c):
+        name = next(iter(c["state_dict"]))
+        c["state_dict"][name] = c["state_dict"][name].to(dtype)
+
+    path = crafted(edit)
+    with unchanged(tmp_path), pytest.raises(ValueError, match=f"is stored as {dtype}; it must"):
+        rotlearn.load(path)
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), 1e300])
+def test_weights_must_be_finite_in_the_models_dtype(crafted, tmp_path, value):
+    def edit(c):
+        name = next(iter(c["state_dict"]))
+        weight = c["state_dict"][name].double()
+        weight.view(-1)[0] = value
+        c["state_dict"][name] = weight  # 1e300 is finite in float64, not in the net's float32
+
+    path = crafted(edit)
+    with unchanged(tmp_path), pytest.raises(ValueError, match="NaN or infinite"):
+        rotlearn.load(path)
+
+
+def test_missing_and_unexpected_weights_are_named(crafted, tmp_path):
+    def edit(c):
+        name = sorted(c["state_dict"])[0]
+        c["state_dict"]["net.extra.weight"] = c["state_dict"].pop(name)
+
+    path = crafted(edit)
+    with (
+        unchanged(tmp_path),
+        pytest.raises(ValueError, match=r"missing net\..*; unexpected net\.extra\.weight") as info,
+    ):
+        rotlearn.load(path)
+    assert "Traceback" not in str(info.value)
+
+
+def test_another_allowed_net_in_the_config_is_named_not_a_traceback(crafted, tmp_path):
+    path = crafted(_set("net._target_", "rotlearn.nets.PairCNN"))
+    with unchanged(tmp_path), pytest.raises(ValueError, match=r"net cannot be built") as info:
+        rotlearn.load(path)
+    assert path in str(info.value)
+
+
+def test_a_truncated_or_inflating_or_oversized_file_is_refused_unread(tmp_path, monkeypatch):
+    path = tmp_path / "last.ckpt"
+    torch.save({"epoch": 0, "state_dict": {"w": torch.ones(1000)}}, path)
+    whole = path.read_bytes()
+    path.write_bytes(whole[: len(whole) // 2])
+    with unchanged(tmp_path), pytest.raises(UnsafeCheckpointError, match="not a whole PyTorch"):
+        load_checkpoint(path)
+    path.unlink()
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as archive:
+        archive.writestr("archive/data.pkl", b"\0" * 50_000_000)  # 50 MB from about 50 kB
+    with (
+        unchanged(tmp_path),
+        within(10),
+        pytest.raises(UnsafeCheckpointError, match="would decompress to 50000000"),
+    ):
+        load_checkpoint(path)
+    path.write_bytes(whole)
+    monkeypatch.setitem(MAX_BYTES, "checkpoint", 1000)
+    with unchanged(tmp_path), pytest.raises(UnsafeCheckpointError, match="larger than a checkp"):
+        load_checkpoint(path)
+
+
+def test_the_evaluation_runs_on_the_devices_its_command_line_gives(finished_run, tmp_path):
+    """A checkpoint's trainer.devices=6 once launched six processes in rotlearn-eval."""
+    from hydra import compose, initialize_config_dir
+
+    from rotlearn.cli.evaluate import evaluation_config
+    from rotlearn.paths import config_dir
+
+    saved = load_run(finished_run)
+    OmegaConf.update(saved.config, "trainer.devices", 6)
+    OmegaConf.update(saved.config, "trainer.accelerator", "gpu")
+    OmegaConf.update(saved.config, "trainer.strategy", "ddp")
+    for given, devices in (([], 1), (["trainer.devices=2"], 2)):
+        with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
+            cfg = compose("eval", [f"ckpt={finished_run}", f"paths.output_dir={tmp_path}", *given])
+        trainer = evaluation_config(cfg, saved).trainer
+        assert trainer.devices == devices and trainer.accelerator == "auto"
+        assert "strategy" not in trainer
+
+
+def test_a_run_cannot_send_the_loader_outside_it_through_a_symlink(finished_run, tmp_path):
+    from rotlearn.checkpoint import TEMPERATURE_FILE
+    from tests.conftest import copy_run
+
+    outside = tmp_path / "elsewhere.ckpt"
+    outside.write_bytes((finished_run / "checkpoints" / "last.ckpt").read_bytes())
+    run = copy_run(finished_run, tmp_path / "run")
+    (run / "checkpoints" / "last.ckpt").unlink()
+    (run / "checkpoints" / "last.ckpt").symlink_to(outside)
+    with unchanged(tmp_path), pytest.raises(UnsafeCheckpointError, match=r"a symlink to .*outside"):
+        rotlearn.load(run)
+    (run / "checkpoints" / "last.ckpt").unlink()
+    (run / "checkpoints" / "last.ckpt").write_bytes(outside.read_bytes())
+    record = tmp_path / "temperature.json"
+    record.write_text('{"temperature": 2.0}')
+    (run / "checkpoints" / TEMPERATURE_FILE).symlink_to(record)
+    with pytest.raises(ValueError, match="outside"):
+        rotlearn.load(run)
