@@ -197,7 +197,7 @@ def eigh_forward(A: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     eigenvalues, V = torch.linalg.eigh(A, UPLO="U")
     q = V[..., 0]  # (B, 4) view: canonical sign in place, so V keeps q as its column 0
     q.mul_(canonical_sign(q.t()).t())
-    return eigenvalues, q.clone(), V
+    return eigenvalues, q.clone(), V.contiguous()  # row-major, as every path (LAPACK's is not)
 
 
 def backward(
