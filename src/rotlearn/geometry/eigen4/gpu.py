@@ -82,10 +82,10 @@ def _shift(m, IS64: tl.constexpr):
 
 
 @triton.jit
-def _angle(app, aqq, apq, TINY: tl.constexpr, IS64: tl.constexpr):
+def _angle(app, aqq, apq, tiny, IS64: tl.constexpr):
     """cos and tan of the rotation zeroing apq (|tan| <= 1, the stable small-angle root)."""
     d = aqq - app
-    root = _sqrt(TINY + d * d + 4.0 * (apq * apq), IS64)
+    root = _sqrt(tiny + d * d + 4.0 * (apq * apq), IS64)
     den = tl.where(d < 0, -root, root) + d  # sign(d) (|d| + root), never 0
     t = _div(2.0 * apq, den, IS64)
     c = _div(1.0, _sqrt(1.0 + t * t, IS64), IS64)
@@ -101,13 +101,13 @@ def _rot(x, y, c, t):
 def _round(
     pp1, qq1, pq1, pp2, qq2, pq2, x11, x12, x21, x22,
     p10, p11, p12, p13, q10, q11, q12, q13, p20, p21, p22, p23, q20, q21, q22, q23,
-    TINY: tl.constexpr, IS64: tl.constexpr, LAST: tl.constexpr,
+    tiny, IS64: tl.constexpr, LAST: tl.constexpr,
 ):  # fmt: skip
     """One round: rotations of the disjoint pairs (p1, q1), (p2, q2); pp/qq/pq their diagonal and
     off-diagonal entries, x the 2x2 block coupling them (rows p1, q1; columns p2, q2), p1*, q1*,
     p2*, q2* the four eigenvector columns. A <- J^T A J, V <- V J."""
-    c1, t1 = _angle(pp1, qq1, pq1, TINY, IS64)
-    c2, t2 = _angle(pp2, qq2, pq2, TINY, IS64)
+    c1, t1 = _angle(pp1, qq1, pq1, tiny, IS64)
+    c2, t2 = _angle(pp2, qq2, pq2, tiny, IS64)
     pp1, qq1 = pp1 - t1 * pq1, qq1 + t1 * pq1
     pp2, qq2 = pp2 - t2 * pq2, qq2 + t2 * pq2
     if not LAST:  # after the last round the off-diagonal entries are not read
@@ -150,7 +150,7 @@ def _sign(x):
 @triton.jit
 def _forward_kernel(
     A, L, Q, V, n, sb, sr, sc,
-    ROUNDS: tl.constexpr, TINY: tl.constexpr, IS64: tl.constexpr, BLOCK: tl.constexpr,
+    ROUNDS: tl.constexpr, IS64: tl.constexpr, BLOCK: tl.constexpr,
 ):  # fmt: skip
     offs = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
     mask = offs < n
@@ -170,6 +170,11 @@ def _forward_kernel(
     m = tl.maximum(m, tl.maximum(tl.maximum(tl.abs(a11), tl.abs(a12)), tl.abs(a13)))
     m = tl.maximum(m, tl.maximum(tl.maximum(tl.abs(a22), tl.abs(a23)), tl.abs(a33)))
     k1, k2 = _shift(m, IS64)
+    # The smallest normal number, exactly, whatever Triton makes of a float constant.
+    if IS64:
+        tiny = _pow2(k1 * 0 - 1022, IS64)
+    else:
+        tiny = _pow2(k1 * 0 - 126, IS64)
     s = _pow2(k1, IS64) * _pow2(k2, IS64)
     a00, a01, a02, a03 = a00 * s, a01 * s, a02 * s, a03 * s
     a11, a12, a13, a22, a23, a33 = a11 * s, a12 * s, a13 * s, a22 * s, a23 * s, a33 * s
@@ -187,7 +192,7 @@ def _forward_kernel(
             ) = _round(
                 a00, a11, a01, a22, a33, a23, a02, a03, a12, a13,
                 v00, v10, v20, v30, v01, v11, v21, v31, v02, v12, v22, v32, v03, v13, v23, v33,
-                TINY, IS64, k == ROUNDS - 1,
+                tiny, IS64, k == ROUNDS - 1,
             )  # fmt: skip
         elif k % 3 == 1:  # pairs (0, 2), (1, 3)
             (
@@ -196,7 +201,7 @@ def _forward_kernel(
             ) = _round(
                 a00, a22, a02, a11, a33, a13, a01, a03, a12, a23,
                 v00, v10, v20, v30, v02, v12, v22, v32, v01, v11, v21, v31, v03, v13, v23, v33,
-                TINY, IS64, k == ROUNDS - 1,
+                tiny, IS64, k == ROUNDS - 1,
             )  # fmt: skip
         else:  # pairs (0, 3), (1, 2)
             (
@@ -205,7 +210,7 @@ def _forward_kernel(
             ) = _round(
                 a00, a33, a03, a11, a22, a12, a01, a02, a13, a23,
                 v00, v10, v20, v30, v03, v13, v23, v33, v01, v11, v21, v31, v02, v12, v22, v32,
-                TINY, IS64, k == ROUNDS - 1,
+                tiny, IS64, k == ROUNDS - 1,
             )  # fmt: skip
     # Sorting network (0,1)(2,3) | (0,2)(1,3) | (1,2), eigenvector columns moving along.
     l0, l1, l2, l3 = a00, a11, a22, a33
@@ -273,8 +278,9 @@ def _gap_coef(lj, l0, clamp, a0, a1, a2, a3, g0, g1, g2, g3, IS64: tl.constexpr)
 
 @triton.jit
 def _backward_kernel(
-    GL, GQ, L, V, G, n, gap_eps,
-    HAS_GL: tl.constexpr, HAS_GQ: tl.constexpr, IS64: tl.constexpr, BLOCK: tl.constexpr,
+    GL, GQ, L, V, G, n,
+    GAP_EPS: tl.constexpr, HAS_GL: tl.constexpr, HAS_GQ: tl.constexpr, IS64: tl.constexpr,
+    BLOCK: tl.constexpr,
 ):  # fmt: skip
     offs = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
     mask = offs < n
@@ -318,7 +324,7 @@ def _backward_kernel(
     else:
         h0, h1, h2, h3 = zero, zero, zero, zero
     norm = _max_nan(tl.abs(l0), _max_nan(tl.abs(l1), _max_nan(tl.abs(l2), tl.abs(l3))))
-    clamp = (norm == 0).to(l0.dtype) + gap_eps * norm  # gap_eps ||A||_2, 1 for A = 0
+    clamp = (norm == 0).to(l0.dtype) + GAP_EPS * norm  # gap_eps ||A||_2, 1 for A = 0
     c1 = _gap_coef(l1, l0, clamp, v01, v11, v21, v31, h0, h1, h2, h3, IS64)
     c2 = _gap_coef(l2, l0, clamp, v02, v12, v22, v32, h0, h1, h2, h3, IS64)
     c3 = _gap_coef(l3, l0, clamp, v03, v13, v23, v33, h0, h1, h2, h3, IS64)
@@ -396,8 +402,7 @@ def forward(A: Tensor, rounds: int) -> tuple[Tensor, Tensor, Tensor]:
         _launch(
             _forward_kernel, (triton.cdiv(B, block),), A.device,
             A, eigenvalues, q, V, B, *A.stride(),
-            ROUNDS=rounds, TINY=torch.finfo(A.dtype).tiny, IS64=A.dtype == torch.float64,
-            BLOCK=block,
+            ROUNDS=rounds, IS64=A.dtype == torch.float64, BLOCK=block,
         )  # fmt: skip
     return eigenvalues, q, V
 
@@ -418,8 +423,8 @@ def backward(
         block = BLOCK[V.dtype]
         _launch(
             _backward_kernel, (triton.cdiv(B, block),), V.device,
-            gl, gq, lam, vec, grad, B, float(gap_eps),
-            HAS_GL=grad_l is not None, HAS_GQ=grad_q is not None,
+            gl, gq, lam, vec, grad, B,
+            GAP_EPS=float(gap_eps), HAS_GL=grad_l is not None, HAS_GQ=grad_q is not None,
             IS64=V.dtype == torch.float64, BLOCK=block,
         )  # fmt: skip
     return grad
