@@ -17,12 +17,12 @@ import math
 import pytest
 import torch
 
-pytest.importorskip("triton", reason="triton is not installed (pip install rotlearn[gpu])")
+triton = pytest.importorskip("triton", reason="triton is not installed (pip install rotlearn[gpu])")
 
-from rotlearn.geometry import a_from_quat, quat_canonical, random_quat, sym4_eigh_min
-from rotlearn.geometry.eigen4 import eager, gpu, ops
-from tests.conftest import gen
-from tests.geometry.test_eigen4 import BOUNDS, errors, rotated_diag, sym_randn, wahba_a
+from rotlearn.geometry import a_from_quat, quat_canonical, random_quat, sym4_eigh_min  # noqa: E402
+from rotlearn.geometry.eigen4 import eager, gpu, ops  # noqa: E402
+from tests.conftest import gen  # noqa: E402
+from tests.geometry.test_eigen4 import BOUNDS, errors, rotated_diag, sym_randn, wahba_a  # noqa: E402
 
 F32, F64 = torch.float32, torch.float64
 DEVICES = [
@@ -264,6 +264,56 @@ def test_cuda_compiles_to_one_graph(backend):
     (ref_grad,) = torch.autograd.grad(ref.sum(), leaf)
     torch.testing.assert_close(out, ref)
     torch.testing.assert_close(grad, ref_grad)
+
+
+def _compile_for_sm90(kernel, signature: dict, constexprs: dict):
+    """triton.compile for an sm_90 GPU (H100, H200) on this machine, which has none."""
+    from triton.backends.compiler import GPUTarget
+    from triton.compiler import ASTSource
+
+    source = ASTSource(fn=kernel, signature=signature, constexprs=constexprs)
+    return triton.compile(source, target=GPUTarget("cuda", 90, 32))
+
+
+@pytest.mark.parametrize("dtype", [F32, pytest.param(F64, marks=pytest.mark.slow)])
+def test_kernels_compile_for_a_cuda_gpu_without_one(dtype):
+    """The interpreter does not run Triton's compiler: compile both kernels to PTX and a cubin
+    for sm_90 here (seconds, no GPU needed). float32 math must use IEEE-rounded sqrt and division
+    (Triton's defaults are approximate), and the forward, all 4x4 in registers, must not spill."""
+    import os
+    import subprocess
+    import tempfile
+
+    name = "fp64" if dtype == F64 else "fp32"
+    is64, block = dtype == F64, gpu.BLOCK[dtype]
+    forward = _compile_for_sm90(
+        gpu._forward_kernel,
+        {"A": f"*{name}", "L": f"*{name}", "Q": f"*{name}", "V": f"*{name}", "n": "i32",
+         "sb": "i32", "sr": "i32", "sc": "i32", "ROUNDS": "constexpr", "IS64": "constexpr",
+         "BLOCK": "constexpr"},
+        {"ROUNDS": 14 if is64 else 12, "IS64": is64, "BLOCK": block},
+    )  # fmt: skip
+    for has_gl, has_gq in ((True, True), (False, True), (True, False)):
+        _compile_for_sm90(
+            gpu._backward_kernel,
+            {"GL": f"*{name}", "GQ": f"*{name}", "L": f"*{name}", "V": f"*{name}",
+             "G": f"*{name}", "n": "i32", "GAP_EPS": "constexpr", "HAS_GL": "constexpr",
+             "HAS_GQ": "constexpr", "IS64": "constexpr", "BLOCK": "constexpr"},
+            {"GAP_EPS": 1e-6, "HAS_GL": has_gl, "HAS_GQ": has_gq, "IS64": is64, "BLOCK": block},
+        )  # fmt: skip
+    ptx = forward.asm["ptx"]
+    assert ptx.count(f"sqrt.rn.f{name[2:]}") >= 2 * (14 if is64 else 12)
+    assert "sqrt.approx" not in ptx and "div.full" not in ptx and "div.approx" not in ptx
+    ptxas = os.path.join(os.path.dirname(triton.__file__), "backends", "nvidia", "bin", "ptxas")
+    with tempfile.TemporaryDirectory() as tmp:
+        path = os.path.join(tmp, "forward.ptx")
+        with open(path, "w") as file:
+            file.write(ptx)
+        done = subprocess.run(
+            [ptxas, "-v", "--gpu-name", "sm_90a", path, "-o", os.devnull],
+            capture_output=True, text=True, check=True,
+        )  # fmt: skip
+    assert "0 bytes spill stores" in done.stderr + done.stdout, done.stderr
 
 
 def test_auto_picks_triton_only_for_cuda_tensors():
