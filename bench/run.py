@@ -251,6 +251,8 @@ def main(argv: list[str] | None = None) -> None:
     warnings.filterwarnings("ignore")
     logging.getLogger("lightning").setLevel(logging.ERROR)
     logging.getLogger("lightning.pytorch").setLevel(logging.ERROR)
+    if args.device.startswith("cuda") and not torch.cuda.is_available():
+        sys.exit(f"--device {args.device}: torch.cuda.is_available() is False on this machine")
     reps = args.reps.split(",")
     seeds = parse_seeds(args.seeds)
     benches = {

@@ -247,7 +247,7 @@ def test_cuda_autocast_runs_float32(reduced):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
-@pytest.mark.parametrize("backend", ["aot_eager", "inductor"])
+@pytest.mark.parametrize("backend", ["aot_eager", pytest.param("inductor", marks=pytest.mark.slow)])
 def test_cuda_compiles_to_one_graph(backend):
     from rotlearn.geometry import a_from_vec
 
