@@ -84,9 +84,10 @@ def symmatrixvec_to_quat(
     Args:
         theta: (..., 10) [a00, a01, a02, a03, a11, a12, a13, a22, a23, a33], any batch shape,
             float32 or float64 (float16/bfloat16 only under autocast, see below).
-        solver: "auto" (torch.linalg.eigh forward below `rotlearn.geometry.eigen4.EIGH_BELOW`
-            matrices, the batched Jacobi solver from there on), "jacobi" or "eigh". The
-            backward is the same for all three.
+        solver: "auto" (the batched Jacobi solver on its fused kernel: C on the CPU, Triton on
+            CUDA; where none runs, torch.linalg.eigh's forward below
+            `rotlearn.geometry.eigen4.EIGH_BELOW` matrices and Jacobi from there on), "jacobi" or
+            "eigh". The backward is the same for all three.
         return_eigenvalues: also return A's eigenvalues (the Bingham belief's dispersion, paper
             III-C, is l1 - l4, l1 - l3, l1 - l2).
 

@@ -5,6 +5,7 @@ one with canonical sign, which is what the A head needs (paper eqs. 9, 11), with
 backward that stays finite where eigenvalues coincide (torch.linalg.eigh's is NaN/Inf there).
 
 One registered operator, three paths behind it (`rotlearn.geometry.eigen4.ops`):
+
 - cpu: a fused C kernel (`eigen4.cpu`, sym4.c) that keeps blocks of 16 matrices in the L1 cache,
   SIMD across the block, from the load of their upper triangles to the store of their eigenpairs;
   compiled on first use and cached (no compiler: the eager path);
@@ -29,10 +30,12 @@ Measured accuracy (max over 20000 matrices per case: Gaussian, I - q q^T with an
 noise, Wahba data matrices (paper eq. 5), clustered -sum q_k q_k^T, Gaussian scaled by 1e-6 and
 1e6; against float64 eigh of the same matrices; angle of R(q) over spectra with
 l2 - l1 >= 0.01 (l4 - l1)), eager path:
-    float32: angle <= 3e-4 deg, eigenvalues within 4e-7 ||A||_2, |A q - l1 q| <= 6e-7 ||A||_2
-             (float32 eigh: 1.1e-3 deg, 1.1e-6, 1.1e-6);
-    float64: angle <= 3e-12 deg, eigenvalues within 3e-15 ||A||_2, |A q - l1 q| <= 1.3e-15 ||A||_2
-             (float64 eigh's residual: up to 2.6e-15).
+
+- float32: angle <= 3e-4 deg, eigenvalues within 4e-7 ||A||_2, |A q - l1 q| <= 6e-7 ||A||_2
+  (float32 eigh: 1.1e-3 deg, 1.1e-6, 1.1e-6);
+- float64: angle <= 3e-12 deg, eigenvalues within 3e-15 ||A||_2, |A q - l1 q| <= 1.3e-15 ||A||_2
+  (float64 eigh's residual: up to 2.6e-15).
+
 The fused kernels compute the same rotations with correctly rounded square roots and are held to
 the same bounds by the same tests. With l2 - l1 = 1e-6 (l4 - l1) the residual bound still holds;
 q itself is then determined only up to ~eps / 1e-6 (float32: 10 deg for this solver, 27 deg for
