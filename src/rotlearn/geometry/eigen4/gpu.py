@@ -62,6 +62,16 @@ def _pow2(k, IS64: tl.constexpr):
 
 
 @triton.jit
+def _tiny(k, IS64: tl.constexpr):
+    """The smallest normal number (shaped like the int tensor k), exactly, whatever Triton makes
+    of a float constant."""
+    if IS64:
+        return _pow2(k * 0 - 1022, IS64)
+    else:
+        return _pow2(k * 0 - 126, IS64)
+
+
+@triton.jit
 def _shift(m, IS64: tl.constexpr):
     """The power-of-two exponents (k1, k2) with m 2^(k1 + k2) in [0.5, 1) for m > 0 (k1 alone
     within the normal range; k2 > 0 only for a subnormal m); (0, 0) for m = 0."""
@@ -170,11 +180,7 @@ def _forward_kernel(
     m = tl.maximum(m, tl.maximum(tl.maximum(tl.abs(a11), tl.abs(a12)), tl.abs(a13)))
     m = tl.maximum(m, tl.maximum(tl.maximum(tl.abs(a22), tl.abs(a23)), tl.abs(a33)))
     k1, k2 = _shift(m, IS64)
-    # The smallest normal number, exactly, whatever Triton makes of a float constant.
-    if IS64:
-        tiny = _pow2(k1 * 0 - 1022, IS64)
-    else:
-        tiny = _pow2(k1 * 0 - 126, IS64)
+    tiny = _tiny(k1, IS64)
     s = _pow2(k1, IS64) * _pow2(k2, IS64)
     a00, a01, a02, a03 = a00 * s, a01 * s, a02 * s, a03 * s
     a11, a12, a13, a22, a23, a33 = a11 * s, a12 * s, a13 * s, a22 * s, a23 * s, a33 * s

@@ -141,7 +141,13 @@ def backward_impl(
     return eager.backward(grad_eigenvalues, grad_q, eigenvalues, V, gap_eps)
 
 
-@torch.library.custom_op("rotlearn::sym4_eigh", mutates_args=())
+# Explicit schemas: torch 2.4 infers none from the string annotations of `from __future__`.
+@torch.library.custom_op(
+    "rotlearn::sym4_eigh",
+    mutates_args=(),
+    schema="(Tensor A, float gap_eps, int rounds, str method, str kernel) "
+    "-> (Tensor, Tensor, Tensor)",
+)
 def sym4_eigh(
     A: Tensor, gap_eps: float, rounds: int, method: str, kernel: str
 ) -> tuple[Tensor, Tensor, Tensor]:
@@ -155,7 +161,12 @@ def _sym4_eigh_fake(A, gap_eps, rounds, method, kernel):
     return A.new_empty(B, 4), A.new_empty(B, 4), A.new_empty(B, 4, 4)
 
 
-@torch.library.custom_op("rotlearn::sym4_eigh_backward", mutates_args=())
+@torch.library.custom_op(
+    "rotlearn::sym4_eigh_backward",
+    mutates_args=(),
+    schema="(Tensor? grad_eigenvalues, Tensor? grad_q, Tensor eigenvalues, Tensor V, "
+    "float gap_eps, str kernel) -> Tensor",
+)
 def sym4_eigh_backward(
     grad_eigenvalues: Tensor | None,
     grad_q: Tensor | None,
