@@ -8,7 +8,8 @@ algorithm, the round counts and the backward formula are those of the other path
 (`rotlearn.geometry.eigen4`); float32 math uses IEEE-rounded square roots and divisions
 (`sqrt_rn`, `div_rn`: Triton's default ones are approximate), float64 Triton's float64 ones.
 
-Needs `triton` (`pip install rotlearn[gpu]`, tested with 3.6 and 3.7). On CUDA tensors the kernels
+Needs `triton` >= 3.0 (`pip install rotlearn[gpu]`; tested here with 3.7: in the interpreter, and
+compiled for sm_90 without a GPU). On CUDA tensors the kernels
 are compiled by Triton on first use per dtype (cached by Triton). On CPU tensors the same kernels
 run in Triton's interpreter (a second copy of this module whose kernels `triton.jit` wrapped with
 TRITON_INTERPRET=1; so the kernels call only Triton builtins, none of triton.language's own jit
