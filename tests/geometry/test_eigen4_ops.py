@@ -21,20 +21,7 @@ from rotlearn.geometry import a_from_vec, sym4_eigh_min
 from rotlearn.geometry.eigen4 import cpu as cpu_kernel
 from rotlearn.geometry.eigen4 import ops
 from tests.conftest import gen
-
-NO_CPU_KERNEL = pytest.mark.skipif(not cpu_kernel.available(), reason="no CPU kernel here")
-PATHS = [pytest.param("cpu", marks=NO_CPU_KERNEL), "eager"]
-SOLVERS = [
-    pytest.param(m, k, marks=NO_CPU_KERNEL if k == "cpu" else (), id=f"{m}-{k}")
-    for m in ("jacobi", "eigh")
-    for k in ("cpu", "eager")
-]
-
-
-def sym(n: int, seed: int, dtype=torch.float64) -> torch.Tensor:
-    x = torch.randn(n, 4, 4, generator=gen(seed), dtype=dtype)
-    return (x + x.mT) / 2
-
+from tests.geometry.test_eigen4 import NO_CPU_KERNEL, PATHS, SOLVERS, sym_randn
 
 # ---------------------------------------------------------------------------------------------
 # the operators
@@ -44,7 +31,7 @@ def sym(n: int, seed: int, dtype=torch.float64) -> torch.Tensor:
 @pytest.mark.parametrize(("method", "kernel"), SOLVERS)
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_opcheck_forward(method, kernel, dtype):
-    A = sym(16, 1, dtype).requires_grad_()
+    A = sym_randn(16, 1).to(dtype).requires_grad_()
     rounds = 12 if dtype == torch.float32 else 14
     torch.library.opcheck(ops.sym4_eigh, (A, 1e-6, rounds, method, kernel))
 
@@ -52,7 +39,7 @@ def test_opcheck_forward(method, kernel, dtype):
 @pytest.mark.parametrize("kernel", PATHS)
 @pytest.mark.parametrize("with_grad", ["both", "eigenvalues", "q"])
 def test_opcheck_backward(kernel, with_grad):
-    eigenvalues, q, V = ops.sym4_eigh(sym(16, 2), 1e-6, 14, "jacobi", kernel)
+    eigenvalues, q, V = ops.sym4_eigh(sym_randn(16, 2), 1e-6, 14, "jacobi", kernel)
     g_l = None if with_grad == "q" else torch.randn(16, 4, generator=gen(3), dtype=torch.float64)
     g_q = None if with_grad == "eigenvalues" else torch.randn_like(q)
     torch.library.opcheck(ops.sym4_eigh_backward, (g_l, g_q, eigenvalues, V, 1e-6, kernel))
@@ -62,7 +49,7 @@ def test_opcheck_backward(kernel, with_grad):
 def test_op_and_eager_route_give_the_same_numbers(method, kernel):
     """sym4_eigh_min runs the op's implementations directly in eager mode and the op itself under
     torch.func and torch.compile: the same functions, so the same bits, forward and backward."""
-    A = sym(64, 4)
+    A = sym_randn(64, 4)
     g_l = torch.randn(64, 4, generator=gen(5), dtype=torch.float64)
     g_q = torch.randn(64, 4, generator=gen(6), dtype=torch.float64)
     results = []
@@ -140,7 +127,7 @@ def test_compiled_graph_holds_one_op_each_way(kernel):
         return sym4_eigh_min(A, check=False, method="jacobi", kernel=kernel)
 
     torch._dynamo.reset()
-    A = sym(32, 9, torch.float32).requires_grad_()
+    A = sym_randn(32, 9).to(torch.float32).requires_grad_()
     eigenvalues, q = torch.compile(solve, backend=backend, fullgraph=True)(A)
     torch.autograd.grad(eigenvalues.sum() + q.sum(), A)
     assert len(graphs) == 2, graphs  # forward and backward
@@ -155,7 +142,7 @@ def test_compiled_graph_holds_one_op_each_way(kernel):
 
 
 def _aten_ops(kernel: str, n: int = 4096) -> collections.Counter:
-    A = sym(n, 10, torch.float32).requires_grad_()
+    A = sym_randn(n, 10).to(torch.float32).requires_grad_()
     g_l = torch.randn(n, 4, generator=gen(11))
     g_q = torch.randn(n, 4, generator=gen(12))
 
@@ -192,7 +179,7 @@ def test_fused_cpu_path_runs_one_kernel_call_each_way(monkeypatch):
             return call
 
     monkeypatch.setattr(cpu_kernel, "library", Counting)
-    A = sym(4096, 13, torch.float32).requires_grad_()
+    A = sym_randn(4096, 13).to(torch.float32).requires_grad_()
     eigenvalues, q = sym4_eigh_min(A, check=False, method="jacobi", kernel="cpu")
     torch.autograd.grad(eigenvalues.sum() + q.sum(), A)
     assert calls == {"rotlearn_sym4_forward": 1, "rotlearn_sym4_backward": 1}, calls
