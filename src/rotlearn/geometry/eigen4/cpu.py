@@ -150,7 +150,9 @@ def _build() -> ctypes.CDLL:
     try:
         directory.mkdir(parents=True, exist_ok=True, mode=0o700)
     except OSError as error:
-        raise KernelUnavailableError(f"cannot create {directory}: {error}") from error
+        raise KernelUnavailableError(
+            f"cannot create {directory}: {error} (set ROTLEARN_CACHE_DIR to a writable directory)"
+        ) from error
     if not _private(directory):
         raise KernelUnavailableError(
             f"{directory} is not private to this user (owner or group/other write permission);"
