@@ -142,7 +142,8 @@ def sym4_eigh_min(
     Raises:
         ValueError: wrong shape, dtype, method, kernel or rounds (always); NaN/Inf or asymmetric
             entries (only with `check=True`).
-        RuntimeError: kernel="cpu" or "triton" where it cannot run (the message says why).
+        RuntimeError: kernel="cpu" where the C kernel cannot run (the message says why).
+        rotlearn.extras.MissingExtraError: kernel="triton" without triton (`[gpu]` extra).
     """
     if A.dim() < 2 or A.shape[-2:] != (4, 4):
         raise ValueError(f"expected a tensor of shape (..., 4, 4), got {tuple(A.shape)}")

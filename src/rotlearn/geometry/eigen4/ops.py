@@ -32,6 +32,7 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
+from rotlearn.extras import require
 from rotlearn.geometry.eigen4 import cpu, eager
 
 __all__ = [
@@ -72,7 +73,8 @@ def resolve_kernel(kernel: str, device: torch.device) -> str:
 
     Raises:
         ValueError: an unknown kernel, or one that does not run on this device type.
-        RuntimeError: kernel="cpu" or "triton" where it cannot run (the reason in the message).
+        RuntimeError: kernel="cpu" where the C kernel cannot run (the reason in the message).
+        rotlearn.extras.MissingExtraError: kernel="triton" without triton (the [gpu] extra).
     """
     global _warned_triton
     if kernel == "auto":
@@ -99,8 +101,7 @@ def resolve_kernel(kernel: str, device: torch.device) -> str:
             raise ValueError(
                 f"kernel='triton' needs CUDA tensors (or CPU: interpreter), got {device}"
             )
-        if not triton_available():
-            raise RuntimeError("kernel='triton' needs triton: pip install rotlearn[gpu]")
+        require("gpu", "sym4_eigh_min(kernel='triton')")
     elif kernel != "eager":
         raise ValueError(f"kernel must be one of {', '.join(KERNELS)}, got {kernel!r}")
     return kernel
