@@ -20,6 +20,7 @@ import torch
 triton = pytest.importorskip("triton", reason="triton is not installed (pip install rotlearn[gpu])")
 
 from rotlearn.geometry import a_from_quat, quat_canonical, random_quat, sym4_eigh_min  # noqa: E402
+from rotlearn.geometry.eigen4 import cpu as cpu_kernel  # noqa: E402
 from rotlearn.geometry.eigen4 import eager, gpu, ops  # noqa: E402
 from tests.conftest import gen  # noqa: E402
 from tests.geometry.test_eigen4 import BOUNDS, errors, rotated_diag, sym_randn, wahba_a  # noqa: E402
@@ -98,6 +99,14 @@ def test_matches_the_cpu_paths(spectra, device):
     L = torch.linalg.eigh(A).eigenvalues
     separated = (L[:, 1] - L[:, 0]) >= 0.01 * (L[:, 3] - L[:, 0])
     assert (q_t[separated] - q_e[separated]).abs().max() <= 1e-12
+    if device == "cpu" and cpu_kernel.available():
+        # The interpreter computes with numpy's IEEE operations in the kernel's order, as the C
+        # kernel does (no FMA contraction there): the same bits, in both dtypes.
+        for dtype in (F32, F64):
+            triton_out = _solve(A.to(dtype), device)
+            c_out = sym4_eigh_min(A.to(dtype), method="jacobi", kernel="cpu")
+            for x, y in zip(triton_out, c_out, strict=True):
+                assert torch.equal(x, y)
 
 
 @pytest.mark.parametrize("device", DEVICES)
