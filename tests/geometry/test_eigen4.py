@@ -658,7 +658,7 @@ CUDA_PATHS = [
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 @pytest.mark.parametrize("kernel", CUDA_PATHS)
 @pytest.mark.parametrize("dtype", DTYPES)
-def test_cuda_matches_cpu(dtype, kernel):
+def test_cuda_matches_cpu(case_data, dtype, kernel):
     A = sym_randn(5000, 33).to(dtype)
     g_l = torch.randn(5000, 4, generator=gen(39), dtype=dtype)
     g_q = torch.randn(5000, 4, generator=gen(40), dtype=dtype)
@@ -678,7 +678,7 @@ def test_cuda_matches_cpu(dtype, kernel):
         grad.cpu(), grad_cpu, atol=(1e-3 if dtype == F32 else 1e-10) * scale, rtol=0
     )
     for case in CASES:  # the accuracy bounds on CUDA too
-        A = case_matrices(case)[:5000].to(dtype)
+        A = case_data[case][:5000].to(dtype)
         eigenvalues, q = sym4_eigh_min(A.cuda(), check=False, method="jacobi", kernel=kernel)
         ours = errors(A.to(F64), eigenvalues.cpu(), q.cpu())
         for key, bound in BOUNDS[dtype].items():
