@@ -62,6 +62,25 @@ def test_op_and_eager_route_give_the_same_numbers(method, kernel):
         assert torch.equal(x, y)
 
 
+@pytest.mark.parametrize(("method", "kernel"), SOLVERS)
+def test_vmap_and_jacrev_go_through_the_op(method, kernel):
+    """torch.func.vmap joins the vmapped dimension to the batch (one op call, the same numbers
+    as the batched call); jacrev (vmap of vjp) gives autograd's Jacobian."""
+    A = sym_randn(12, 14).reshape(3, 4, 4, 4)
+
+    def solve(a):
+        return sym4_eigh_min(a, check=False, method=method, kernel=kernel)
+
+    for got, ref in zip(torch.func.vmap(solve)(A), solve(A), strict=True):
+        assert torch.equal(got, ref)
+    a = A[0, 0]
+    jac = torch.func.jacrev(lambda x: solve(x)[1])(a)  # (4, 4, 4): dq_i / dA_jk
+    leaf = a.clone().requires_grad_()
+    q = solve(leaf)[1]
+    rows = [torch.autograd.grad(q[i], leaf, retain_graph=True)[0] for i in range(4)]
+    torch.testing.assert_close(jac, torch.stack(rows), atol=1e-12, rtol=0)
+
+
 def test_unknown_kernel_raises():
     with pytest.raises(ValueError, match="kernel"):
         sym4_eigh_min(torch.eye(4), kernel="fortran")
