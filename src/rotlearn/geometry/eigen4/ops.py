@@ -25,6 +25,7 @@ on the eager path eigh below `EIGH_BELOW` matrices).
 
 from __future__ import annotations
 
+import functools
 import importlib.util
 import warnings
 
@@ -63,6 +64,7 @@ EIGH_BELOW = 1024
 _warned_triton = False
 
 
+@functools.cache
 def triton_available() -> bool:
     """Whether the `triton` package (the [gpu] extra) is installed."""
     return importlib.util.find_spec("triton") is not None
