@@ -202,10 +202,13 @@ HOT static void NAME(backward_range)(const REAL *gl, const REAL *gq, const REAL 
     REAL lam[4][LANES], v[4][4][LANES], g_l[4][LANES], g_q[4][LANES], out[4][4][LANES];
     REAL clamp[LANES], coef[LANES], u[4][LANES];
     for (int j = 0; j < 4; ++j)
-        for (int l = 0; l < LANES; ++l) g_l[j][l] = g_q[j][l] = 0;
+        for (int l = 0; l < LANES; ++l) {
+            lam[j][l] = g_l[j][l] = g_q[j][l] = 0;
+            for (int i = 0; i < 4; ++i) v[i][j][l] = 0;
+        }
     for (int64_t start = begin; start < end; start += LANES) {
         int64_t count = end - start < LANES ? end - start : LANES;
-        for (int64_t l = 0; l < count; ++l) { /* the last block's other lanes keep old values */
+        for (int64_t l = 0; l < count; ++l) { /* a last, partial block's other lanes: unused */
             int64_t b = start + l;
             for (int j = 0; j < 4; ++j) {
                 lam[j][l] = L[4 * b + j];
