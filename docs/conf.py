@@ -95,5 +95,44 @@ def _plain_text_docstring(app, what, name, obj, options, lines) -> None:
     lines[:] = text.split("\n")
 
 
+def command_help(command: str) -> str:
+    """What `<command> --help` prints (the argparse commands; rotlearn-train's own usage)."""
+    import contextlib
+    import importlib
+    import io
+
+    if command == "rotlearn-train":
+        from rotlearn.cli.train import usage
+        from rotlearn.paths import config_dir
+
+        return usage().replace(str(config_dir()), "conf")  # not the building machine's path
+    module = {"rotlearn-predict": "predict", "rotlearn-report": "report",
+              "rotlearn-make-demo-data": "make_demo_data"}[command]  # fmt: skip
+    main = importlib.import_module(f"rotlearn.cli.{module}").main
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.suppress(SystemExit):
+        main(["--help"])
+    return out.getvalue()
+
+
+def _command_help_directive():
+    from docutils import nodes
+    from sphinx.util.docutils import SphinxDirective
+
+    class CommandHelp(SphinxDirective):
+        """`{command-help} <command>`: the command's --help, as a literal block."""
+
+        required_arguments = 1
+
+        def run(self):
+            text = command_help(self.arguments[0]).rstrip()
+            block = nodes.literal_block(text, text)
+            block["language"] = "text"
+            return [block]
+
+    return CommandHelp
+
+
 def setup(app) -> None:
     app.connect("autodoc-process-docstring", _plain_text_docstring, priority=400)  # before napoleon
+    app.add_directive("command-help", _command_help_directive())

@@ -8,6 +8,7 @@ import subprocess
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -49,11 +50,44 @@ def start_cli(args: list[str], cwd: Path) -> subprocess.Popen:
     )
 
 
-def run_cli(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
-    """`rotlearn-train <args>` run to its end in `cwd`, output captured."""
+def run_cli(
+    args: list[str], cwd: Path, umask: int | None = None, warnings: bool = False
+) -> subprocess.CompletedProcess:
+    """`rotlearn-train <args>` run to its end in `cwd`, output captured; under `umask` if given;
+    with Python's default warning filters if `warnings` (else warnings are ignored)."""
     command = [sys.executable, "-m", "rotlearn.train", *args]
     env = {**os.environ, **_CLI_ENV}
-    return subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True, timeout=600)
+    if warnings:
+        env.pop("PYTHONWARNINGS", None)
+    preexec = (lambda: os.umask(umask)) if umask is not None else None
+    return subprocess.run(
+        command, cwd=cwd, env=env, capture_output=True, text=True, timeout=600,
+        preexec_fn=preexec,
+    )  # fmt: skip
+
+
+def modes(root: Path) -> dict[str, int]:
+    """{path relative to `root`: permission bits} of every file and folder below it."""
+    return {str(p.relative_to(root)): p.stat().st_mode & 0o777 for p in sorted(root.rglob("*"))}
+
+
+def tensorboard_events(run_dir: Path) -> dict[str, Any]:
+    """The TensorBoard runs below `<run_dir>/tensorboard/`: {relative run path: its loaded
+    EventAccumulator} (every kind of event kept)."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    root = Path(run_dir) / "tensorboard"
+    runs = {}
+    for folder in sorted({p.parent for p in root.rglob("events.out.tfevents.*")}):
+        sizes = {"scalars": 0, "images": 0, "tensors": 0}
+        runs[str(folder.relative_to(root))] = EventAccumulator(str(folder), sizes).Reload()
+    return runs
+
+
+def scalar_tags(run_dir: Path) -> set[str]:
+    """Every scalar tag of a run's TensorBoard events: the scalar cards TensorBoard shows."""
+    return {tag for events in tensorboard_events(run_dir).values()
+            for tag in events.Tags()["scalars"]}  # fmt: skip
 
 
 def checkpoint_epoch(path: Path) -> int:

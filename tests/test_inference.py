@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 from pathlib import Path
 
@@ -169,8 +170,17 @@ def test_predict_command_reads_text_and_npy_pairs(trained_runs, tmp_path, capsys
     assert predict_main([str(trained_runs["a"]), str(text), "--json"]) == 0
     result = json.loads(capsys.readouterr().out)
     assert len(result["q_xyzw"]) == 4 and result["dt_score"] <= 0 and len(result["dispersion"]) == 3
+    assert 0 < result["uncertainty_deg"] <= 180 and result["uncertainty_level"] == 0.9
+    assert result["angle_deg"] == pytest.approx(
+        math.degrees(2 * math.atan2(np.linalg.norm(result["q_xyzw"][:3]), result["q_xyzw"][3]))
+    )
     assert predict_main([str(trained_runs["a"]), str(npy)]) == 0
-    assert "uncertainty: DT score" in capsys.readouterr().out
+    text = capsys.readouterr().out
+    assert f"  rotation     {result['angle_deg']:.3f} deg about (" in text
+    assert f"  uncertainty  {result['uncertainty_deg']:.3g} deg: 90 % of the belief" in text
+    assert "  OOD check    no threshold with this checkpoint" in text  # none calibrated here
+    assert predict_main([str(trained_runs["sixd"]), str(npy)]) == 0
+    assert "uncertainty  none: rep=sixd defines no belief" in capsys.readouterr().out
 
 
 def test_predict_command_names_the_bad_line(trained_runs, tmp_path, capsys):
@@ -205,7 +215,7 @@ def test_thresholds_beside_the_checkpoint_give_keep_flags(trained_runs, tmp_path
     import shutil
 
     from rotlearn.checkpoint import THRESHOLDS_FILE
-    from rotlearn.ood.report import write_thresholds
+    from rotlearn.ood.records import write_thresholds
 
     run = tmp_path / "run"
     shutil.copytree(trained_runs["a"], run)
@@ -278,7 +288,7 @@ def test_load_applies_the_checkpoints_temperature_to_the_belief(trained_runs, ca
     torch.testing.assert_close(tempered.dispersion, plain.dispersion / 2.5)
     assert tempered.A.shape == (4, 4, 4) and tempered.F is None  # the A head has no F
     # the keep flags compare the tempered DT with the threshold (written after calibration)
-    from rotlearn.ood.report import write_thresholds
+    from rotlearn.ood.records import write_thresholds
 
     threshold = float(tempered.dt.median())
     write_thresholds(calibrated_run / "checkpoints", {"score": "dt", "threshold": threshold,

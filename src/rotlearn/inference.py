@@ -1,13 +1,15 @@
 """The inference API: `rotlearn.load(ckpt)` -> a `Predictor` giving rotations and their uncertainty.
 
-import rotlearn
-predictor = rotlearn.load("outputs/runs/<run>/checkpoints/best.ckpt")  # or the run directory
-estimate = predictor(points)        # (B, N, 6) matched pairs (u_i, v_i) for the point network
-estimate.R, estimate.q              # (B, 3, 3) and (B, 4) quaternions (x, y, z, w), w >= 0
-estimate.dispersion, estimate.dt    # belief heads (A, Fisher): dispersion (B, 3), DT score (B,)
-estimate.A, estimate.temperature    # the belief p(q) ~ exp(-q^T A q), (B, 4, 4), tempered by T
-estimate.sample(100)                # (B, 100, 4) quaternions drawn from each belief
-estimate.log_prob(R_or_q)           # (B,) or (B, n) log densities of rotations / quaternions
+Example::
+
+    import rotlearn
+    predictor = rotlearn.load("outputs/runs/<run>/checkpoints/best.ckpt")  # or the run directory
+    estimate = predictor(points)        # (B, N, 6) matched pairs (u_i, v_i) for the point network
+    estimate.R, estimate.q              # (B, 3, 3) and (B, 4) quaternions (x, y, z, w), w >= 0
+    estimate.dispersion, estimate.dt    # belief heads (A, Fisher): dispersion (B, 3), DT (B,)
+    estimate.A, estimate.temperature    # the belief p(q) ~ exp(-q^T A q), (B, 4, 4), tempered by T
+    estimate.sample(100)                # (B, 100, 4) quaternions drawn from each belief
+    estimate.log_prob(R_or_q)           # (B,) or (B, n) log densities of rotations / quaternions
 
 The belief (heads that define one: `rep=a`, and the matrix Fisher head, whose `A` is the Bingham
 matrix of the same density and whose `F` is carried too) is the Bingham density
@@ -20,14 +22,14 @@ OOD keep flags compare that DT with the threshold calibrated on the same scale).
 
 Credible regions. The highest-density region of level a is {R : log p(R) >= c_a}, with c_a the
 (1 - a)-quantile of log p over the belief's own samples; it holds the fraction a of the belief's
-mass. Per estimate, by Monte Carlo (error ~ sqrt(a (1 - a) / n) in the level):
+mass. Per estimate, by Monte Carlo (error ~ sqrt(a (1 - a) / n) in the level)::
 
     draws = estimate.sample(4096)                                # (B, 4096, 4)
     c = estimate.log_prob(draws).quantile(1 - 0.9, dim=-1)       # (B,) the 90 % cut
     inside = estimate.log_prob(R_candidate) >= c                 # (B,) bool: R in the region
 
-The region's angular extent around the mode: `angle_deg(quat_to_rotmat(draws), estimate.R[:, None])`
-of the draws inside it.
+The radius of the smallest ball around the mode holding the mass a, in degrees ("a of the belief
+lies within r of the rotation"), is `rotlearn.bingham.credible_radius_deg(estimate.A, a)`.
 """
 
 from __future__ import annotations

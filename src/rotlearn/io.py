@@ -1,14 +1,20 @@
 """File I/O: crash-safe writing (a reader sees the old file or the whole new one, never a part),
 reading rows of numbers with errors that name the file and line, and the checks every dataset
-reader shares: finite values, plain names and paths that stay inside their root."""
+reader shares: finite values, plain names and paths that stay inside their root.
+
+Every file rotlearn writes itself (records, tables, figures, caches, the auto-encoder's weights)
+goes through `atomic_write`, the one write-temporary-then-rename: it is created with the mode the
+umask allows (0644 under umask 022, like a file `open` creates), so a colleague in a shared
+folder can read the results."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
-import tempfile
-from collections.abc import Iterable
+import secrets
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +23,7 @@ import numpy as np
 from rotlearn.errors import ConfigValueError
 
 __all__ = [
+    "atomic_write",
     "cache_file",
     "parse_number_rows",
     "plain_name",
@@ -42,21 +49,54 @@ def read_json(path: str | os.PathLike) -> Any:
         return None
 
 
-def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
-    """Write `text` to a temporary file beside `path`, fsync it, then rename it over `path`."""
+def _new_temporary(path: Path) -> Path:
+    """A new empty file beside `path` (hidden, same suffix, so writers that add one, such as
+    `numpy.save`, keep its name), created with mode 0666 minus the umask."""
+    flags = os.O_CREAT | os.O_EXCL | os.O_WRONLY | getattr(os, "O_CLOEXEC", 0)
+    while True:
+        tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp{path.suffix}")
+        try:
+            os.close(os.open(tmp, flags, 0o666))
+        except FileExistsError:
+            continue
+        return tmp
+
+
+@contextlib.contextmanager
+def atomic_write(path: str | os.PathLike) -> Iterator[Path]:
+    """Write `path` whole or not at all: yields the path of a new, empty temporary file beside
+    `path` for any writer to fill (text, `numpy.save`, `torch.save`, a figure, a memmap); when
+    the block ends, the file is synced to disk and renamed over `path`. If the block raises,
+    the temporary file is removed and `path` is left as it was.
+
+    The file gets the mode the umask allows (0644 under umask 022), as `open` gives a new file.
+
+    Example::
+
+        with atomic_write(run_dir / "table.npy") as tmp:
+            np.save(tmp, table)
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    tmp = _new_temporary(path)
     try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
+        yield tmp
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
         os.replace(tmp, path)
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        tmp.unlink(missing_ok=True)
         raise
-    return path
+
+
+def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
+    """`text` (UTF-8) into `path`, atomically (`atomic_write`)."""
+    with atomic_write(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    return Path(path)
 
 
 def write_json_atomic(path: str | os.PathLike, data: Any) -> Path:

@@ -5,6 +5,8 @@ its functional form always agree. Quaternions are scalar last (x, y, z, w). Ever
 batch shape, float32 or float64, and works under autocast (it computes and returns float32 there:
 a rotation in bfloat16 is orthogonal only to ~4e-3), torch.func (vmap, grad) and torch.compile.
 
+Example::
+
     model = nn.Sequential(nn.Linear(32, 64), nn.ReLU(), nn.Linear(64, 10), ALayer())
     q = model(x)  # (B, 4) unit quaternions
 """

@@ -12,11 +12,11 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from rotlearn.cli.report import collect_runs, make_report
 from rotlearn.cli.report import main as report_main
 from rotlearn.cli.resolvers import loguniform_trial
 from rotlearn.cli.schemas import validate
 from rotlearn.paths import config_dir
+from rotlearn.report import collect_runs, make_report
 from tests.conftest import CONFIG_DIR, FAST, config_options, run_cli
 
 
@@ -148,10 +148,16 @@ def test_report_on_a_fabricated_sweep_writes_every_file(tmp_path, make_cfg):
     assert len(runs) == 5 and (runs["status"] == "FAILED").sum() == 1
     report = (sweep / "report.md").read_text()
     assert "4 completed, 1 failed" in report and "ValueError: boom" in report
-    quat_row = next(line for line in report.splitlines() if line.startswith("| quat | 2 |"))
-    a_row = next(line for line in report.splitlines() if line.startswith("| a | 2 |"))
-    assert float(quat_row.split("|")[4]) > 5 * float(a_row.split("|")[4])  # medians as fabricated
-    assert "phi_max 10 | phi_max 180" in report
+    # the swept phi_max is never pooled: one row per (rep, phi_max); the box table's rows are
+    # the heads, its columns phi_max
+    for phi in (10, 180):
+        quat = next(line for line in report.splitlines()
+                    if line.startswith(f"| quat data.phi_max_deg={phi} | 1 |"))  # fmt: skip
+        a = next(line for line in report.splitlines()
+                 if line.startswith(f"| a data.phi_max_deg={phi} | 1 |"))  # fmt: skip
+        assert float(quat.split("|")[4]) > 5 * float(a.split("|")[4])  # as fabricated
+    assert "| setting | phi_max 10 | phi_max 180 |" in report
+    assert any(line.startswith("| quat | ") for line in report.splitlines())
 
 
 def test_report_on_an_empty_directory_says_so(tmp_path, capsys):
@@ -159,6 +165,7 @@ def test_report_on_an_empty_directory_says_so(tmp_path, capsys):
     assert "no runs under" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # 6 jobs; tests/report/test_sweep.py checks a sweep's own report in make test
 def test_an_experiment_sweep_ends_with_its_report(tmp_path):
     sweep = tmp_path / "sweep"
     args = ["-m", "experiment=synthetic_phi_max_cpu", "hydra.sweeper.params.rep='a,quat'",
@@ -266,10 +273,12 @@ def test_report_reads_run_configs_as_plain_data_never_resolved(tmp_path, monkeyp
 
 
 def test_report_layout_comes_from_the_report_node(tmp_path):
-    """Rows: the lead key's value and the other differing keys (pooled keys left out); a box plot
+    """Rows: the lead key's value and the other differing keys (trial keys left out); a box plot
     and its table for any swept key the report node names; damaged configs still listed."""
     sweep = tmp_path / "sweep"
-    report = "report:\n  lead: net.kind\n  pooled: [seed]\n  plots: [{kind: box, x: data.noise}]\n"
+    report = (
+        "report:\n  lead: net.kind\n  trial_keys: [seed]\n  plots: [{kind: box, x: data.noise}]\n"
+    )
     jobs = [
         (kind, noise, seed) for kind in ("cnn", "mlp") for noise in (0.1, 0.2) for seed in (1, 2)
     ]
@@ -281,6 +290,10 @@ def test_report_layout_comes_from_the_report_node(tmp_path):
     files = make_report(sweep)
     assert set(files) == {"summary", "report", "noise_box"}
     text = files["report"].read_text()
-    assert "| cnn | 4 |" in text and "| mlp | 4 |" in text and "noise 0.1 | noise 0.2" in text
+    for kind in ("cnn", "mlp"):  # two seeds (trials) per row; the box table's rows: net.kind
+        assert f"| {kind} data.noise=0.1 | 2 |" in text and f"| {kind} data.noise=0.2 | 2 |" in text
+        assert f"| {kind} | " in text.split("per noise")[1]
+    assert "noise 0.1 | noise 0.2" in text
     runs = collect_runs(sweep)
-    assert runs.loc[runs["job"] == "9", "setting"].item() == "all" and len(runs) == 9
+    assert runs.loc[runs["job"] == "9", "setting"].item() == "(config unreadable)"
+    assert len(runs) == 9

@@ -10,7 +10,7 @@ import yaml
 from PIL import Image
 
 from rotlearn.bingham import CREDIBLE_LEVELS
-from rotlearn.cli.report import make_report
+from rotlearn.report import make_report
 
 
 def _run(run: Path, rep: str, loss: str, metrics: dict) -> None:

@@ -11,9 +11,9 @@ import torch
 import yaml
 
 from rotlearn.cli.report import main as report_main
-from rotlearn.cli.report import make_report
 from rotlearn.ood import SCORES, mixed_set, rejection_table
-from rotlearn.ood.report import write_samples
+from rotlearn.ood.records import write_samples
+from rotlearn.report import make_report
 
 PAPER = {
     "source": "paper Table I, sequence 00",

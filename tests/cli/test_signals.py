@@ -15,8 +15,8 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf, open_dict
 
 from rotlearn.cli.callbacks import JobStatusCallback, summarise_jobs
-from rotlearn.cli.report import make_report
 from rotlearn.lit import barely_learned, divergence
+from rotlearn.report import make_report
 from tests.conftest import CONFIG_DIR, RESUMABLE, checkpoint_epoch, start_cli
 
 # --- signals -----------------------------------------------------------------------------------

@@ -41,7 +41,9 @@ def test_the_help_lists_every_config_group_and_option():
 
 
 def test_report_imports_without_lightning():
-    _, modules = _modules_after("import rotlearn.cli.report")
+    _, modules = _modules_after(
+        "import rotlearn.cli.report\nfrom rotlearn.report import make_report"
+    )
     assert "lightning" not in modules and "pandas" in modules
 
 

@@ -10,13 +10,12 @@ from pathlib import Path
 
 import pytest
 import torch
-from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from rotlearn.bingham import CREDIBLE_LEVELS
 from rotlearn.cli.train import build
 from rotlearn.lit.regressor import noisiest
 from rotlearn.ood.scores import SCORES, Score, register_score
-from tests.conftest import FAST
+from tests.conftest import FAST, tensorboard_events
 
 COVERAGE = [f"test/coverage_{a:g}" for a in CREDIBLE_LEVELS]
 BELIEF_KEYS = ["test/nll", "test/ece", *COVERAGE]
@@ -54,7 +53,7 @@ def test_a_head_reports_its_calibration_and_the_untempered_one_when_tempered(mak
         assert -1.0 <= plain[f"test/{score}_spearman"] <= 1.0
     assert not any("uncalibrated" in k or "auroc_noisiest" in k for k in plain)
     assert "test/temperature" not in plain
-    acc = EventAccumulator(str(run / "tensorboard"), size_guidance={"images": 0}).Reload()
+    (acc,) = [e for name, e in tensorboard_events(run).items() if name.endswith("/test")]
     assert "test/reliability" in acc.Tags()["images"]
 
     model.belief_temperature = 2.0

@@ -21,12 +21,8 @@ from rotlearn.ood import (
     rejection_row,
     rejection_table,
 )
-from rotlearn.ood.report import (
-    box_groups,
-    examples_figure,
-    read_samples,
-    write_samples,
-)
+from rotlearn.ood.records import read_samples, write_samples
+from rotlearn.report.figures import box_groups, examples_figure
 
 DT, GAP = SCORES["dt"], SCORES["eigengap"]
 
@@ -106,7 +102,7 @@ def test_samples_file_round_trips_and_feeds_the_box_groups(tmp_path):
         False, False, True,
     ]  # fmt: skip
     torch.testing.assert_close(back["indoor"]["dt"], sets["indoor"]["dt"].double(), equal_nan=True)
-    groups = box_groups(DT, back)
+    groups = box_groups(DT.name, back)
     assert list(groups) == ["train", "test", "erased", "indoor", "noise"]
     assert groups["test"].tolist() == [-1.5]  # NaN dropped
     assert groups["erased"].tolist() == [-0.5] and groups["indoor"].tolist() == [-0.1]

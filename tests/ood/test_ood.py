@@ -27,7 +27,7 @@ from rotlearn.ood import (
     spearman,
 )
 from rotlearn.paths import config_dir
-from tests.conftest import write_kitti, write_mav, yaw_sequence
+from tests.conftest import tensorboard_events, write_kitti, write_mav, yaw_sequence
 
 # -- thresholds --------------------------------------------------------------------------------
 
@@ -196,8 +196,12 @@ def test_the_callback_writes_every_column(trained_run):
     assert (frame[frame["set"] == "clean"]["n_corrupted"] == 0).all()
     table = (run_dir / "ood.md").read_text()
     assert "| a + DT | 0.75 |" in table
-    events = list((run_dir / "tensorboard").glob("events.out.tfevents.*"))
-    assert events
+    # TensorBoard: one figure per score and the example pairs; each AUROC a result, no
+    # per-quantile scalars
+    (test,) = [e for name, e in tensorboard_events(run_dir).items() if name.endswith("/test")]
+    assert {"ood/dt", "ood/eigengap", "ood/raw_norm", "ood/examples"} <= set(test.Tags()["images"])
+    assert {t for t in test.Tags()["scalars"] if t.startswith("ood/")} == {
+        "ood/auroc_dt", "ood/auroc_eigengap", "ood/auroc_raw_norm"}  # fmt: skip
 
 
 def _eval_cfg(overrides, out):
@@ -271,7 +275,7 @@ def test_an_autoencoder_trained_on_the_fly_scores_the_pairs(tiny_kitti, make_cfg
 def test_the_report_collects_table_one(trained_run, make_cfg, tmp_path):
     from omegaconf import OmegaConf
 
-    from rotlearn.cli.report import make_report
+    from rotlearn.report import make_report
 
     run_dir, _ = trained_run
     (run_dir / ".hydra").mkdir()

@@ -70,6 +70,7 @@ index.
 from rotlearn.bingham.calibration import (
     CREDIBLE_LEVELS,
     coverage,
+    credible_radius_deg,
     expected_calibration_error,
     hpd_level,
 )
@@ -96,6 +97,7 @@ __all__ = [
     "TemperatureFit",
     "bingham_parameters",
     "coverage",
+    "credible_radius_deg",
     "dispersion",
     "dispersion_from_eigenvalues",
     "dt_from_eigenvalues",

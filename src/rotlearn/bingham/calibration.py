@@ -24,6 +24,13 @@ inside C_alpha, `coverage`, is alpha at every level, and the expected calibratio
 `expected_calibration_error` = mean over levels |coverage(alpha) - alpha| is 0. A belief too sharp
 (over-confident) covers less than alpha; one too wide covers more.
 
+For a person, the belief's spread in degrees: `credible_radius_deg`, the radius r of the
+smallest geodesic ball around the mode (the predicted rotation) that holds a given mass,
+P_{x ~ A}[angle(x, mode) <= r] = level, with angle(x, m) = 2 atan2(|x - (x.m) m|, |x.m|) the
+angle of the rotation between the two (either sign of x). "90 % of the belief lies within r
+degrees of the prediction." (The HPD region of the same mass is smaller where the belief is not
+isotropic; the ball is what a single number can say.)
+
 Monte Carlo
 -----------
 No closed form of the mass of {x^T A x <= t} is used: `hpd_level` estimates it from n = num_samples
@@ -42,10 +49,16 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from rotlearn.bingham.descriptors import _check_A, _float_dtype, _raise_first, _symmetric
+from rotlearn.bingham.descriptors import _check_A, _float_dtype, _raise_first, _symmetric, mode
 from rotlearn.bingham.sampling import sample
 
-__all__ = ["CREDIBLE_LEVELS", "coverage", "expected_calibration_error", "hpd_level"]
+__all__ = [
+    "CREDIBLE_LEVELS",
+    "coverage",
+    "credible_radius_deg",
+    "expected_calibration_error",
+    "hpd_level",
+]
 
 CREDIBLE_LEVELS: tuple[float, ...] = tuple(round(0.1 * i, 1) for i in range(1, 10))
 """The credible levels alpha = 0.1, 0.2, ..., 0.9 of the coverage and the ECE."""
@@ -129,3 +142,47 @@ def expected_calibration_error(
     averaged); a 0-dim float64 tensor. Args as `coverage`."""
     grid = torch.tensor(alphas, dtype=torch.float64, device=levels.device)
     return (coverage(levels, alphas) - grid).abs().mean()
+
+
+def credible_radius_deg(
+    A: Tensor, level: float = 0.9, num_samples: int = 4096, generator: torch.Generator | None = None
+) -> Tensor:
+    """The radius in degrees of the smallest geodesic ball around the belief's mode that holds
+    the mass `level` (module docstring): "`level` of the belief lies within r of its rotation".
+
+    Estimated from `num_samples` draws of each belief (`rotlearn.bingham.sample`) as the
+    empirical `level`-quantile of their angles to the mode: the belief mass inside the estimated
+    radius is `level` give or take sqrt(level (1 - level) / num_samples) (0.005 for 0.9 and
+    4096 draws).
+
+    Args:
+        A: (..., 4, 4) symmetric matrices (their symmetric part is used), finite.
+        level: the mass, in (0, 1].
+        num_samples: draws per belief, >= 1.
+        generator: random source on A's device (None: torch's default).
+
+    Returns:
+        (...,) radii in [0, 180] degrees, in A's dtype (float32 for lower precisions). Not
+        differentiable.
+    """
+    _check_A(A)
+    if not 0.0 < level <= 1.0:
+        raise ValueError(f"level must lie in (0, 1], got {level}")
+    if num_samples < 1:
+        raise ValueError(f"num_samples must be >= 1, got {num_samples}")
+    dtype = A.dtype if A.dtype in (torch.float32, torch.float64) else torch.float32
+    batch = A.shape[:-2]
+    with torch.no_grad():
+        A = _symmetric(A).to(dtype).reshape(-1, 4, 4)
+        centre = mode(A)  # (B, 4)
+        radii = A.new_empty(A.shape[0])
+        rows = max(1, _CHUNK_SAMPLES // num_samples)
+        for start in range(0, A.shape[0], rows):
+            part = slice(start, start + rows)
+            x = sample(A[part], num_samples, generator)  # (rows, n, 4)
+            m = centre[part].unsqueeze(1)
+            dot = (x * m).sum(-1, keepdim=True)
+            off = torch.linalg.vector_norm(x - dot * m, dim=-1)
+            angles = torch.rad2deg(2.0 * torch.atan2(off, dot.squeeze(-1).abs()))
+            radii[part] = torch.quantile(angles, level, dim=-1)
+    return radii.reshape(batch)

@@ -172,12 +172,14 @@ class ReportCallback(Callback):
     a job failed; `rotlearn-report <dir>` then makes the same report, failures listed.)"""
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
-        from rotlearn.cli.report import make_report
+        from rotlearn.report import make_report
 
+        sweep_dir = config.hydra.sweep.dir
         try:
             with logger_at_least("tensorboard"):
-                files = make_report(config.hydra.sweep.dir)
+                files = make_report(sweep_dir)
         except FileNotFoundError as exc:
             log.warning("no report: %s", exc)
             return
         log.info("report: %s", files["report"])
+        log.info("open TensorBoard on the sweep: tensorboard --logdir %s", sweep_dir)

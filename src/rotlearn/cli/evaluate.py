@@ -63,8 +63,8 @@ def evaluation_config(cfg: DictConfig, saved: SavedRun) -> DictConfig:
     run.trainer = OmegaConf.merge(trainer, _set(cfg.trainer), {"default_root_dir": out})
     run.logger = {
         "tensorboard": {
-            "_target_": "lightning.pytorch.loggers.TensorBoardLogger",
-            "save_dir": out, "name": "tensorboard", "version": "", "default_hp_metric": False,
+            "_target_": "rotlearn.lit.TensorBoardRunLogger",
+            "save_dir": out, "name": "tensorboard", "version": None, "default_hp_metric": False,
         }
     }  # fmt: skip
     run.paths = {"output_dir": out}

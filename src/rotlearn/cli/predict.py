@@ -5,8 +5,18 @@ Point models: INPUT is a point-cloud pair file, a `.npy` array (N, 6) or (B, N, 
 file of N lines "ux uy uz vx vy vz" (whitespace or commas; `#` starts a comment): the matched
 pairs (u_i, v_i) with v_i = R u_i. Image-pair models (data=kitti, data=mav): INPUT and INPUT2 are
 the two frames (e.g. sequences/00/image_2/000000.png and 000001.png), preprocessed as in
-training; the answer is C_21, the rotation from the first camera to the second. The uncertainty
-(A head) is that of the belief tempered by the checkpoint's calibrated temperature, if any.
+training; the answer is C_21, the rotation from the first camera to the second.
+
+Per pair it prints:
+  rotation     its angle and axis, and the quaternion (x, y, z, w);
+  uncertainty  (heads with a belief: rep=a, rep=fisher) the radius of the belief's 90 % credible
+               ball around the rotation, in degrees: 90 % of the belief lies within it
+               (`rotlearn.bingham.credible_radius_deg`; the belief tempered by the checkpoint's
+               calibrated temperature, if any);
+  OOD check    the DT score (paper eq. 26; lower = more confident), the threshold calibrated on
+               the training scores (`callbacks=ood`, beside the checkpoint) and the decision:
+               keep when the score is below it, reject otherwise.
+--json prints the same for scripts, with the rotation matrix R and the Bingham dispersion.
 """
 
 from __future__ import annotations
@@ -15,14 +25,14 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
-from rotlearn.geometry import angle_deg
 from rotlearn.io import read_number_rows
 
-__all__ = ["main", "read_point_pairs"]
+__all__ = ["describe", "main", "read_point_pairs", "text_lines"]
 
 
 def read_point_pairs(path: str | Path, width: int = 6) -> np.ndarray:
@@ -79,41 +89,90 @@ def main(argv: list[str] | None = None) -> int:
     except (OSError, ValueError, TypeError) as exc:
         print(f"rotlearn-predict: {exc}", file=sys.stderr)
         return 2
-    identity = torch.eye(3, dtype=estimate.R.dtype)
+    results = describe(estimate, getattr(predictor, "ood", None))
+    if args.json:
+        print(json.dumps(results if len(results) > 1 else results[0], indent=2))
+        return 0
+    head = getattr(getattr(predictor, "head", None), "name", None)
+    for i, item in enumerate(results):
+        if len(results) > 1:
+            print(f"pair {i}:")
+        print(text_lines(item, head))
+    return 0
+
+
+UNCERTAINTY_LEVEL = 0.9  # the mass of the credible ball whose radius rotlearn-predict prints
+
+
+def describe(estimate: Any, ood: dict[str, Any] | None) -> list[dict[str, Any]]:
+    """Per pair of a `RotationEstimate`: the rotation (R, q_xyzw, angle_deg, axis), and where the
+    head has a belief its uncertainty (the 90 % credible radius in degrees, the dispersion, the
+    DT score, the temperature) and, given a calibrated threshold (`ood`), the OOD decision."""
+    q = estimate.q.double().cpu()
+    sine = torch.linalg.vector_norm(q[:, :3], dim=-1)
+    angles = torch.rad2deg(2.0 * torch.atan2(sine, q[:, 3].abs()))
+    radii = None
+    if estimate.A is not None:
+        from rotlearn.bingham import credible_radius_deg
+
+        generator = torch.Generator(device=estimate.A.device).manual_seed(0)  # same answer twice
+        radii = credible_radius_deg(estimate.A, UNCERTAINTY_LEVEL, generator=generator).cpu()
     results = []
     for i in range(estimate.R.shape[0]):
-        item = {
+        axis = (q[i, :3] / sine[i]).tolist() if float(sine[i]) > 0 else [0.0, 0.0, 0.0]
+        item: dict[str, Any] = {
             "R": estimate.R[i].tolist(),
             "q_xyzw": estimate.q[i].tolist(),
-            "angle_deg": float(angle_deg(estimate.R[i].cpu(), identity)),
+            "angle_deg": float(angles[i]),
+            "axis": axis,
         }
+        if radii is not None:
+            item["uncertainty_deg"] = float(radii[i])
+            item["uncertainty_level"] = UNCERTAINTY_LEVEL
         if estimate.dt is not None:
             item["dispersion"] = estimate.dispersion[i].tolist()
             item["dt_score"] = float(estimate.dt[i])
             item["temperature"] = estimate.temperature
-        if estimate.keep is not None:
+        if estimate.keep is not None and ood is not None:
+            item["ood"] = {"score": ood["score"], "value": item.get("dt_score"),
+                           "threshold": float(ood["threshold"]), "q": float(ood["q"]),
+                           "decision": "keep" if bool(estimate.keep[i]) else "reject"}  # fmt: skip
             item["keep"] = bool(estimate.keep[i])
         results.append(item)
-    if args.json:
-        print(json.dumps(results if len(results) > 1 else results[0], indent=2))
-        return 0
-    for i, item in enumerate(results):
-        prefix = f"[{i}] " if len(results) > 1 else ""
-        print(f"{prefix}rotation angle {item['angle_deg']:.4f} deg")
-        print(f"{prefix}q (x, y, z, w) = " + " ".join(f"{v:+.6f}" for v in item["q_xyzw"]))
-        for row in item["R"]:
-            print(f"{prefix}  " + " ".join(f"{v:+.6f}" for v in row))
-        if "dt_score" in item:
-            disp = ", ".join(f"{v:.4g}" for v in item["dispersion"])
-            t = item["temperature"]
-            tempered = f", temperature {t:.4g}" if t != 1 else ""
-            print(
-                f"{prefix}uncertainty: DT score {item['dt_score']:.4g} (lower = more confident), "
-                f"Bingham dispersion ({disp}){tempered}"
-            )
-        if "keep" in item:
-            print(f"{prefix}OOD check: {'keep' if item['keep'] else 'reject'}")
-    return 0
+    return results
+
+
+def text_lines(item: dict[str, Any], head: str | None = None) -> str:
+    """One pair of `describe` as the lines a person reads."""
+    axis = ", ".join(f"{v:+.3f}" for v in item["axis"])
+    q = ", ".join(f"{v:+.6f}" for v in item["q_xyzw"])
+    lines = [
+        f"  rotation     {item['angle_deg']:.3f} deg about ({axis})",
+        f"  quaternion   (x, y, z, w) = ({q})",
+    ]
+    if "uncertainty_deg" in item:
+        t = item.get("temperature", 1.0)
+        tempered = f", temperature {t:.4g}" if t != 1 else ""
+        lines.append(
+            f"  uncertainty  {item['uncertainty_deg']:.3g} deg: "
+            f"{100 * item['uncertainty_level']:.0f} % of the belief lies within it{tempered}"
+        )
+    else:
+        lines.append(f"  uncertainty  none: rep={head} defines no belief (rep=a or rep=fisher do)")
+    if "ood" in item:
+        ood = item["ood"]
+        side = "<" if ood["decision"] == "keep" else ">="
+        lines.append(
+            f"  OOD check    {ood['decision']}: {ood['score'].upper()} score {ood['value']:.4g} "
+            f"{side} threshold {ood['threshold']:.4g} (the q = {ood['q']:g} quantile of the "
+            "training scores; lower = more confident)"
+        )
+    elif "dt_score" in item:
+        lines.append(
+            f"  OOD check    no threshold with this checkpoint (train with callbacks=ood); "
+            f"DT score {item['dt_score']:.4g} (lower = more confident)"
+        )
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":

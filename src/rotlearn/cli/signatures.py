@@ -246,7 +246,7 @@ def targets() -> dict[str, dict[str, Spec]]:
     from lightning.pytorch import callbacks, loggers
 
     from rotlearn import nets
-    from rotlearn.lit import EpochTimer
+    from rotlearn.lit import EpochTimer, TensorBoardRunLogger
 
     def specs(classes: dict[str, type], supplied=(), ranges=None, extra=None) -> dict[str, Spec]:
         extra = extra or {}  # where a class's **kwargs go, when we know
@@ -280,8 +280,17 @@ def targets() -> dict[str, dict[str, Spec]]:
         ),
         "net": specs(_classes(nets, torch.nn.Module, "rotlearn.nets"), ranges=NET_RANGES),
         "logger": specs(
-            _classes(loggers, pl.loggers.Logger, "lightning.pytorch.loggers"),
-            extra={loggers.TensorBoardLogger: _summary_writer()},
+            {
+                **_classes(loggers, pl.loggers.Logger, "lightning.pytorch.loggers"),
+                "rotlearn.lit.TensorBoardRunLogger": TensorBoardRunLogger,
+            },
+            extra={
+                loggers.TensorBoardLogger: _summary_writer(),
+                TensorBoardRunLogger: {
+                    **parameters(loggers.TensorBoardLogger),
+                    **_summary_writer(),
+                },
+            },
         ),
         "callbacks": specs(callback_classes)
         | specs(

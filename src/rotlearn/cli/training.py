@@ -26,17 +26,21 @@ from hydra.errors import InstantiationException
 from omegaconf import DictConfig, OmegaConf
 
 from rotlearn.checkpoint import load_checkpoint
-from rotlearn.cli.callbacks import record_job
+from rotlearn.cli.callbacks import PLANNED, record_job
 from rotlearn.cli.resume import checkpoint_to_resume
 from rotlearn.cli.schemas import validate
 from rotlearn.errors import ConfigError
+from rotlearn.io import plain_name, read_json
 from rotlearn.lit import (
     EpochLosses,
     InterruptRecorder,
     ModelSummary,
+    ProgressBar,
     RunRecords,
     TemperatureScaling,
 )
+from rotlearn.report.identity import hparams_record, run_name, swept_keys
+from rotlearn.report.tensorboard import EVENTS_DIR, event_runs
 
 __all__ = ["ConfigError", "RunInterrupted", "build", "report", "train"]
 
@@ -100,9 +104,73 @@ def _component_key(cfg: DictConfig, key: str, exc: InstantiationException) -> st
     return f"{key}.{part}"
 
 
-def _instantiate_all(cfg: DictConfig, key: str) -> list[Any]:
+def _instantiate_all(cfg: DictConfig, key: str, **kwargs: Any) -> list[Any]:
+    """Every entry of the node `key` (`logger`, `callbacks`); `kwargs`: entry name -> keyword
+    arguments for that entry."""
     node = OmegaConf.select(cfg, key) or {}
-    return [_instantiate(cfg, f"{key}.{name}") for name in node]
+    return [_instantiate(cfg, f"{key}.{name}", **kwargs.get(str(name), {})) for name in node]
+
+
+class _Runtime:
+    """What Hydra's runtime says about this run (nothing for a config composed without it): its
+    command-line overrides, the option chosen in each config group, and, in a sweep, the job's
+    number and the keys the sweep varies."""
+
+    def __init__(self) -> None:
+        from hydra.core.hydra_config import HydraConfig
+
+        self.overrides: list[str] = []
+        self.choices: dict[str, str] = {}
+        self.job_num: int | None = None
+        self.swept: list[str] | None = None
+        if not HydraConfig.initialized():
+            return
+        hydra_cfg = HydraConfig.get()
+        self.overrides = [str(o) for o in hydra_cfg.overrides.task]
+        choices = OmegaConf.to_container(hydra_cfg.runtime.choices)
+        self.choices = {str(k): str(v) for k, v in choices.items() if v is not None}
+        if getattr(hydra_cfg.mode, "name", None) == "MULTIRUN":
+            self.job_num = int(OmegaConf.select(hydra_cfg, "job.num", default=0) or 0)
+            self.swept = self._swept(hydra_cfg)
+
+    @staticmethod
+    def _swept(hydra_cfg: DictConfig) -> list[str]:
+        """The keys the sweep varies: from its planned jobs (basic sweeper), else the keys of
+        `hydra.sweeper.params` (Optuna and other sweepers)."""
+        planned = read_json(Path(hydra_cfg.sweep.dir) / PLANNED)
+        if isinstance(planned, list) and planned:
+            jobs = [job.get("overrides") or [] for job in planned if isinstance(job, dict)]
+            return swept_keys(jobs)
+        params = OmegaConf.select(hydra_cfg, "sweeper.params") or {}
+        return [str(key) for key in params]
+
+
+_RUN_LOGGERS = (
+    "rotlearn.lit.TensorBoardRunLogger",
+    "rotlearn.lit.tensorboard.TensorBoardRunLogger",
+)
+
+
+def _tensorboard_name(cfg: DictConfig, config: dict[str, Any], runtime: _Runtime) -> str:
+    """The name of the run in TensorBoard (its folder below `<run>/tensorboard/`): the one a
+    resumed run already has, else its overrides (in a sweep: the swept ones), e.g.
+    `rep=a,optim.lr=0.001` (`rotlearn.report.identity.run_name`)."""
+    existing = event_runs(Path(cfg.paths.output_dir))
+    if len(existing) == 1 and existing[0].name != EVENTS_DIR:
+        return plain_name(existing[0].name, where=str(existing[0]))
+    return run_name(config, runtime.overrides, runtime.choices, runtime.swept)
+
+
+def _loggers(cfg: DictConfig, config: dict[str, Any], runtime: _Runtime) -> list[Any]:
+    """The configured loggers; a `TensorBoardRunLogger` without a version gets the run's name."""
+    node = OmegaConf.select(cfg, "logger") or {}
+    named = {}
+    for name in node:
+        entry = node[name]
+        target = entry.get("_target_") if isinstance(entry, DictConfig) else None
+        if target in _RUN_LOGGERS and entry.get("version") in (None, ""):
+            named[str(name)] = {"version": _tensorboard_name(cfg, config, runtime)}
+    return _instantiate_all(cfg, "logger", **named)
 
 
 def build(cfg: DictConfig) -> tuple[pl.LightningModule, pl.LightningDataModule, pl.Trainer]:
@@ -110,31 +178,39 @@ def build(cfg: DictConfig) -> tuple[pl.LightningModule, pl.LightningDataModule, 
 
     `instantiate(cfg.model)` is the whole model (`model=regressor`: net, head, loss, optimizer
     and scheduler from their groups; `model=autoencoder`: the OOD baseline). The trainer gets
-    the configured callbacks plus the run's record keeping (`RunRecords`, `InterruptRecorder`,
-    `EpochLosses`), whatever `callbacks=` says, `calibrate: true` adds the post-hoc temperature
-    fit (`rotlearn.lit.calibration.TemperatureScaling`; refused with a `ConfigError` naming
-    `calibrate` for a head without a belief), and `trainer.enable_model_summary` gives
-    rotlearn's `ModelSummary`."""
+    the configured callbacks plus the run's record keeping (`InterruptRecorder`, `EpochLosses`,
+    and `RunRecords` last, with the run's HPARAMS record), whatever `callbacks=` says;
+    `calibrate: true` adds the post-hoc temperature fit (`rotlearn.lit.calibration.
+    TemperatureScaling`; refused with a `ConfigError` naming `calibrate` for a head without a
+    belief); `trainer.enable_model_summary` gives rotlearn's `ModelSummary` (in a sweep, job 0
+    only: once per sweep) and `trainer.enable_progress_bar` its `ProgressBar` (training loss and
+    last validation error). A `TensorBoardRunLogger` is named by the run's overrides."""
     validate(cfg)
     pl.seed_everything(cfg.seed, workers=True, verbose=False)
     datamodule = _instantiate(cfg, "data")
     model = _instantiate(cfg, "model")
     model.run_config = OmegaConf.to_container(cfg, resolve=True)
+    runtime = _Runtime()
     callbacks = _instantiate_all(cfg, "callbacks")
-    callbacks += [RunRecords(cfg.paths.output_dir), InterruptRecorder(), EpochLosses()]
+    callbacks += [InterruptRecorder(), EpochLosses()]
     if OmegaConf.select(cfg, "calibrate", default=False):
         head = getattr(model, "head", None)
         if not getattr(head, "defines_belief", False):
             what = f"rep={head.name}" if head is not None else f"the {type(model).__name__}"
             raise ConfigError("calibrate", f"fits the temperature of a belief; {what} has none")
         callbacks.append(TemperatureScaling(cfg.paths.output_dir))
-    if OmegaConf.select(cfg, "trainer.enable_model_summary", default=True):
+    summary = OmegaConf.select(cfg, "trainer.enable_model_summary", default=True)
+    if summary and not runtime.job_num:
         callbacks.append(ModelSummary())  # Lightning's, without its column of zero FLOPs
+    if OmegaConf.select(cfg, "trainer.enable_progress_bar", default=True):
+        callbacks.append(ProgressBar())
+    hparams = hparams_record(model.run_config, runtime.overrides, runtime.choices)
+    callbacks.append(RunRecords(cfg.paths.output_dir, hparams))  # last: it reads the others
     trainer = _instantiate(
         cfg,
         "trainer",
         callbacks=callbacks,
-        logger=_instantiate_all(cfg, "logger") or False,
+        logger=_loggers(cfg, model.run_config, runtime) or False,
         enable_model_summary=False,  # the summary is the callback above
     )
     return model, datamodule, trainer
@@ -189,6 +265,22 @@ def _interruptions_recorded(trainer: pl.Trainer, run_dir: Path):
         raise stop from None
 
 
+@contextlib.contextmanager
+def _console_lines():
+    """Log records and Python warnings on lines of their own while progress bars are drawn:
+    the console handlers of the root and Lightning loggers write through tqdm (which lifts the
+    bars, writes the line and redraws them), and warnings go through logging meanwhile."""
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
+    loggers = [logging.getLogger(), logging.getLogger("lightning.pytorch")]
+    logging.captureWarnings(True)
+    try:
+        with logging_redirect_tqdm(loggers=loggers):
+            yield
+    finally:
+        logging.captureWarnings(False)
+
+
 def train(cfg: DictConfig) -> dict[str, Any]:
     """Fit and test the run of `cfg` in `cfg.paths.output_dir`; returns its metrics.
 
@@ -201,7 +293,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     resume = checkpoint_to_resume(cfg, run_dir)
     torch.set_float32_matmul_precision(cfg.float32_matmul_precision)
     model, datamodule, trainer = build(cfg)
-    with _interruptions_recorded(trainer, run_dir):
+    with _console_lines(), _interruptions_recorded(trainer, run_dir):
         trainer.fit(model, datamodule=datamodule, ckpt_path=resume, weights_only=True)
         best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
         ckpt_path = best if cfg.test_ckpt == "best" and best else None

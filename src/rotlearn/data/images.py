@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from rotlearn.extras import import_extra
-from rotlearn.io import write_text_atomic
+from rotlearn.io import atomic_write, write_text_atomic
 
 __all__ = [
     "frame_cache",
@@ -131,10 +131,8 @@ def frame_cache(
         return np.load(array_path, mmap_mode="r")
     from tqdm import tqdm
 
-    cache.parent.mkdir(parents=True, exist_ok=True)
     manifest_path.unlink(missing_ok=True)
-    tmp = array_path.with_name(f".{array_path.name}.{os.getpid()}.tmp")
-    try:
+    with atomic_write(array_path) as tmp:
         out = first = None
         for i, path in enumerate(tqdm(files, desc=desc, unit="frame", mininterval=1.0)):
             image = read_image(path, gray)
@@ -151,8 +149,5 @@ def frame_cache(
             raise ValueError(f"{cache}: no frames to cache")
         out.flush()
         del out
-        os.replace(tmp, array_path)
-    finally:
-        tmp.unlink(missing_ok=True)
     write_text_atomic(manifest_path, json.dumps(manifest))
     return np.load(array_path, mmap_mode="r")

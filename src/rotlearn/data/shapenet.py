@@ -33,6 +33,7 @@ from rotlearn.errors import ConfigValueError, require_positive_ints
 from rotlearn.extras import import_extra
 from rotlearn.geometry import quat_to_rotmat, so3_exp_quat
 from rotlearn.io import (
+    atomic_write,
     cache_file,
     parse_number_rows,
     plain_name,
@@ -142,13 +143,8 @@ def sample_meshes(paths: list[Path], num_points: int, cache: Path, seed: int = 0
     for i, path in enumerate(tqdm(paths, desc="sampling ShapeNet meshes", unit="mesh")):
         points, _ = trimesh.sample.sample_surface(read_mesh(path), num_points, seed=seed + i)
         clouds[i] = points
-    cache.parent.mkdir(parents=True, exist_ok=True)
-    tmp = array_path.with_name(f".{array_path.name}.{os.getpid()}.tmp.npy")
-    try:
+    with atomic_write(array_path) as tmp:
         np.save(tmp, clouds)
-        os.replace(tmp, array_path)
-    finally:
-        tmp.unlink(missing_ok=True)
     write_text_atomic(manifest_path, json.dumps(manifest))
     return clouds
 

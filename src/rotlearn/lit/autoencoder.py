@@ -16,6 +16,7 @@ from torchmetrics import MeanMetric
 
 from rotlearn.checkpoint import load_run
 from rotlearn.errors import ConfigValueError
+from rotlearn.io import atomic_write
 from rotlearn.lit.finite import FINITE_CHECK_EVERY, FiniteChecks
 from rotlearn.lit.state import RunStateHooks
 from rotlearn.logs import logger_at_least
@@ -98,7 +99,9 @@ class AutoEncoderModule(FiniteChecks, RunStateHooks, pl.LightningModule):
         self.test_score.update(self._loss(batch, "test", batch_idx))
 
     def _log_mean(self, name: str, metric: MeanMetric) -> None:
-        self.log(name, metric.compute(), on_step=False, on_epoch=True)
+        """The metric's mean: a per-epoch series for train and val, one result for test."""
+        logger = False if name.startswith("test/") else None  # None: to the loggers
+        self.log(name, metric.compute(), on_step=False, on_epoch=True, logger=logger)
         metric.reset()
 
     def on_train_epoch_end(self) -> None:
@@ -204,7 +207,6 @@ def save_autoencoder(module: AutoEncoderModule, path: str | os.PathLike) -> Path
     """Write `module`'s weights and `run_config` as a checkpoint that `load_autoencoder` reads
     (tensors and plain data only), atomically; returns the path."""
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
-    torch.save({"state_dict": module.state_dict(), "rotlearn_config": module.run_config}, tmp)
-    os.replace(tmp, path)
+    with atomic_write(path) as tmp:
+        torch.save({"state_dict": module.state_dict(), "rotlearn_config": module.run_config}, tmp)
     return path

@@ -8,8 +8,9 @@ fits one scalar temperature T on the beliefs A and the targets q by mean NLL
 * sets `pl_module.belief_temperature = T`, which the regressor applies in `forward` and its test
   step: every test metric, and the OOD evaluation (`callbacks=ood`, which runs at the test's END
   and predicts through `forward`), see the tempered belief, whatever the callbacks' order;
-* logs `calibration/temperature`, `calibration/val_nll` and `calibration/val_nll_uncalibrated`
-  (nats, w.r.t. the uniform measure on SO(3)), which reach metrics.json;
+* records `calibration/temperature`, `calibration/val_nll` and `calibration/val_nll_uncalibrated`
+  (nats, w.r.t. the uniform measure on SO(3)) as results of the run (metrics.json and the run's
+  text table in TensorBoard; not scalar series);
 * writes `<run>/checkpoints/temperature.json` beside the tested checkpoint (`TEMPERATURE_FILE`,
   read by `rotlearn.load` and `rotlearn-eval`): {"temperature", "checkpoint" (the tested file's
   name), "val_nll", "val_nll_uncalibrated" (null where not computable), "num_val"}.
@@ -48,6 +49,14 @@ def _finish(datamodule: Any, batch: Any, module: pl.LightningModule) -> Any:
     return datamodule.on_after_batch_transfer(batch, 0)
 
 
+def _progress(batches: Any) -> Any:
+    """`batches` with a progress bar on stderr that shows only when they take over 2 s."""
+    from tqdm.auto import tqdm
+
+    return tqdm(batches, desc="calibration: validation beliefs", unit="batch", delay=2.0,
+                leave=False, dynamic_ncols=True)  # fmt: skip
+
+
 def validation_beliefs(
     module: pl.LightningModule, datamodule: Any
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -58,7 +67,7 @@ def validation_beliefs(
     beliefs, targets = [], []
     try:
         with torch.inference_mode():
-            for batch in datamodule.val_dataloader():
+            for batch in _progress(datamodule.val_dataloader()):
                 batch = _finish(datamodule, batch, module)
                 prediction = module.head(module.net(batch["input"]))
                 beliefs.append(prediction.A.double().cpu())
@@ -116,7 +125,7 @@ class TemperatureScaling(pl.Callback):
         metrics = {"calibration/temperature": temperature, "calibration/val_nll": fit.nll_after}
         if math.isfinite(fit.nll_before):
             metrics["calibration/val_nll_uncalibrated"] = fit.nll_before
-        pl_module.log_dict(metrics, on_step=False, on_epoch=True)
+        pl_module.log_dict(metrics, on_step=False, on_epoch=True, logger=False)
         folder, name = self._tested_checkpoint(trainer)
         self.record = {
             "temperature": temperature,

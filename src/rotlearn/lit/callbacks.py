@@ -1,9 +1,11 @@
 """Small training callbacks: epoch timing, per-epoch training loss, the record of a signal, the
-data-dependent initialisation of a net, and a model summary without empty columns."""
+data-dependent initialisation of a net, a model summary without empty columns, and a progress
+bar that shows the training loss and the last validation error."""
 
 from __future__ import annotations
 
 import logging
+import math
 import signal
 import time
 from typing import Any
@@ -11,12 +13,20 @@ from typing import Any
 import lightning.pytorch as pl
 import torch
 from lightning.pytorch.callbacks import ModelSummary as LightningModelSummary
+from lightning.pytorch.callbacks import TQDMProgressBar
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from lightning.pytorch.utilities.model_summary.model_summary import _format_summary_table
 
 from rotlearn.trust import config_target
 
-__all__ = ["DataDependentInit", "EpochLosses", "EpochTimer", "InterruptRecorder", "ModelSummary"]
+__all__ = [
+    "DataDependentInit",
+    "EpochLosses",
+    "EpochTimer",
+    "InterruptRecorder",
+    "ModelSummary",
+    "ProgressBar",
+]
 
 log = logging.getLogger("rotlearn")
 
@@ -73,6 +83,11 @@ class EpochLosses(pl.Callback):
 
     def on_train_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         self._close_epoch()
+
+    def running_mean(self) -> float | None:
+        """The mean training loss of the epoch so far (None before its first batch): one host
+        sync, for a reader that asks now and then (`ProgressBar`: once a second)."""
+        return float(self._sum) / self._count if self._sum is not None and self._count else None
 
     def _close_epoch(self) -> None:
         if self._sum is not None and self._count:
@@ -203,3 +218,44 @@ class ModelSummary(LightningModelSummary):
         )
         lines = [line for line in table.splitlines() if not line.rstrip().endswith("Total Flops")]
         log.info("model summary:\n%s", "\n".join(lines))
+
+
+class ProgressBar(TQDMProgressBar):
+    """Lightning's tqdm progress bar showing `loss`, the training loss (the epoch's running
+    mean, read from `EpochLosses` at most once per `refresh_s` seconds: no host sync per step),
+    and `val err`, the last validation median error in degrees; Lightning's `v_num` left out.
+
+    `rotlearn.cli.training.build` puts it in place of Lightning's bar when
+    `trainer.enable_progress_bar` is true.
+    """
+
+    def __init__(self, refresh_s: float = 1.0) -> None:
+        super().__init__()
+        self.refresh_s = float(refresh_s)
+        self._loss: float | None = None
+        self._val_err: float | None = None
+        self._read_at = -math.inf
+
+    def on_train_epoch_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        super().on_train_epoch_start(trainer, pl_module)
+        self._read_at = -math.inf
+
+    def on_validation_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        super().on_validation_end(trainer, pl_module)
+        value = trainer.callback_metrics.get("val/err_median")
+        if value is not None and not trainer.sanity_checking:
+            self._val_err = float(value)
+
+    def get_metrics(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> dict[str, Any]:
+        now = time.monotonic()
+        losses = next((cb for cb in trainer.callbacks if isinstance(cb, EpochLosses)), None)
+        if losses is not None and now - self._read_at >= self.refresh_s:
+            running = losses.running_mean()
+            self._loss = running if running is not None else self._loss
+            self._read_at = now
+        shown: dict[str, Any] = {}
+        if self._loss is not None:
+            shown["loss"] = f"{self._loss:.4g}"
+        if self._val_err is not None:
+            shown["val err"] = f"{self._val_err:.3g} deg"
+        return shown

@@ -9,8 +9,16 @@
 - `timing.json`: wall-clock seconds per epoch (from `EpochTimer`);
 - `test_errors.json`: the per-sample test errors in degrees, where the model keeps them (box plots
   of paper Fig. 4);
-- the hyper-parameters with the final errors, for TensorBoard's HPARAMS view (the errors are the
-  last values of their scalar series, not scalars written again).
+- to each logger: the run's HPARAMS record (`hparams`: what the run set, `rotlearn.report.
+  identity.hparams_record`), and, in a `TensorBoardRunLogger`, the headline results
+  (`HEADLINE_RESULTS` that the run has: test error mean and median, error vs identity, the
+  belief's NLL and ECE, each OOD score's AUROC) as the HPARAMS view's metrics and points in the
+  test sub-run, with every one-shot result in one text table (`rotlearn.report.tables.
+  results_table`).
+
+One-shot results come from `trainer.callback_metrics` (what the module logged when testing,
+never as a scalar series) and from the `results` dict of the callbacks before this one (the OOD
+evaluation's AUROCs); `rotlearn.cli.training.build` puts `RunRecords` after every other callback.
 """
 
 from __future__ import annotations
@@ -23,14 +31,18 @@ from typing import Any
 
 import lightning.pytorch as pl
 import torch
-from lightning.pytorch.loggers import TensorBoardLogger
 
 from rotlearn.io import write_json_atomic
 from rotlearn.lit.callbacks import EpochLosses, EpochTimer
+from rotlearn.report.tables import results_table
 
-__all__ = ["RunRecords", "barely_learned", "divergence"]
+__all__ = ["HEADLINE_RESULTS", "RunRecords", "barely_learned", "divergence"]
 
 log = logging.getLogger("rotlearn")
+
+# What TensorBoard's HPARAMS view compares runs by (those a run has), plus ood/auroc_<score>.
+HEADLINE_RESULTS = ("test/err_mean", "test/err_median", "test/err_vs_identity", "test/nll",
+                    "test/ece", "test/recon_mean")  # fmt: skip
 
 
 def divergence(
@@ -78,16 +90,6 @@ def _scalars(metrics: dict[str, Any]) -> dict[str, float]:
     return {k: float(v) for k, v in metrics.items() if torch.as_tensor(v).numel() == 1}
 
 
-def _flatten(tree: Any, prefix: str = "") -> dict[str, Any]:
-    if isinstance(tree, dict):
-        out: dict[str, Any] = {}
-        for k, v in tree.items():
-            out.update(_flatten(v, f"{prefix}{k}."))
-        return out
-    value = tree if isinstance(tree, (int, float, str, bool)) or tree is None else str(tree)
-    return {prefix[:-1]: value}
-
-
 def _find(trainer: pl.Trainer, kind: type) -> Any:
     found = [cb for cb in trainer.callbacks if isinstance(cb, kind)]
     return found[0] if found else None
@@ -98,13 +100,15 @@ class RunRecords(pl.Callback):
 
     Args:
         dirpath: the run directory.
+        hparams: the run's HPARAMS record ({key: bool, number or text}); None: its seed alone.
 
     Attributes:
         metrics: what was written to metrics.json (empty before the test ends).
     """
 
-    def __init__(self, dirpath: str | Path) -> None:
+    def __init__(self, dirpath: str | Path, hparams: dict[str, Any] | None = None) -> None:
         self.dirpath = Path(dirpath)
+        self.hparams = dict(hparams or {})
         self.metrics: dict[str, Any] = {}
         self._fit_metrics: dict[str, float] = {}
 
@@ -114,6 +118,10 @@ class RunRecords(pl.Callback):
     def on_test_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         metrics = {**self._fit_metrics, **_scalars(trainer.callback_metrics)}
         metrics = {k: v for k, v in metrics.items() if not k.startswith("time/")}
+        for callback in trainer.callbacks:
+            results = getattr(callback, "results", None)
+            if callback is not self and isinstance(results, dict):
+                metrics.update(_scalars(results))
         metrics.update(self._facts(trainer, pl_module))
         reasons = divergence(metrics, getattr(_find(trainer, EpochLosses), "losses", []))
         for reason in reasons:
@@ -162,29 +170,13 @@ class RunRecords(pl.Callback):
         if test_errors is not None:
             write_json_atomic(self.dirpath / "test_errors.json", test_errors.tolist())
         write_json_atomic(self.dirpath / "metrics.json", metrics)
-        names = [k for k in metrics if "/err_" in k or "/recon_" in k]  # train/, val/, test/
-        logged = set(self._fit_metrics) | set(_scalars(trainer.callback_metrics))
-        unlogged = {k: metrics[k] for k in names if k not in logged}  # test/err_vs_identity
-        params = _flatten(getattr(pl_module, "run_config", None) or {})
+        hparams = self.hparams or {"seed": metrics.get("seed")}
+        headline = {k: v for k, v in metrics.items()
+                    if k in HEADLINE_RESULTS or k.startswith("ood/auroc_")}  # fmt: skip
         for logger in trainer.loggers:
-            if isinstance(logger, TensorBoardLogger):
-                if unlogged:
-                    logger.log_metrics(unlogged, step=trainer.global_step)
-                _hparams_view(logger, params, names)
+            if hasattr(logger, "log_results"):
+                text = results_table(metrics)
+                logger.log_results(hparams, headline, trainer.current_epoch, text)
             else:
-                logger.log_hyperparams(params)
+                logger.log_hyperparams(hparams)
             logger.finalize("success")
-
-
-def _hparams_view(logger: TensorBoardLogger, params: dict[str, Any], names: list[str]) -> None:
-    """The run in TensorBoard's HPARAMS view: its hyper-parameters and, as its metrics, the
-    scalar series `names` (TensorBoard shows each series' last value: the final errors). Unlike
-    `log_hyperparams(params, metrics)`, no scalar is written again (that would add a one-point
-    card per metric above the training curves)."""
-    from torch.utils.tensorboard.summary import hparams
-
-    logger.hparams.update(params)  # also kept in <logger dir>/hparams.yaml
-    experiment, start, end = hparams(logger._sanitize_params(params), dict.fromkeys(names, 0.0))
-    writer = logger.experiment._get_file_writer()
-    for summary in (experiment, start, end):
-        writer.add_summary(summary)

@@ -7,7 +7,6 @@ from typing import Any
 
 import lightning.pytorch as pl
 import torch
-from lightning.pytorch.loggers import TensorBoardLogger
 from torch import Tensor, nn
 from torchmetrics import MeanMetric
 
@@ -54,8 +53,11 @@ def compile_modules(compile: bool | str, *modules: nn.Module) -> None:
 class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
     """Regress rotations: `head(net(batch["input"]))`, trained with `loss(prediction, batch)`.
 
-    Logs, once per epoch: train/loss, train/err_*, val/err_*, test/err_* (degrees; mean, median,
-    p10, p90), and at test time the "predict identity" baseline test/identity_err_{mean,median}.
+    Logs, once per epoch, to the loggers: train/loss, val/loss, train/lr, train/err_* and val/err_*
+    (degrees; mean, median, p10, p90). Everything measured at test time is one result per run:
+    kept in `trainer.callback_metrics` (and so in metrics.json, `rotlearn.lit.RunRecords`), never
+    logged as a scalar series; the records pick the headline ones for TensorBoard. They are
+    test/err_* and the "predict identity" baseline test/identity_err_{mean,median}.
     At test time also, for every OOD score the head gives (`rotlearn.ood.scores.SCORES`: raw_norm
     for every head, dt and eigengap with a belief): test/<score>_spearman, its Spearman rank
     correlation with the error (positive for dt, whose low values are confident; negative for
@@ -66,8 +68,8 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
     its calibration (`rotlearn.metrics.BeliefCalibration`): test/nll (mean negative
     log-likelihood of the targets in nats, w.r.t. the uniform probability measure on SO(3)),
     test/ece and test/coverage_<alpha> (alpha = 0.1 ... 0.9: the fraction of targets inside the
-    highest-density credible region of mass alpha), and, in a TensorBoard logger, the reliability
-    diagram `test/reliability` (coverage against alpha). The belief is the one used,
+    highest-density credible region of mass alpha), and, in a `TensorBoardRunLogger`, the
+    reliability diagram `test/reliability` (coverage against alpha). The belief is the one used,
     `belief_temperature` applied; where that is not 1, test/temperature and the same numbers of
     the untempered belief, test/uncalibrated_nll, test/uncalibrated_ece and
     test/uncalibrated_coverage_<alpha>, are logged too.
@@ -121,6 +123,7 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
         self.optimizer_factory, self.scheduler_factory = optimizer, scheduler
         # NaN is the finite check's to report (MeanMetric's own check syncs with the device)
         self.train_loss = MeanMetric(nan_strategy="disable")
+        self.val_loss = MeanMetric(nan_strategy="disable")
         self.train_err, self.val_err, self.test_err = AngularError(), AngularError(), AngularError()
         # the "predict identity" baseline: does the model beat the targets' own angles?
         self.test_identity_err = AngularError()
@@ -185,7 +188,9 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
         return loss
 
     def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
-        self.val_err.update(self._step(batch, "val", batch_idx).R, batch["R"])
+        prediction = self._step(batch, "val", batch_idx)
+        self.val_err.update(prediction.R, batch["R"])
+        self.val_loss.update(self.loss(prediction, batch))
 
     def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
         untempered, _ = self._untempered_step(batch, "test", batch_idx)
@@ -212,20 +217,28 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
     def on_predict_epoch_end(self) -> None:
         self._read_finite()
 
-    def _log_errors(self, stage: str, extra: dict[str, Tensor] | None = None) -> None:
+    def _log_errors(self, stage: str, extra: dict[str, Any] | None = None) -> None:
+        """The stage's error percentiles (and `extra`); per-epoch series for train and val, one
+        result (no logger) for test."""
         metric: AngularError = getattr(self, f"{stage}_err")
         values = {f"{stage}/{k}": v for k, v in metric.compute().items()}
-        self.log_dict({**values, **(extra or {})}, on_step=False, on_epoch=True)
+        logger = False if stage == "test" else None  # None: Lightning's default, to the loggers
+        self.log_dict({**values, **(extra or {})}, on_step=False, on_epoch=True, logger=logger)
         metric.reset()
 
     def on_train_epoch_end(self) -> None:
         self._read_finite()
-        self._log_errors("train", {"train/loss": self.train_loss.compute()})
+        lr = self.trainer.optimizers[0].param_groups[0]["lr"] if self.trainer.optimizers else None
+        extra = {"train/loss": self.train_loss.compute()}
+        if lr is not None:
+            extra["train/lr"] = float(lr)
+        self._log_errors("train", extra)
         self.train_loss.reset()
 
     def on_validation_epoch_end(self) -> None:
         self._read_finite()
-        self._log_errors("val")
+        self._log_errors("val", {"val/loss": self.val_loss.compute()})
+        self.val_loss.reset()
 
     def on_test_epoch_end(self) -> None:
         self._read_finite()
@@ -236,6 +249,7 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
             {f"test/identity_{k}": baseline[k] for k in ("err_mean", "err_median")},
             on_step=False,
             on_epoch=True,
+            logger=False,
         )
         self.test_identity_err.reset()
         self._log_scores()
@@ -257,7 +271,7 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
             if flagged is not None:
                 keep_below = self._scores[name].keep_below
                 logged[f"test/{name}_auroc_noisiest"] = auroc(scores, flagged, keep_below)
-        self.log_dict(logged, on_step=False, on_epoch=True)
+        self.log_dict(logged, on_step=False, on_epoch=True, logger=False)
 
     def _log_beliefs(self) -> None:
         """test/nll, test/ece, test/coverage_<alpha> of the belief as used, the untempered
@@ -271,21 +285,27 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
         if "uncalibrated" in curves:
             logged.update({f"test/uncalibrated_{k}": v for k, v in curves["uncalibrated"].items()})
             logged["test/temperature"] = float(self.belief_temperature)
-        self.log_dict(logged, on_step=False, on_epoch=True)
+        self.log_dict(logged, on_step=False, on_epoch=True, logger=False)
         for metric in (self.test_belief, self.test_untempered_belief):
             metric.reset()
         self._reliability_figure(curves)
 
     def _reliability_figure(self, curves: dict[str, dict[str, Tensor]]) -> None:
-        """The reliability diagram in each TensorBoard logger (global rank 0)."""
-        loggers = [lg for lg in self.loggers if isinstance(lg, TensorBoardLogger)]
+        """The reliability diagram, naming the remedy of an uncalibrated belief, in each logger
+        that draws figures (`TensorBoardRunLogger`; global rank 0)."""
+        loggers = [lg for lg in self.loggers if hasattr(lg, "log_figure")]
         if not loggers or not self.trainer.is_global_zero:
             return
-        from rotlearn.plots import reliability_figure
+        from rotlearn.report.figures import calibration_remedy, reliability_figure
 
         temperature, alphas = float(self.belief_temperature), self.test_belief.alphas
-        labels = {"belief": f"T = {temperature:g}" if temperature != 1 else "belief",
+        labels = {"belief": f"T = {temperature:.3g}" if temperature != 1 else "belief",
                   "uncalibrated": "untempered (T = 1)"}  # fmt: skip
+        ece = float(curves["belief"]["ece"])
+        remedy = calibration_remedy(
+            ece, temperature != 1, getattr(self.loss, "parameter", None) is not None,
+            getattr(self.head, "name", None),
+        )  # fmt: skip
         figure = reliability_figure(
             [
                 {
@@ -296,10 +316,11 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
                     "dashed": name == "uncalibrated",
                 }
                 for name, metrics in curves.items()
-            ]
+            ],
+            remedy=remedy,
         )
         for logger in loggers:
-            logger.experiment.add_figure("test/reliability", figure, self.global_step)
+            logger.log_figure("test/reliability", figure, self.current_epoch)
 
     def configure_optimizers(self) -> Any:
         optimizer = self.optimizer_factory(self.parameters())

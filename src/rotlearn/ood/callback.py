@@ -8,8 +8,12 @@ to the clean test set and counted as OOD) (`rotlearn.ood.evaluation`), then writ
 Table I-style `ood.md` to the run directory, every sample's error and scores (`ood_samples.csv`,
 for `rotlearn-report`'s figures), a grid of erased example pairs with their scores
 (`ood_examples.png`), the calibrated DT threshold beside the run's checkpoints
-(`ood_thresholds.json`, read by `rotlearn.load` for keep flags), and scalars and figures to
-TensorBoard (`rotlearn.ood.report`).
+(`ood_thresholds.json`, read by `rotlearn.load` for keep flags) (`rotlearn.ood.records`), and, in
+a `TensorBoardRunLogger`, one figure per score and the examples (`rotlearn.report.figures`, which
+`rotlearn-report` draws with too). Each score's AUROC on the corrupted set, `ood/auroc_<score>`,
+is one of the run's results (`results`, read by `rotlearn.lit.RunRecords`: metrics.json and
+TensorBoard's HPARAMS view); no per-quantile scalars. Scoring shows a progress bar when it takes
+more than two seconds.
 """
 
 from __future__ import annotations
@@ -25,7 +29,6 @@ from typing import Any
 import lightning.pytorch as pl
 import numpy as np
 import torch
-from lightning.pytorch.loggers import TensorBoardLogger
 from omegaconf import DictConfig, OmegaConf
 from torch import Tensor
 
@@ -72,6 +75,13 @@ def extra_source(source: Any, name: str, overrides: dict[str, Any]) -> Any:
     extra.sets = {}  # `setup` builds the splits again from the changed settings
     extra.setup("test")
     return extra
+
+
+def _progress(batches: Iterable[Any], what: str) -> Iterable[Any]:
+    """`batches` with a progress bar on stderr that shows only when they take over 2 s."""
+    from tqdm.auto import tqdm
+
+    return tqdm(batches, desc=what, unit="batch", delay=2.0, leave=False, dynamic_ncols=True)
 
 
 @config_target
@@ -157,6 +167,7 @@ class OODEvaluation(pl.Callback):
         if int(examples) < 0:
             raise ConfigValueError("examples", f"must be >= 0, got {examples}")
         self.examples = int(examples)
+        self.results: dict[str, float] = {}  # the run's one-shot results (RunRecords)
 
     def _autoencoder(self, trainer: pl.Trainer, device: torch.device, head: Any = None):
         """The auto-encoder of the `autoencoder` score: loaded, trained here on the datamodule's
@@ -253,6 +264,10 @@ class OODEvaluation(pl.Callback):
         )
         input_scores = {"autoencoder": autoencoder.score} if autoencoder is not None else {}
         loaders, flags = self._loaders(source, pl_module.device, pl_module.dtype)
+        loaders = {
+            name: _progress(batches, f"OOD scoring: {name.removeprefix('extra:')}")
+            for name, batches in loaders.items()
+        }
         was_training = pl_module.training
         pl_module.eval()
         with torch.inference_mode():
@@ -265,33 +280,60 @@ class OODEvaluation(pl.Callback):
         self._write(trainer, pl_module, scores, sets, frame, examples)
 
     def _write(self, trainer, module, scores, sets, frame, examples) -> None:
-        from rotlearn.ood.report import (
-            examples_figure,
-            log_tensorboard,
-            save_figure,
-            write_samples,
-            write_tables,
-            write_thresholds,
-        )
+        from rotlearn.ood.records import write_samples, write_tables, write_thresholds
+        from rotlearn.report import figures
 
         run_dir = Path(trainer.default_root_dir)
         rep = getattr(module.head, "name", type(module.head).__name__)
         frame.insert(0, "rep", rep)
         log.info("OOD evaluation: %s", write_tables(run_dir, rep, frame))
         write_samples(run_dir, sets)
-        figure = None
-        if examples is not None:
-            figure = examples_figure(*examples)
-            save_figure(figure, run_dir / "ood_examples.png")
+        example_figure = figures.examples_figure(*examples) if examples is not None else None
+        if example_figure is not None:
+            figures.save_figure(example_figure, run_dir / "ood_examples.png")
         checkpoints = getattr(trainer.checkpoint_callback, "dirpath", None)
         ood = calibrated_threshold(frame, "dt")
         if ood is not None and checkpoints and Path(checkpoints).is_dir():
             write_thresholds(checkpoints, ood)
-        for logger in trainer.loggers:
-            if isinstance(logger, TensorBoardLogger):
-                log_tensorboard(logger.experiment, scores, sets, frame, trainer.global_step,
-                                examples=figure)  # fmt: skip
-        if figure is not None:
-            import matplotlib.pyplot as plt
+        corrupted = frame[frame["set"] == "corrupted"]
+        self.results = {
+            f"ood/auroc_{score.name}": float(rows["auroc"].iloc[0])
+            for score in scores
+            if len(rows := corrupted[corrupted["score"] == score.name])
+        }
+        loggers = [lg for lg in trainer.loggers if hasattr(lg, "log_figure")]
+        step = trainer.current_epoch
+        for score in scores if loggers else []:
+            figure = score_figure(score, sets)
+            for logger in loggers:
+                logger.log_figure(f"ood/{score.name}", figure, step)
+        for logger in loggers if example_figure is not None else []:
+            logger.log_figure("ood/examples", example_figure, step)
 
-            plt.close(figure)
+
+def score_figure(score: Any, sets: dict[str, dict[str, Tensor]]) -> Any:
+    """One figure of an OOD score (TensorBoard): precision-recall over q on each flagged set but
+    the clean one, error against score on the half-erased set, score box plots (Fig. 6c)."""
+    from rotlearn.ood.evaluation import precision_recall_curve
+    from rotlearn.report import figures
+
+    fig, axes = figures.grid(1, 3, size=(4.2, 3.6))
+    for ax in axes[0]:
+        ax.set_visible(True)
+    flagged = [n for n, v in sets.items() if n != "clean" and "corrupted" in v]
+    curves = {n: precision_recall_curve(score, sets["train"][score.name], sets[n]) for n in flagged}
+    figures.pr_figure(curves, ax=axes[0][0], title=f"{score.name}: precision-recall over q")
+    data = sets["corrupted"]
+    figures.scatter_figure(
+        score.name,
+        score.keep_below,
+        data["error"],
+        data[score.name],
+        data["corrupted"],
+        ax=axes[0][1],
+        title="half-erased test set",
+    )
+    figures.score_boxes_figure(
+        score.name, score.keep_below, figures.box_groups(score.name, sets), ax=axes[0][2]
+    )
+    return fig

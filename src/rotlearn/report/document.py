@@ -1,0 +1,488 @@
+"""`make_report`: summary.csv, report.md and the figures of a sweep (or of several pooled),
+from its run directories alone (`rotlearn.report.runs`), with the tables of
+`rotlearn.report.tables` and the figures of `rotlearn.report.figures`.
+
+The layout comes from the sweep's `report` config node (an experiment's or a sweep's, e.g.
+`conf/experiment/synthetic_phi_max.yaml`, `conf/sweep/lr.yaml`), over `DEFAULT_REPORT`::
+
+    report:
+      lead: rep.name                  # the key whose value starts each setting's label
+      trial_keys: [seed, data.seed, trial]   # pooled: runs differing only here are trials
+      plots:                          # drawn when the sweep has what they need
+        - {kind: curves, metrics: [train/err_mean, val/err_mean]}   # paper Fig. 3
+        - {kind: box, x: data.phi_max_deg, label: phi_max}           # paper Fig. 4
+      ood:                            # the OOD section (runs with an ood.csv)
+        quantiles: [0.5, 0.75, 1.0]   # the q rows of its per-score table
+        sets: {clean: test, indoor: test + indoor}   # set names as shown (Fig. 8 analogue)
+      paper:                          # the paper's Table I rows, shown beside ours
+        source: "Table I, sequence 00"
+        where: {loss: chordal}        # our runs comparable to the paper's (config group choices)
+        rows: [{rep: a, score: dt, clean_err: 0.12, clean_kept: 69.5, ...}, ...]
+
+Writes into the sweep directory (or `out`): `summary.csv` (one row per job, failed, interrupted
+and never-run ones too, with its setting and the grouping and trial config keys), `report.md`
+(per setting the percentiles of the final test error over its trials; per box plot the median
+test error per x value; the beliefs table and reliability diagram of runs with a belief; the
+OOD Table I rows of runs with an `ood.csv`, beside the paper's when the layout has `paper`,
+every score's AUROC, precision, kept % and kept error per test set and quantile, the error per
+test set (paper Fig. 8); the jobs that failed, were interrupted or never ran), `curves.png`
+(per-epoch median over each setting's trials, 10-90 % band), `<label>_box.png` (log10
+per-sample test error per x value), `reliability.png` and the OOD figures.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from rotlearn.io import write_text_atomic
+from rotlearn.report import figures, tables
+from rotlearn.report.runs import collect_runs, label_without
+from rotlearn.report.tensorboard import read_curve
+
+__all__ = ["CURVE_METRICS", "make_report"]
+
+log = logging.getLogger("rotlearn")
+CURVE_METRICS = ["train/err_mean", "val/err_mean"]
+
+
+def make_report(
+    root: str | Path | Sequence[str | Path],
+    out: str | Path | None = None,
+    group_by: Sequence[str] | None = None,
+    pool: Sequence[str] = (),
+) -> dict[str, Path]:
+    """Write summary.csv, report.md and the figures for the sweep (or run) directory `root`, or
+    for several pooled into one report (then into `out`, default the first). `group_by` and
+    `pool`: as `rotlearn.report.runs.collect_runs`. Returns {what: path} of every file written.
+
+    Raises:
+        FileNotFoundError: `root` holds no run directories.
+    """
+    roots = [Path(r) for r in root] if isinstance(root, (list, tuple)) else [Path(root)]
+    out = Path(out) if out is not None else roots[0]
+    runs = collect_runs(roots, group_by=group_by, pool=pool)
+    if runs.empty:
+        where = ", ".join(str(r) for r in roots)
+        raise FileNotFoundError(f"no runs under {where} (no */.hydra/config.yaml)")
+    out.mkdir(parents=True, exist_ok=True)
+    files = {"summary": write_text_atomic(out / "summary.csv", runs.to_csv(index=False))}
+    has_error = runs["test/err_mean"].notna() if "test/err_mean" in runs else False
+    done = runs[(runs["status"] == "COMPLETED") & has_error]
+    failed = runs[runs["status"] != "COMPLETED"]
+    others = ", ".join(f"{n} {s.lower()}" for s, n in failed["status"].value_counts().items())
+    layout = runs.attrs["layout"]
+    md = [
+        f"# Report: {', '.join(str(r) for r in roots)}",
+        "",
+        f"{len(runs)} jobs: {len(done)} completed" + (f", {others}" if others else "") + ".",
+        "",
+        _grouping_note(done, runs.attrs.get("grouping") or [], layout, group_by, pool),
+        "",
+    ]
+    if not done.empty:
+        md += ["## Final test error (degrees), over trials", "", tables.percentile_table(done), ""]
+        md += _plots(done, runs, layout, out, files)
+        md += _beliefs(done, out, files)
+    frames = _ood_frames(done)
+    if frames:
+        md += _ood_sections(frames, layout, out, files)
+    if not failed.empty:
+        md += ["## Failed, interrupted or never-run jobs", "",
+               "PENDING: never ran; RUNNING: started, never finished (killed); INTERRUPTED: "
+               "stopped by a signal, resumable with the command shown.", "",
+               tables.failed_table(failed), ""]  # fmt: skip
+    files["report"] = write_text_atomic(out / "report.md", "\n".join(md))
+    return files
+
+
+def _grouping_note(done: pd.DataFrame, grouping: list[str], layout: Mapping[str, Any], group_by,
+                   pool) -> str:  # fmt: skip
+    """How the completed runs were grouped, and how to group them otherwise."""
+    settings = tables.setting_order(done)
+    if group_by is not None:
+        rule = f"grouped by {', '.join(group_by)} (--group-by)"
+    else:
+        trial = [*layout["trial_keys"], *pool]
+        rule = (
+            "grouped by every config key that differs between the runs"
+            + (f", except the trial keys {', '.join(trial)}" if trial else "")
+            + (" (--pool)" if pool else "")
+        )
+    keys = ", ".join(grouping) if grouping else "none differ"
+    return (
+        f"{len(settings)} setting(s) of completed runs, {rule}: {keys}. Other groupings: "
+        "rotlearn-report"
+        " --group-by KEY ... or --pool KEY ..."
+    )
+
+
+# ---------------------------------------------------------------------------------- plots
+
+
+def _curve(run: Path, key: str) -> np.ndarray | None:
+    """Per-epoch values of a metric, from the run's CSV log or else its TensorBoard events."""
+    csv = run / "csv" / "metrics.csv"
+    if csv.is_file():
+        try:
+            frame = pd.read_csv(csv)
+        except (OSError, ValueError, pd.errors.ParserError):
+            frame = pd.DataFrame()
+        if key in frame and "epoch" in frame:
+            values = frame.dropna(subset=[key]).groupby("epoch")[key].last()
+            return values.to_numpy(dtype=float)
+    return read_curve(run, key)
+
+
+def _curves(runs: pd.DataFrame, metric: str) -> list[np.ndarray]:
+    return [c for c in (_curve(Path(d), metric) for d in runs["dir"]) if c is not None]
+
+
+def _metric_title(metric: str) -> str:
+    """A panel's title: "train/err_mean" -> "train: mean error (deg)"."""
+    stage, _, name = metric.partition("/")
+    if name.startswith("err_"):
+        stat = {"p10": "10th percentile", "p90": "90th percentile"}.get(name[4:], name[4:])
+        return f"{stage}: {stat} error (deg)"
+    return metric
+
+
+def _label(plot: Mapping[str, Any]) -> str:
+    return str(plot.get("label") or str(plot["x"]).split(".")[-1])
+
+
+def _plots(done, runs, layout, out: Path, files: dict[str, Path]) -> list[str]:
+    """The layout's plots the sweep has data for; report.md lines. A box plot needs its x key
+    to take two or more values among the completed runs."""
+    md, curves = [], []
+    for plot in layout["plots"]:
+        kind = plot.get("kind")
+        if kind == "box" and plot.get("x") in done and done[plot["x"]].nunique() > 1:
+            x, label = str(plot["x"]), _label(plot)
+            name = str(plot.get("file") or f"{label}_box.png")
+            done = done[done[x].notna()]
+            done = done.assign(series=label_without(runs.loc[done.index], [x]))
+            rows, values = tables.setting_order(done, "series"), _sorted(done[x])
+            md += [f"## Median test error (degrees) per {label}", "",
+                   tables.box_table(done, x, label, rows, values), ""]  # fmt: skip
+            groups = {
+                row: {v: _errors(done[(done["series"] == row) & (done[x] == v)]) for v in values}
+                for row in rows
+            }
+            fig = figures.error_boxes_figure(groups, label)
+            if fig is not None:
+                files[Path(name).stem] = figures.save_figure(fig, out / name, dpi=110)
+                md += [f"![log10 test error per {label}]({name})", ""]
+        elif kind == "curves":
+            name = str(plot.get("file") or "curves.png")
+            metrics = [str(t) for t in plot.get("metrics") or CURVE_METRICS]
+            panels = {
+                _metric_title(metric): {
+                    setting: _curves(done[done["setting"] == setting], metric)
+                    for setting in tables.setting_order(done)
+                }
+                for metric in metrics
+            }
+            fig = figures.curves_figure(panels)
+            if fig is not None:
+                files[Path(name).stem] = figures.save_figure(fig, out / name, dpi=110)
+                curves += [f"![per-epoch error]({name})", ""]
+        elif kind not in ("box", "curves", "ood"):
+            log.warning("report: unknown plot kind %r (expected curves or box); skipped", kind)
+    if curves:
+        md += ["## Error per epoch", "", "Median over each setting's runs (10-90 % band).", ""]
+        md += curves
+    return md
+
+
+def _errors(runs: pd.DataFrame) -> np.ndarray:
+    """The per-sample test errors of runs (`test_errors.json`), pooled."""
+    from rotlearn.io import read_json
+
+    errors: list[float] = []
+    for d in runs["dir"]:
+        values = read_json(Path(d) / "test_errors.json")
+        if isinstance(values, list):
+            errors.extend(float(v) for v in values if isinstance(v, (int, float)))
+    return np.asarray(errors, dtype=float)
+
+
+def _sorted(values) -> list[Any]:
+    values = list(dict.fromkeys(values))
+    try:
+        return sorted(values)
+    except TypeError:
+        return sorted(values, key=str)
+
+
+# ---------------------------------------------------------------------------------- beliefs
+
+
+def _coverage_columns(done: pd.DataFrame, prefix: str) -> list[tuple[float, str]]:
+    """(alpha, column) of the `<prefix>coverage_<alpha>` metrics of the runs, by alpha."""
+    found = []
+    for column in done.columns:
+        name = str(column)
+        if name.startswith(f"{prefix}coverage_"):
+            try:
+                found.append((float(name.rsplit("_", 1)[1]), name))
+            except ValueError:
+                continue
+    return sorted(found)
+
+
+def _score_order() -> list[str]:
+    from rotlearn.ood.scores import SCORES
+
+    return list(SCORES)
+
+
+def _beliefs(done: pd.DataFrame, out: Path, files: dict[str, Path]) -> list[str]:
+    """The beliefs section, for runs whose metrics.json has belief or uncertainty metrics: a
+    table per setting (the median over its runs) and the reliability diagram."""
+    order = _score_order()
+    columns = tables.BELIEF_COLUMNS[1:] + tables.score_columns(done, order)
+    keys = [c for c, _ in columns if c in done]
+    keys += [c for _, c in _coverage_columns(done, "test/")]
+    if not keys:
+        return []
+    rows = [s for s in tables.setting_order(done)
+            if done.loc[done["setting"] == s, keys].notna().any().any()]  # fmt: skip
+    if not rows:
+        return []
+    md = ["## Beliefs: likelihood, calibration and uncertainty scores", "",
+          "Per setting, the median over its runs. NLL: mean negative log-likelihood of the test "
+          "targets in nats, w.r.t. the uniform probability measure on SO(3) (lower is better). "
+          "ECE: mean |coverage - alpha| of the highest-density credible regions at alpha = "
+          "0.1 ... 0.9 (0: calibrated). T: the fitted belief temperature (A -> A / T); at T = 1: "
+          "the belief before it. Spearman: rank correlation of each uncertainty score with the "
+          "error (dt: positive is good; eigengap and raw_norm: negative is good). AUROC "
+          "noisiest: how well the score flags the noisiest tenth of the test samples (1 "
+          "perfect, 0.5 chance).", "", tables.beliefs_table(done, rows, order), ""]  # fmt: skip
+    curves, remedies = _reliability_curves(done)
+    if curves:
+        fig = figures.reliability_figure(curves, remedy="\n".join(remedies) or None)
+        files["reliability"] = figures.save_figure(fig, out / "reliability.png")
+        md += ["Reliability of the credible regions (coverage against level; on the diagonal: "
+               "calibrated, below it: over-confident, above it: too wide):", "",
+               "![reliability diagram](reliability.png)", ""]  # fmt: skip
+        md += [f"- {r}" for r in remedies] + ([""] if remedies else [])
+    return md
+
+
+def _reliability_curves(done: pd.DataFrame) -> tuple[list[dict[str, Any]], list[str]]:
+    """Coverage against level of each setting (mean over its runs), the untempered belief
+    dashed in the same colour; and what to do about each uncalibrated setting."""
+    curves, remedies = [], []
+    for i, setting in enumerate(tables.setting_order(done)):
+        runs = done[done["setting"] == setting]
+        tempered = "test/temperature" in runs and runs["test/temperature"].notna().any()
+        for prefix, dashed in (("test/", False), ("test/uncalibrated_", True)):
+            columns = [(a, c) for a, c in _coverage_columns(runs, prefix) if runs[c].notna().any()]
+            if not columns:
+                continue
+            ece = pd.to_numeric(runs.get(f"{prefix}ece", pd.Series(dtype=float)), errors="coerce")
+            n = int(runs[columns[0][1]].notna().sum())
+            mean_ece = float(ece.mean()) if ece.notna().any() else None
+            curves.append({
+                "label": f"{setting}{' at T = 1' if dashed else ''}"
+                         + (f" (mean of {n})" if n > 1 else ""),
+                "alphas": [a for a, _ in columns],
+                "coverage": [float(runs[c].mean()) for _, c in columns],
+                "ece": mean_ece,
+                "color": f"C{i % 10}",
+                "dashed": dashed,
+            })  # fmt: skip
+            if not dashed:
+                choices = {k[6:]: v for k, v in runs.iloc[0].items() if str(k).startswith("group:")}
+                loss = str(choices.get("loss", ""))
+                remedy = figures.calibration_remedy(
+                    mean_ece, bool(tempered), loss in ("bingham", "fisher_nll"), choices.get("rep")
+                )
+                if remedy:
+                    remedies.append(f"{setting}: {remedy}")
+    return curves, remedies
+
+
+# ---------------------------------------------------------------------------------- OOD
+
+
+def _ood_frames(done: pd.DataFrame) -> list[tuple[pd.Series, pd.DataFrame]]:
+    """(run row, its ood.csv) of every completed run that has a readable one."""
+    frames = []
+    for _, run in done.iterrows():
+        path = Path(run["dir"]) / "ood.csv"
+        if path.is_file():
+            try:
+                frames.append((run, pd.read_csv(path)))
+            except (OSError, ValueError, pd.errors.ParserError) as exc:
+                log.warning("report: %s unreadable (%s); skipped", path, exc)
+    return frames
+
+
+def _ood_table(frames: list[tuple[pd.Series, pd.DataFrame]]) -> pd.DataFrame:
+    """Table I rows of every run with an `ood.csv`, each named by its setting label, with its
+    head (rep), score and config group choices."""
+    rows = []
+    for run, frame in frames:
+        rep = str(frame["rep"].iloc[0]) if "rep" in frame and len(frame) else str(run["setting"])
+        scores = [None, *frame[frame["in_table"]]["score"].unique()]
+        rows_one = tables.table_one_rows(str(run["setting"]), frame)
+        for score, row in zip(scores, rows_one, strict=True):
+            groups = {k: run[k] for k in run.index if str(k).startswith("group:")}
+            rows.append({"job": run["job"], "rep": rep, "score": score or "", **row, **groups})
+    return pd.DataFrame(rows)
+
+
+OOD_NOTE = (
+    "Per job: the head unfiltered, then with each OOD score at its Table I quantile. clean: "
+    "the test set; corrupted: the same with its OOD part (erased pairs, or unseen scenes) "
+    "included. Errors are mean degrees over the kept pairs; precision (kept pairs that are "
+    "clean) and recall (clean pairs kept) are of keeping in-distribution pairs; AUROC of "
+    "the score for telling OOD pairs from clean ones (1 perfect, 0.5 chance, below 0.5 "
+    "inverted). Each job's ood.md has every quantile."
+)
+
+
+def _ood_sections(frames, layout, out: Path, files: dict[str, Path]) -> list[str]:
+    """Table I, the paper comparison, per-score and per-set tables and the OOD figures."""
+    ood = _ood_table(frames)
+    files["ood_table"] = write_text_atomic(out / "ood_table.csv", ood.to_csv(index=False))
+    md = ["## OOD rejection (paper Table I)", "", OOD_NOTE, "",
+          tables.markdown_table(ood, ["job", *tables.TABLE_ONE_COLUMNS]), ""]  # fmt: skip
+    options = layout.get("ood") if isinstance(layout.get("ood"), Mapping) else {}
+    set_names = {"clean": "test", "corrupted": "test, half erased",
+                 **{str(k): str(v) for k, v in (options.get("sets") or {}).items()}}  # fmt: skip
+    paper = layout.get("paper")
+    if isinstance(paper, Mapping) and paper.get("rows"):
+        where = ", ".join(f"{k}={v}" for k, v in (paper.get("where") or {}).items())
+        md += [f"### Side by side with the paper ({paper.get('source', 'paper')})", "",
+               "Each cell: ours (the paper's). The paper's numbers are on real data at full "
+               "size" + (f"; compared: our runs with {where}" if where else "") + ". "
+               + str(paper.get("note", "")), "", tables.paper_table(ood, paper), ""]  # fmt: skip
+    quantiles = options.get("quantiles")
+    quantiles = [float(q) for q in quantiles] if isinstance(quantiles, list) else None
+    md += ["## OOD scores on each test set", "",
+           "Per head and score: AUROC (OOD vs clean pairs), and at each quantile q of the "
+           "training scores the kept %, the mean and median error (deg) of the kept pairs, "
+           "precision (kept pairs that are clean) and the % of OOD pairs rejected.", "",
+           tables.score_table(frames, quantiles, set_names), ""]  # fmt: skip
+    if any(set(f["set"]) - {"clean", "corrupted"} for _, f in frames):
+        md += ["## Error per test set (paper Fig. 8)", "",
+               "Mean error (deg) of the kept pairs (kept %), each score at its Table I "
+               "quantile. Each extra set is the clean test set plus the pairs of scenes not "
+               "trained on, which count as OOD.", "",
+               tables.sets_table(frames, set_names), ""]  # fmt: skip
+    return md + _ood_figures(frames, out, set_names, files)
+
+
+def _ood_samples(frames) -> list[tuple[str, dict, list]]:
+    """(setting, sets, scores) of each run whose `ood_samples.csv` is readable."""
+    from rotlearn.ood.records import SAMPLES_FILE, read_samples
+    from rotlearn.ood.scores import SCORES
+
+    runs = []
+    for run, frame in frames:
+        path = Path(run["dir"]) / SAMPLES_FILE
+        if not path.is_file():
+            continue
+        try:
+            sets = read_samples(path)
+        except (ValueError, OSError, pd.errors.ParserError) as exc:
+            log.warning("report: %s unreadable (%s); its OOD figures are skipped", path, exc)
+            continue
+        names = [n for n in dict.fromkeys(frame["score"]) if n in SCORES and n in sets["train"]]
+        runs.append((str(run["setting"]), sets, [SCORES[n] for n in names]))
+    return runs
+
+
+def _ood_figures(frames, out: Path, set_names: Mapping[str, str], files: dict) -> list[str]:
+    """Per head and score, from each run's `ood_samples.csv`: precision-recall over q on each
+    flagged set but the clean one (`ood_pr.png`), error against score on the half-erased set
+    (`ood_scatter.png`), score box plots (`ood_box.png`); the error per test set
+    (`ood_sets.png`, when runs have extra sets); each run's `ood_examples.png`, linked."""
+    from rotlearn.ood.evaluation import precision_recall_curve
+
+    md: list[str] = []
+    runs = _ood_samples(frames)
+    if runs:
+        flagged = list(dict.fromkeys(n for _, sets, _ in runs for n, v in sets.items()
+                                     if n != "clean" and "corrupted" in v))  # fmt: skip
+        fig, axes = figures.grid(1, len(flagged), size=(5.0, 4.2))
+        for ax, name in zip(axes[0], flagged, strict=True):
+            curves = {
+                f"{setting} + {tables.LABELS.get(s.name, s.name)}": precision_recall_curve(
+                    s, sets["train"][s.name], sets[name]
+                )
+                for setting, sets, scores in runs
+                for s in scores
+                if name in sets
+            }
+            if curves:
+                ax.set_visible(True)
+                figures.pr_figure(curves, ax=ax, title=set_names.get(name, name))
+        files["ood_pr"] = figures.save_figure(fig, out / "ood_pr.png", dpi=90)
+        n_cols = max(len(scores) for _, _, scores in runs)
+        for key, what in (
+            ("ood_scatter", "Error against score on the half-erased test set"),
+            ("ood_box", "Score distributions (paper Fig. 6c)"),
+        ):
+            fig, axes = figures.grid(len(runs), n_cols, size=(4.2, 3.6))
+            for row, (setting, sets, scores) in enumerate(runs):
+                for col, score in enumerate(scores):
+                    ax = axes[row][col]
+                    ax.set_visible(True)
+                    title = f"{setting}: {score.name}"
+                    if key == "ood_scatter":
+                        data = sets["corrupted"]
+                        figures.scatter_figure(score.name, score.keep_below, data["error"],
+                                               data[score.name], data["corrupted"], ax=ax,
+                                               title=title)  # fmt: skip
+                    else:
+                        groups = figures.box_groups(score.name, sets)
+                        figures.score_boxes_figure(score.name, score.keep_below, groups, ax=ax,
+                                                   title=title)  # fmt: skip
+            files[key] = figures.save_figure(fig, out / f"{key}.png", dpi=90)
+            md += [f"### {what}", "", f"![{what}]({key}.png)", ""]
+        md = ["### Precision-recall over the quantile q (q = 0.05 to 0.97)", "",
+              "![precision-recall over q](ood_pr.png)", "", *md]  # fmt: skip
+    bars, sets = _set_bars(frames)
+    if len(sets) >= 2 and bars:
+        fig = figures.sets_bars_figure(bars, [set_names.get(s, s) for s in sets])
+        files["ood_sets"] = figures.save_figure(fig, out / "ood_sets.png", dpi=90)
+        md += ["### Error per test set (paper Fig. 8b)", "", "![error per test set](ood_sets.png)",
+               ""]  # fmt: skip
+    examples = [(run, Path(run["dir"]) / "ood_examples.png") for run, _ in frames]
+    examples = [(run, path) for run, path in examples if path.is_file()]
+    if examples:
+        md += ["### Example test pairs with their scores", ""]
+        for run, path in examples:
+            md += [f"{run['setting']} (job {run['job']}):", "",
+                   f"![examples {run['setting']}]({os.path.relpath(path, out)})", ""]  # fmt: skip
+    return ["## OOD figures", "", *md] if md else []
+
+
+def _set_bars(frames) -> tuple[dict[str, list[float]], list[str]]:
+    """Paper Fig. 8b's bars: per head alone and head + score at its Table I quantile, the mean
+    error of the kept pairs on each test set (clean and extra sets)."""
+    sets = list(dict.fromkeys(s for _, f in frames for s in f["set"] if s != "corrupted"))
+    bars: dict[str, list[float]] = {}
+    for run, frame in frames:
+        by_set = {s: frame[frame["set"] == s] for s in sets}
+        bars[str(run["setting"])] = [
+            float(rows["err_mean_all"].iloc[0]) if len(rows) else np.nan for rows in by_set.values()
+        ]
+        table = frame[frame["in_table"]]
+        for score in table["score"].unique():
+            label = f"{run['setting']} + {tables.LABELS.get(score, score)}"
+            bars[label] = []
+            for s in sets:
+                rows = table[(table["score"] == score) & (table["set"] == s)]
+                bars[label].append(float(rows["err_mean_kept"].iloc[0]) if len(rows) else np.nan)
+    return bars, sets

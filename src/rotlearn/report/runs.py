@@ -1,0 +1,280 @@
+"""Collect runs from their directories alone, and group them into settings.
+
+Each run's `.hydra/config.yaml` is read as plain YAML data: never resolved (a run directory is
+untrusted; an interpolation such as `${oc.env:...}` stays text). Runs are grouped by every
+config key whose value differs between them, except the trial keys: those the sweep or
+experiment declares (`report.trial_keys`; `sweep=lr` declares its trials, their seeds and the lr
+drawn for each) and the seeds. `group_by` replaces that rule (exactly those keys), `pool` adds
+trial keys; a key may name a config group (`rep`: every key below it) or one key (`optim.lr`).
+
+A setting is labelled by the value of `report.lead` (the head's name), then each other grouping
+key as `group=option` where the config group's option differs between the runs (`loss=bingham`),
+else as `key=value` (`optim.lr=0.001`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+import yaml
+
+from rotlearn.io import read_json
+from rotlearn.report.identity import parse_override, short_value
+
+__all__ = [
+    "DEFAULT_REPORT",
+    "NOT_SETTINGS",
+    "collect_runs",
+    "label_without",
+    "layout_of",
+    "run_dirs",
+]
+
+DEFAULT_REPORT: dict[str, Any] = {
+    "lead": "rep.name",
+    "trial_keys": ["seed", "data.seed", "trial"],
+    "plots": [{"kind": "curves"}],
+}
+NOT_SETTINGS = ("hydra", "paths", "report")  # per-run paths, and the report layout itself
+_MISSING = "-"
+
+
+def read_yaml(path: Path) -> Any:
+    """Plain data of a YAML file (never resolved, no tags); None if unreadable."""
+    try:
+        return yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError, UnicodeDecodeError):
+        return None
+
+
+def flatten(tree: Any, prefix: str = "") -> dict[str, Any]:
+    """{"a.b": leaf} of nested mappings; lists and other leaves are kept whole."""
+    if not isinstance(tree, Mapping):
+        return {prefix: tree} if prefix else {}
+    flat = {}
+    for key, value in tree.items():
+        flat.update(flatten(value, f"{prefix}.{key}" if prefix else str(key)))
+    return flat
+
+
+def cell(value: Any) -> Any:
+    """A config value as one summary cell: numbers and text as they are, others as YAML."""
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    return yaml.safe_dump(value, default_flow_style=True).strip()
+
+
+def run_dirs(root: Path) -> list[Path]:
+    """The run directories of a sweep directory (by job number), or `root` if it is a run."""
+    if (root / ".hydra" / "config.yaml").is_file():
+        return [root]
+    return sorted(
+        (p.parent.parent for p in root.glob("*/.hydra/config.yaml")),
+        key=lambda p: (not p.name.isdigit(), int(p.name) if p.name.isdigit() else 0, p.name),
+    )
+
+
+def _choices(run: Path, overrides: list[str]) -> dict[str, str]:
+    """{config group: chosen option} of a run: `.hydra/hydra.yaml`'s runtime choices, then the
+    group overrides (`loss=bingham`) of its command line."""
+    hydra = read_yaml(run / ".hydra" / "hydra.yaml")
+    runtime = (hydra or {}).get("hydra", {}).get("runtime", {}) if isinstance(hydra, dict) else {}
+    choices = runtime.get("choices") if isinstance(runtime, dict) else None
+    choices = {str(k): str(v) for k, v in choices.items()} if isinstance(choices, dict) else {}
+    for text in overrides:
+        parsed = parse_override(text)
+        if parsed is not None and "." not in parsed[0]:
+            choices[parsed[0]] = parsed[1]
+    return choices
+
+
+def layout_of(configs: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """The report layout: the first run's `report` node over `DEFAULT_REPORT`."""
+    node = next((c["report"] for c in configs if isinstance(c.get("report"), dict)), {})
+    layout = {**DEFAULT_REPORT, **node}
+    layout["plots"] = [p for p in layout.get("plots") or [] if isinstance(p, dict)]
+    layout["trial_keys"] = [str(k) for k in layout.get("trial_keys") or []]
+    return layout
+
+
+def _roots(root: str | Path | Sequence[str | Path]) -> list[Path]:
+    return [Path(r) for r in root] if isinstance(root, (list, tuple)) else [Path(root)]
+
+
+def _matches(key: str, specs: Sequence[str]) -> bool:
+    """`key` is one of `specs`, or lies below one (`rep` matches `rep.name`)."""
+    return any(key == spec or key.startswith(f"{spec}.") for spec in specs)
+
+
+def collect_runs(
+    root: str | Path | Sequence[str | Path],
+    group_by: Sequence[str] | None = None,
+    pool: Sequence[str] = (),
+) -> pd.DataFrame:
+    """One row per run directory below `root` (one sweep or run directory, or a list of them,
+    pooled) and per job in a `jobs.json` without one: job (`<sweep name>/<job>` when several
+    roots), dir, status, error, overrides, `setting` (the label of its group; module docstring),
+    the lead, grouping and trial config keys (dotted paths, values as written), `group:<name>`
+    (each config group's choice), then the run's numeric final metrics. `attrs["layout"]` is the
+    report layout, `attrs["grouping"]` the grouping keys.
+
+    Args:
+        root: a sweep or run directory, or several (pooled into one table).
+        group_by: group by exactly these keys (config groups or keys); None: every key that
+            differs between the runs, but the trial keys.
+        pool: more trial keys (pooled within a group).
+    """
+    roots = _roots(root)
+    runs = [(r, run) for r in roots for run in run_dirs(r)]
+    rows, configs, flats, choices = [], [], [], []
+    for sweep, run in runs:
+        cfg = read_yaml(run / ".hydra" / "config.yaml")
+        cfg = cfg if isinstance(cfg, dict) else {}
+        overrides = read_yaml(run / ".hydra" / "overrides.yaml")
+        overrides = [str(o) for o in overrides] if isinstance(overrides, list) else []
+        metrics = read_json(run / "metrics.json")
+        metrics = metrics if isinstance(metrics, dict) else {}
+        status = read_json(run / "status.json")
+        status = status if isinstance(status, dict) else {}
+        state = status.get("status") or ("COMPLETED" if metrics else "INCOMPLETE")
+        rows.append(
+            {
+                "job": _job_name(sweep, run, roots),
+                "dir": str(run),
+                "status": state,
+                "error": status.get("error"),  # INTERRUPTED: the signal, epoch, resume command
+                "overrides": " ".join(overrides),
+                **{
+                    k: v
+                    for k, v in metrics.items()
+                    if isinstance(v, (int, float)) and not isinstance(v, bool)
+                },
+            }
+        )
+        configs.append(cfg)
+        flats.append({k: v for k, v in flatten(cfg).items() if k.split(".")[0] not in NOT_SETTINGS})
+        choices.append(_choices(run, overrides))
+    layout = layout_of(configs)
+    grouping = _grouping_keys(flats, layout, group_by, pool)
+    columns, labels, parts = _settings(flats, choices, layout, grouping, group_by is not None)
+    for row, values, label, chosen in zip(rows, columns, labels, choices, strict=True):
+        row.update({k: v for k, v in values.items() if k not in row}, setting=label)
+        row.update({f"group:{k}": v for k, v in chosen.items() if not k.startswith("hydra/")})
+    unstarted = []
+    for r in roots:
+        seen = {Path(row["dir"]).name for row in rows if Path(row["dir"]).parent == r}
+        for job in _unstarted_jobs(r, seen):
+            unstarted.append({**job, "job": _job_name(r, r / str(job["job"]), roots)})
+    frame = pd.DataFrame(rows + unstarted)
+    frame.attrs["layout"] = layout
+    frame.attrs["grouping"] = grouping
+    frame.attrs["label_parts"] = {row["dir"]: p for row, p in zip(rows, parts, strict=True)}
+    return frame
+
+
+def label_without(frame: pd.DataFrame, keys: Sequence[str]) -> pd.Series:
+    """Each run's setting label without the parts made from `keys` (config groups or keys):
+    the series of a plot whose x axis is one of them."""
+    parts = frame.attrs.get("label_parts", {})
+
+    def label(row: pd.Series) -> str:
+        kept = [p for key, p in parts.get(row["dir"], []) if not _matches(key, keys)]
+        return " ".join(kept) or "all"
+
+    return frame.apply(label, axis=1) if len(frame) else pd.Series(dtype=str)
+
+
+def _job_name(sweep: Path, run: Path, roots: list[Path]) -> str:
+    """A run's name in the report: its directory's name, `<sweep>/<run>` when pooling roots."""
+    if len(roots) == 1:
+        return run.name
+    return f"{sweep.name}/{run.name}" if run != sweep else sweep.name
+
+
+def _grouping_keys(
+    flats: list[dict[str, Any]],
+    layout: Mapping[str, Any],
+    group_by: Sequence[str] | None,
+    pool: Sequence[str],
+) -> list[str]:
+    """The config keys that make the groups (module docstring), sorted."""
+    keys = sorted({k for flat in flats for k in flat})
+    if group_by is not None:
+        return [k for k in keys if _matches(k, group_by)]
+    trial = [*layout["trial_keys"], *pool]
+    differ = [k for k in keys if len({repr(f.get(k, _MISSING)) for f in flats}) > 1]
+    return [k for k in differ if not _matches(k, trial)]
+
+
+def _settings(
+    flats: list[dict[str, Any]],
+    choices: list[dict[str, str]],
+    layout: Mapping[str, Any],
+    grouping: list[str],
+    explicit: bool = False,
+) -> tuple[list[dict[str, Any]], list[str], list[list[tuple[str, str]]]]:
+    """Per run: its config columns ({key: value} of the lead, grouping and trial keys) and its
+    setting label (the lead's value, unless `explicit` grouping leaves its group out, then
+    `group=option` or `key=value` of each other grouping key), and the (key, text) parts of
+    that label."""
+    lead = str(layout.get("lead") or "")
+    trial = layout["trial_keys"]
+    keys = sorted({k for flat in flats for k in flat})
+    shown = [k for k in keys if k == lead or k in grouping or _matches(k, trial)]
+    lead_node = lead.split(".")[0]
+    grouped_nodes = {k.split(".")[0] for k in grouping}
+    # a group's option names the setting only where it differs (else two settings that differ in
+    # one of its keys would read the same)
+    varied = {
+        node
+        for node in grouped_nodes
+        if len({c.get(node) for c in choices}) > 1 and all(node in c for c in choices)
+    }
+    columns, labels, all_parts = [], [], []
+    for flat, chosen in zip(flats, choices, strict=True):
+        columns.append({k: cell(flat.get(k)) for k in shown})
+        lead_shown = bool(lead) and lead in flat and (not explicit or lead_node in grouped_nodes)
+        parts = [(lead, short_value(flat[lead]))] if lead_shown else []
+        for key in grouping:
+            node = key.split(".")[0]
+            if node == lead_node and lead_shown:
+                continue
+            if node in varied:
+                part = f"{node}={chosen[node]}"
+            else:
+                part = f"{key}={short_value(flat.get(key, _MISSING))}"
+            if part not in [p for _, p in parts]:
+                parts.append((key, part))
+        if not flat:  # a damaged or missing .hydra/config.yaml
+            parts = [("", "(config unreadable)")]
+        labels.append(" ".join(p for _, p in parts) or "all")
+        all_parts.append(parts)
+    return columns, labels, all_parts
+
+
+def _unstarted_jobs(root: Path, seen: set[str]) -> list[dict[str, Any]]:
+    """Rows for the jobs that `<root>/jobs.json` lists but that have no run directory (yet): those
+    that never ran (PENDING), or died before Hydra wrote their config."""
+    summary = read_json(root / "jobs.json")
+    jobs = summary.get("jobs", []) if isinstance(summary, dict) else []
+    rows = []
+    for job in jobs if isinstance(jobs, list) else []:
+        if not isinstance(job, dict):
+            continue
+        name = Path(str(job["dir"])).name if job.get("dir") else str(job.get("num"))
+        if name in seen:
+            continue
+        overrides = job.get("overrides") if isinstance(job.get("overrides"), list) else []
+        rows.append(
+            {
+                "job": name,
+                "dir": job.get("dir"),
+                "status": job.get("status", "PENDING"),
+                "error": job.get("error") or "never ran",
+                "overrides": " ".join(str(o) for o in overrides),
+            }
+        )
+    return rows

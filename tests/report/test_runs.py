@@ -1,0 +1,76 @@
+"""Runs grouped into settings (rotlearn.report.runs): every key that differs, never what was swept
+pooled; the trial keys a sweep declares pooled; --group-by and --pool."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import yaml
+
+from rotlearn.report import collect_runs, make_report
+
+
+def _run(run: Path, config: dict, choices: dict, overrides: list[str], error: float) -> None:
+    (run / ".hydra").mkdir(parents=True)
+    (run / ".hydra" / "config.yaml").write_text(yaml.safe_dump(config))
+    hydra = {"hydra": {"runtime": {"choices": choices}}}
+    (run / ".hydra" / "hydra.yaml").write_text(yaml.safe_dump(hydra))
+    (run / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump(overrides))
+    metrics = {"test/err_mean": error, "test/err_median": error}
+    (run / "metrics.json").write_text(json.dumps(metrics))
+    (run / "status.json").write_text(json.dumps({"status": "COMPLETED"}))
+
+
+def _grid(sweep: Path, report: dict | None = None, hidden: bool = False) -> None:
+    """rep x optim.lr x seed, 8 runs; the error grows with the lr index and the head."""
+    num = 0
+    for rep in ("a", "sixd"):
+        for lr in (1e-4, 1e-3):
+            for seed in (0, 1):
+                config = {"rep": {"name": rep, "out_dim": 10 if rep == "a" else 6},
+                          "optim": {"lr": lr}, "seed": seed, "data": {"seed": seed},
+                          "net": {"hidden": 16 + 16 * seed if hidden else 16},
+                          "report": report}  # fmt: skip
+                choices = {"rep": rep, "net": "pointnet", "loss": "chordal"}
+                overrides = [f"rep={rep}", f"optim.lr={lr}", f"seed={seed}"]
+                error = (1.0 if rep == "a" else 5.0) * (2.0 if lr > 5e-4 else 1.0) + seed
+                _run(sweep / str(num), config, choices, overrides, error)
+                num += 1
+
+
+def test_every_swept_key_makes_its_own_setting_and_seeds_are_trials(tmp_path):
+    _grid(tmp_path / "sweep")
+    runs = collect_runs(tmp_path / "sweep")
+    settings = [f"{rep} optim.lr={lr}" for rep in ("a", "sixd") for lr in ("0.0001", "0.001")]
+    assert list(dict.fromkeys(runs["setting"])) == settings
+    assert runs.groupby("setting").size().tolist() == [2, 2, 2, 2]
+    report = make_report(tmp_path / "sweep")["report"].read_text()
+    row = next(line for line in report.splitlines() if line.startswith("| a optim.lr=0.001 |"))
+    assert row.split("|")[2].strip() == "2" and float(row.split("|")[4]) == 2.5  # 2 and 3
+    assert "grouped by every config key that differs" in report
+
+
+def test_group_by_and_pool_override_the_grouping(tmp_path):
+    _grid(tmp_path / "sweep")
+    by_rep = collect_runs(tmp_path / "sweep", group_by=["rep"])
+    assert list(dict.fromkeys(by_rep["setting"])) == ["a", "sixd"]
+    pooled = collect_runs(tmp_path / "sweep", pool=["optim.lr"])
+    assert list(dict.fromkeys(pooled["setting"])) == ["a", "sixd"]
+    seeds = collect_runs(tmp_path / "sweep", group_by=["seed", "optim.lr"])
+    assert set(seeds["setting"]) == {f"optim.lr={lr} seed={s}" for lr in ("0.0001", "0.001")
+                                     for s in (0, 1)}  # fmt: skip
+
+
+def test_the_trial_keys_a_sweep_declares_are_pooled(tmp_path):
+    """sweep=lr: each trial draws its own lr and seeds; the head alone makes the setting."""
+    _grid(tmp_path / "sweep", report={"trial_keys": ["trial", "seed", "data.seed", "optim.lr"]})
+    assert list(dict.fromkeys(collect_runs(tmp_path / "sweep")["setting"])) == ["a", "sixd"]
+
+
+def test_a_key_swept_inside_one_config_group_is_named_by_the_key(tmp_path):
+    """Two settings that share their config group options are told apart by the key."""
+    _grid(tmp_path / "sweep", hidden=True)
+    runs = collect_runs(tmp_path / "sweep", pool=["optim.lr"])
+    assert set(runs["setting"]) == {f"{rep} net.hidden={h}" for rep in ("a", "sixd")
+                                    for h in (16, 32)}  # fmt: skip

@@ -1,0 +1,36 @@
+"""The one table builder (rotlearn.report.tables.markdown_table) and the run's result table."""
+
+from __future__ import annotations
+
+import math
+
+import pandas as pd
+
+from rotlearn.report.tables import markdown_table, results_table
+
+
+def test_the_builder_rounds_marks_missing_values_and_escapes_cells():
+    rows = [{"method": "a | b", "err": 1.23456, "n": 3, "q": None},
+            {"method": "c\nd", "err": math.nan, "n": 4, "q": 0.75}]  # fmt: skip
+    text = markdown_table(rows, ["method", ("err", "error (deg)"), "n", "q"],
+                          formats={"q": "{:.1f}"})  # fmt: skip
+    assert text.splitlines() == [
+        "| method | error (deg) | n | q |",
+        "|---|---|---|---|",
+        "| a \\| b | 1.23 | 3 | - |",
+        "| c d | - | 4 | 0.8 |",
+    ]
+    assert markdown_table(pd.DataFrame(rows)) == markdown_table(rows)
+
+
+def test_a_runs_results_are_one_table_of_what_it_measured():
+    metrics = {"test/err_mean": 2.5, "test/err_median": 1.25, "test/nll": -3.0, "test/ece": 0.04,
+               "test/dt_spearman": 0.6, "test/dt_auroc_noisiest": 0.9, "ood/auroc_dt": 0.97,
+               "epochs": 50, "diverged": False, "train/loss": 0.1}  # fmt: skip
+    lines = results_table(metrics).splitlines()
+    assert lines[0] == "| result | value |"
+    assert "| test error, mean (deg) | 2.5 |" in lines and "| ECE | 0.04 |" in lines
+    assert "| dt: Spearman with error | 0.6 |" in lines
+    assert "| dt: AUROC, noisiest 10 % | 0.9 |" in lines
+    assert "| OOD AUROC, dt | 0.97 |" in lines and "| diverged | no |" in lines
+    assert not any("train" in line for line in lines)  # per-epoch series are curves, not results
