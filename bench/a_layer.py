@@ -163,6 +163,46 @@ def _ratio(rows: dict[str, dict], num: str, den: str) -> float | None:
 RATIOS = (("eigh", "rotlearn"), ("roma", "rotlearn"), ("rotlearn", "sixd"))
 
 
+def targets(results: list[dict], device: str) -> list[str]:
+    """Issue 26's speed targets, each with the measured ratio and by how much it is met or missed.
+
+    CPU (float32): 1. never slower than plain eigh with autograd at any batch size (eigh/rotlearn
+    >= 1 everywhere); 2. eigh/rotlearn >= 8 at B >= 16384 (goal 10). CUDA (float32): eigh/rotlearn
+    >= 50 at B = 4096; rotlearn/sixd <= 2 at every batch size."""
+
+    def worst(pairs: list[tuple[int, float]], low: bool = True) -> tuple[int, float] | None:
+        return (min if low else max)(pairs, key=lambda p: p[1]) if pairs else None
+
+    def verdict(name: str, found: tuple[int, float] | None, need: float, above: bool) -> str:
+        if found is None:
+            return f"{name}: not measured (no batch size of the target in this run)"
+        batch, value = found
+        met = value >= need if above else value <= need
+        by = value / need if above else need / value
+        word = "met" if met else "MISSED"
+        return f"{name}: {word}, worst {value:.2f} at B = {batch} ({by:.2f}x the bound {need:g})"
+
+    f32 = [r for r in results if r["mode"] == "float32"]
+    speedup = [(r["batch"], r["ratios"]["eigh/rotlearn"]) for r in f32]
+    speedup = [(b, v) for b, v in speedup if v is not None]
+    if device == "cpu":
+        big = [(b, v) for b, v in speedup if b >= 16384]
+        lines = [
+            verdict("target 1, eigh/rotlearn >= 1 at every B", worst(speedup), 1.0, True),
+            verdict("target 2, eigh/rotlearn >= 8 at B >= 16384", worst(big), 8.0, True),
+            verdict("goal, eigh/rotlearn >= 10 at B >= 16384", worst(big), 10.0, True),
+        ]
+    else:
+        at4096 = [(b, v) for b, v in speedup if b == 4096]
+        sixd = [(r["batch"], r["ratios"]["rotlearn/sixd"]) for r in f32]
+        sixd = [(b, v) for b, v in sixd if v is not None]
+        lines = [
+            verdict("GPU target, eigh/rotlearn >= 50 at B = 4096", worst(at4096), 50.0, True),
+            verdict("GPU target, rotlearn/sixd <= 2 at every B", worst(sixd, False), 2.0, False),
+        ]
+    return lines
+
+
 def _print_table(results: list[dict], names: list[str]) -> None:
     print("\nforward+backward, microseconds per sample (median over interleaved repeats)")
     header = f"{'mode':9s} {'B':>8s} " + " ".join(f"{n:>12s}" for n in names)
@@ -237,6 +277,8 @@ def main(argv: list[str] | None = None) -> None:
                 flush=True,
             )
     _print_table(results, names)
+    verdicts = targets(results, device.type)
+    print("\n".join(verdicts))
     info = machine(device) | {
         "load_average_before": load_before,
         "load_average_after": os.getloadavg(),
@@ -248,6 +290,7 @@ def main(argv: list[str] | None = None) -> None:
         "roma": getattr(roma, "__version__", None),
         "repeats": args.repeats,
         "budget_s": args.budget,
+        "targets": verdicts,
     }
     tag = f"{device.type}_{torch.get_num_threads()}t" if device.type == "cpu" else device.type
     out = write_json_atomic(

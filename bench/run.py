@@ -222,12 +222,12 @@ SCRIPTS = {
 DEVICE_SCRIPTS = ("a_layer", "rep_layers")  # those that take --device (the others run on CPU)
 
 
-def _run_script(name: str, device: str) -> None:
+def _run_script(name: str, device: str, extra: list[str]) -> None:
     path = Path(__file__).resolve().parent / SCRIPTS[name]
     spec = importlib.util.spec_from_file_location(f"bench_{name}", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
-    module.main(["--device", device] if name in DEVICE_SCRIPTS else [])
+    module.main([*(["--device", device] if name in DEVICE_SCRIPTS else []), *extra])
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -247,7 +247,14 @@ def main(argv: list[str] | None = None) -> None:
         "--overrides", default="", help='epoch: Hydra overrides, e.g. "data.batch_size=4096"'
     )
     parser.add_argument("--out", type=Path, default=None, help="epoch/heads/...: the JSON path")
-    args = parser.parse_args(argv)
+    # Options this parser does not know go to the one script benchmark named, e.g.
+    # `make bench ARGS="a_layer --threads 1 --clock cpu"`.
+    args, extra = parser.parse_known_args(argv)
+    if extra and not (len(args.names) == 1 and args.names[0] in SCRIPTS):
+        parser.error(
+            f"unrecognized arguments {' '.join(extra)} (options of a script benchmark"
+            f" go with it alone, e.g. a_layer --threads 1)"
+        )
     warnings.filterwarnings("ignore")
     logging.getLogger("lightning").setLevel(logging.ERROR)
     logging.getLogger("lightning.pytorch").setLevel(logging.ERROR)
@@ -268,7 +275,8 @@ def main(argv: list[str] | None = None) -> None:
         )
     for name in args.names:
         if name in SCRIPTS:
-            _run_script(name, args.device)
+            out = ["--out", str(args.out)] if args.out else []
+            _run_script(name, args.device, [*out, *extra])
             continue
         device = args.device if name == "epoch" else "cpu"
         result = {"machine": _machine(device), "result": benches[name]()}
