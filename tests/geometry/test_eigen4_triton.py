@@ -275,6 +275,15 @@ def test_cuda_compiles_to_one_graph(backend):
     torch.testing.assert_close(grad, ref_grad)
 
 
+@pytest.mark.parametrize("method", ["jacobi", "eigh"])
+def test_triton_path_compiles_to_one_graph_in_the_interpreter(method):
+    """torch.compile(fullgraph=True, aot_eager) of the A layer on the Triton path, forward and
+    backward (CPU tensors: the kernels in the interpreter), matches eager at two batch sizes."""
+    from tests.geometry.test_eigen4_ops import _compiled_matches_eager
+
+    _compiled_matches_eager(method, "triton", "aot_eager")
+
+
 def _compile_for_sm90(kernel, signature: dict, constexprs: dict):
     """triton.compile for an sm_90 GPU (H100, H200) on this machine, which has none."""
     from triton.backends.compiler import GPUTarget
