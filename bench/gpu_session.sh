@@ -10,13 +10,15 @@
 # OUT_DIR: environment.json, tests.log/tests.xml, a_layer_cuda.json/.log, epoch_cuda*.json/.log,
 # summary.txt (each stage's exit status and the numbers the issue's targets name).
 #
-#   PYTHONPATH=src[:<extra wheels>] bash bench/gpu_session.sh OUT_DIR      (from the repository root)
+#   [PYTHONPATH=WHEELS_DIR] bash bench/gpu_session.sh OUT_DIR   (from the repository root; adds src)
 #
-# Python packages: torch (CUDA), triton, numpy, lightning, torchmetrics, pytest, hypothesis, and
-# where missing: hydra-core, omegaconf, antlr4-python3-runtime, pyyaml, scipy (tests/conftest.py,
-# bench/run.py, rotlearn.lit), matplotlib, pandas, tensorboard (rotlearn.lit checks the whole
-# [train] extra), roma (its benchmark column; optional). environment.json lists what was found;
-# a stage that lacks a package fails fast and says which.
+# Python packages: torch (CUDA), triton, lightning, torchmetrics, pytest, hypothesis (with their
+# own dependencies: numpy, PyYAML), and the rest of the [train] extra plus roma from wheels:
+# bench/gpu_wheels.sh fetches them (bench/gpu_requirements.txt) for a machine without a network,
+# installed there with `pip install --no-deps --no-index --target DIR` and DIR on PYTHONPATH.
+# Checked on a CPU in a venv with only those six packages and the wheels: every stage imports and
+# runs (the CUDA ones stop at "no CUDA device"). environment.json lists what was found; a stage
+# that lacks a package fails fast and says which.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 out=${1:?usage: bash bench/gpu_session.sh OUT_DIR}
@@ -44,7 +46,7 @@ import importlib.util, json, os, platform, sys
 import torch
 found = {}
 for name in ["triton", "numpy", "lightning", "torchmetrics", "pytest", "hypothesis", "hydra",
-             "omegaconf", "antlr4", "yaml", "scipy", "matplotlib", "pandas", "tensorboard", "roma"]:
+             "omegaconf", "antlr4", "yaml", "matplotlib", "pandas", "tensorboard", "roma"]:
     spec = importlib.util.find_spec(name)
     version = None
     if spec is not None:
