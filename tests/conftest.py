@@ -11,6 +11,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
@@ -20,7 +21,6 @@ import numpy as np
 import pytest
 import torch
 from omegaconf import DictConfig
-from scipy.spatial.transform import Rotation
 
 from rotlearn.config import compose
 from rotlearn.geometry import so3_exp
@@ -42,6 +42,17 @@ RESUMABLE = [
     *SMALL_NET,
 ]
 _CLI_ENV = {"HYDRA_FULL_ERROR": "0", "PYTHONWARNINGS": "ignore"}
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """One cache of compiled kernels (the A layer's C kernel) for the whole session, shared by
+    every test and every subprocess it starts, so the first compile is paid once (at collection:
+    test modules ask whether the kernel is available), and the user's ~/.cache is left alone.
+    A ROTLEARN_CACHE_DIR set by the caller is kept (a persistent cache across sessions)."""
+    if not os.environ.get("ROTLEARN_CACHE_DIR"):
+        root = Path(tempfile.mkdtemp(prefix="rotlearn-test-cache-"))
+        os.environ["ROTLEARN_CACHE_DIR"] = str(root)
+        config.add_cleanup(lambda: shutil.rmtree(root, ignore_errors=True))
 
 
 def start_cli(args: list[str], cwd: Path) -> subprocess.Popen:
@@ -205,6 +216,8 @@ def randn(seed: int, shape: tuple[int, ...], dtype: torch.dtype = torch.float64)
 
 def scipy_rotmats(seed: int, n: int) -> torch.Tensor:
     """Haar-random rotations from scipy (independent of rotlearn), float64."""
+    from scipy.spatial.transform import Rotation  # here: the solver's tests run without scipy
+
     return torch.from_numpy(Rotation.random(n, random_state=seed).as_matrix())
 
 

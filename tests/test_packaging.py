@@ -26,7 +26,14 @@ SRC = Path(rotlearn.__file__).resolve().parents[1]  # the rotlearn under test, f
 
 # Every library of an extra, by import name (lightning's own packages too).
 OPTIONAL = sorted(
-    {*EXTRAS["train"], *EXTRAS["data"], "lightning_fabric", "pytorch_lightning", "annotated_types"}
+    {
+        *EXTRAS["train"],
+        *EXTRAS["data"],
+        *EXTRAS["gpu"],
+        "lightning_fabric",
+        "pytorch_lightning",
+        "annotated_types",
+    }
 )
 CORE = [
     "rotlearn",
@@ -119,6 +126,21 @@ def test_constrained_constructors_work_without_pydantic():
     )
     assert_ok(result)
     assert result.stdout.split() == ["torch.Size([2,", "4])", "2", "3"]
+
+
+def test_the_a_layer_runs_without_triton_and_its_kernel_names_the_gpu_extra():
+    result = run_without_extras(
+        """
+        import torch
+        from rotlearn.geometry import sym4_eigh_min
+        eigenvalues, q = sym4_eigh_min(torch.eye(4).expand(3, 4, 4))  # the CPU paths need no triton
+        sym4_eigh_min(torch.eye(4), kernel="triton")
+        """
+    )
+    assert result.returncode != 0
+    last = result.stderr.strip().splitlines()[-1]
+    assert last.startswith("rotlearn.extras.MissingExtraError"), last
+    assert "pip install 'rotlearn[gpu]'" in last
 
 
 def test_import_rotlearn_is_light():

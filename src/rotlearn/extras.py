@@ -4,7 +4,8 @@
 `rotlearn.bingham`, `rotlearn.losses`, `rotlearn.nets` and `rotlearn.nn` need nothing else. The
 training stack (`rotlearn.lit`, `rotlearn.config`, `rotlearn.cli`, `rotlearn.data`'s DataModules,
 `rotlearn.ood`, `rotlearn.metrics`, loading a checkpoint) comes with
-``pip install 'rotlearn[train]'``; image and mesh datasets with ``pip install 'rotlearn[data]'``.
+``pip install 'rotlearn[train]'``; image and mesh datasets with ``pip install 'rotlearn[data]'``;
+the A layer's Triton kernels for CUDA with ``pip install 'rotlearn[gpu]'``.
 A module that needs an extra calls `require` before importing it, so a bare install says what to
 install instead of "No module named ...".
 """
@@ -31,6 +32,7 @@ EXTRAS: dict[str, tuple[str, ...]] = {
         "pydantic",
     ),
     "data": ("cv2", "trimesh", "skimage", "tqdm"),
+    "gpu": ("triton",),
 }
 
 
