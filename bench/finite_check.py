@@ -25,22 +25,18 @@ import time
 from pathlib import Path
 
 import torch
-from hydra import compose, initialize_config_dir
 
 from rotlearn.cli.train import build
+from rotlearn.config import compose
 from rotlearn.io import write_json_atomic
 from rotlearn.lit.finite import FINITE_CHECK_EVERY
-from rotlearn.paths import config_dir
 
 RESULTS = Path(__file__).resolve().parent / "results"
 MODES = ("none", "sync", "device/1", f"device/{FINITE_CHECK_EVERY}")
 
 
 def _model_and_batch(rep: str, device: torch.device, tmp: Path, overrides: list[str]):
-    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
-        args = [f"rep={rep}", "logger=none", f"paths.output_dir={tmp}", *overrides]
-        cfg = compose("train", args)
-    model, datamodule, _ = build(cfg)
+    model, datamodule, _ = build(compose([f"rep={rep}", "logger=none", *overrides], output_dir=tmp))
     model = model.to(device)
     batch = datamodule.draw(0, 0, datamodule.batch_size, device)
     return model, batch

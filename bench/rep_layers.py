@@ -21,7 +21,8 @@ another process may share the machine. Ratios are computed within the run.
     .venv/bin/python bench/rep_layers.py --batches 16384 --dtypes float32 --threads 1
     .venv/bin/python bench/rep_layers.py --crossover     # jacobi vs eigh: where `auto` switches
 
-`--crossover` times `sym4_eigh_min(method="jacobi")` against `method="eigh"` (forward and
+`--crossover` times `sym4_eigh_min(method="jacobi")` against `method="eigh"` on the eager path
+(`kernel="eager"`: where a fused kernel runs, "auto" is always jacobi; forward and
 forward+backward, float32, batch sizes 1 ... 65536) and reports the smallest batch from which
 jacobi's forward+backward is faster at that and every larger size measured: the value for
 `rotlearn.geometry.eigen4.EIGH_BELOW` on this machine. Written to
@@ -291,10 +292,10 @@ def bench_crossover(batches: list[int], dtype: torch.dtype, device: torch.device
 
             def forward(method=method, A=A):
                 with torch.no_grad():
-                    return sym4_eigh_min(A, check=False, method=method)
+                    return sym4_eigh_min(A, check=False, method=method, kernel="eager")
 
             def forward_backward(method=method, weights=weights, leaf=leaf):
-                outs = sym4_eigh_min(leaf, check=False, method=method)
+                outs = sym4_eigh_min(leaf, check=False, method=method, kernel="eager")
                 loss = sum((o * w).sum() for o, w in zip(outs, weights, strict=True))
                 return torch.autograd.grad(loss, leaf)
 

@@ -1,13 +1,20 @@
 """rotlearn benchmarks: `make bench [ARGS="epoch heads paper"]`.
 
 - epoch: seconds per epoch of the paper's synthetic setting (5 x 100 training samples, 100 matches,
-  validation on 100), per representation, through the real Lightning pipeline.
+  validation on 100), per representation, through the real Lightning pipeline; `--device cuda`
+  trains with trainer=gpu (bf16-mixed where the GPU has bfloat16), `--overrides` changes the
+  setting (e.g. "data.batch_size=4096 data.batches_per_epoch=20"); the A / 6D ratio of the
+  epoch times is the cost of the A head in a whole training epoch (issue 26: within 10 % on GPU).
 - heads: microseconds per sample of each head's forward and forward+backward at a large batch.
-- a_layer: the A layer (10 numbers -> q, forward+backward) against torch.linalg.eigh, roma, 6D and
-  SVD-9D at B = 100 ... 1M, with the eigh/rotlearn ratio (bench/a_layer.py; issue 16).
+- a_layer: the A layer (10 numbers -> q, forward+backward) on its fused kernel (C on the CPU,
+  Triton on CUDA) and eager path against torch.linalg.eigh, roma, 6D and SVD-9D at B = 1 ... 1M,
+  float32 (and bf16 autocast on CUDA), with the eigh/rotlearn ratio (bench/a_layer.py; issues 16,
+  26); `--device cuda` for the GPU.
 - bingham: log N(Lambda) and its gradient per sample (bench/bingham.py).
 - kitti_loader: first-time KITTI preprocessing rate and cached pairs/s with 2 workers
   (bench/kitti_loader.py).
+- cli_errors: seconds until a command line's mistake is refused (unknown key or option, missing
+  data, a folder that is no run, ...), each in a fresh process (bench/cli_errors.py; issue 23).
 - predictor: peak memory (RSS) and seconds of `rotlearn.inference.Predictor` on 10k and 100k
   samples of 10 point pairs (PointNet + A head), each in a fresh process: chunking bounds memory.
 - paper: the paper's synthetic experiment (lr 5e-4, 50 epochs, phi_max 180) over 3 seeds per
@@ -24,6 +31,7 @@ import argparse
 import importlib.util
 import json
 import logging
+import os
 import statistics
 import sys
 import tempfile
@@ -31,12 +39,11 @@ import warnings
 from pathlib import Path
 
 import torch
-from hydra import compose, initialize_config_dir
 
 from rotlearn.cli.train import train
+from rotlearn.config import compose
 from rotlearn.heads import HEADS, make_head
 from rotlearn.io import write_json_atomic
-from rotlearn.paths import config_dir
 from timing import machine, median_seconds
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -45,30 +52,42 @@ QUIET = ["trainer.enable_progress_bar=false", "trainer.enable_model_summary=fals
 AUTHORS = {"a": ("1.1-1.4", "0.735"), "sixd": ("1.6", "0.71"), "quat": ("6.6-16", "0.71-0.75")}
 
 
-def _machine() -> dict:
-    return machine("cpu")
+def _machine(device: str = "cpu") -> dict:
+    return machine(device) | {
+        "cuda": torch.version.cuda,
+        "load_average": list(os.getloadavg()),
+    }
 
 
 def _run(overrides: list[str], out: Path) -> dict:
     """Train one config; its metrics.json plus the epoch time from timing.json."""
-    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
-        cfg = compose("train", overrides=[f"paths.output_dir={out}", *QUIET, *overrides])
-    metrics = train(cfg)
+    metrics = train(compose([*QUIET, *overrides], output_dir=out))
     timing = json.loads((out / "timing.json").read_text())
     return {**metrics, "epoch_time_s": timing["epoch_time_s"]}
 
 
-def bench_epoch(reps: list[str], epochs: int = 6) -> dict:
+def bench_epoch(
+    reps: list[str], epochs: int = 6, device: str = "cpu", overrides: list[str] | None = None
+) -> dict:
+    trainer = "gpu" if device.startswith("cuda") else "cpu"
+    overrides = overrides or []
     rows = {}
     with tempfile.TemporaryDirectory() as tmp:
         for rep in reps:
-            m = _run([f"rep={rep}", "trainer=cpu", f"trainer.max_epochs={epochs}"], Path(tmp) / rep)
+            run = [f"rep={rep}", f"trainer={trainer}", f"trainer.max_epochs={epochs}", *overrides]
+            m = _run(run, Path(tmp) / rep)
             rows[rep] = {"epoch_time_s": m["epoch_time_s"], "epochs_timed": epochs - 1}
-    print(f"\nSeconds per epoch (5 x 100 samples + validation on 100; mean of epochs 2-{epochs})")
+    setting = " ".join(overrides) or "5 x 100 samples + validation on 100"
+    print(f"\nSeconds per epoch, trainer={trainer} ({setting}; mean of epochs 2-{epochs})")
     print(f"{'rep':8s} {'rotlearn':>10s} {'authors':>10s}")
     for rep, row in rows.items():
-        print(f"{rep:8s} {row['epoch_time_s']:10.3f} {AUTHORS.get(rep, ('', '-'))[1]:>10s}")
-    return rows
+        authors = AUTHORS.get(rep, ("", "-"))[1] if trainer == "cpu" and not overrides else "-"
+        print(f"{rep:8s} {row['epoch_time_s']:10.3f} {authors:>10s}")
+    result = {"trainer": trainer, "overrides": overrides, "reps": rows}
+    if "a" in rows and "sixd" in rows:
+        result["a_over_sixd"] = rows["a"]["epoch_time_s"] / rows["sixd"]["epoch_time_s"]
+        print(f"A / 6D epoch time: {result['a_over_sixd']:.3f}")
+    return result
 
 
 def bench_heads(batch: int = 131072) -> dict:
@@ -198,16 +217,17 @@ SCRIPTS = {
     "bingham": "bingham.py",
     "rep_layers": "rep_layers.py",
     "kitti_loader": "kitti_loader.py",
+    "cli_errors": "cli_errors.py",
 }  # benchmarks with their own CLI
 DEVICE_SCRIPTS = ("a_layer", "rep_layers")  # those that take --device (the others run on CPU)
 
 
-def _run_script(name: str, device: str) -> None:
+def _run_script(name: str, device: str, extra: list[str]) -> None:
     path = Path(__file__).resolve().parent / SCRIPTS[name]
     spec = importlib.util.spec_from_file_location(f"bench_{name}", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
-    module.main(["--device", device] if name in DEVICE_SCRIPTS else [])
+    module.main([*(["--device", device] if name in DEVICE_SCRIPTS else []), *extra])
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -220,16 +240,30 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--reps", default="a,sixd,quat")
     parser.add_argument("--seeds", default="1,2,3", help='"1,2,3" or "1-9"')
     parser.add_argument(
-        "--device", default="cpu", help=f"cpu or cuda, for {', '.join(DEVICE_SCRIPTS)}"
+        "--device", default="cpu", help=f"cpu or cuda, for epoch, {', '.join(DEVICE_SCRIPTS)}"
     )
-    args = parser.parse_args(argv)
+    parser.add_argument("--epochs", type=int, default=6, help="epoch: epochs per run")
+    parser.add_argument(
+        "--overrides", default="", help='epoch: Hydra overrides, e.g. "data.batch_size=4096"'
+    )
+    parser.add_argument("--out", type=Path, default=None, help="epoch/heads/...: the JSON path")
+    # Options this parser does not know go to the one script benchmark named, e.g.
+    # `make bench ARGS="a_layer --threads 1 --clock cpu"`.
+    args, extra = parser.parse_known_args(argv)
+    if extra and not (len(args.names) == 1 and args.names[0] in SCRIPTS):
+        parser.error(
+            f"unrecognized arguments {' '.join(extra)} (options of a script benchmark"
+            f" go with it alone, e.g. a_layer --threads 1)"
+        )
     warnings.filterwarnings("ignore")
     logging.getLogger("lightning").setLevel(logging.ERROR)
     logging.getLogger("lightning.pytorch").setLevel(logging.ERROR)
+    if args.device.startswith("cuda") and not torch.cuda.is_available():
+        sys.exit(f"--device {args.device}: torch.cuda.is_available() is False on this machine")
     reps = args.reps.split(",")
     seeds = parse_seeds(args.seeds)
     benches = {
-        "epoch": lambda: bench_epoch(reps),
+        "epoch": lambda: bench_epoch(reps, args.epochs, args.device, args.overrides.split()),
         "heads": bench_heads,
         "predictor": bench_predictor,
         "paper": lambda: bench_paper(reps, seeds),
@@ -241,10 +275,13 @@ def main(argv: list[str] | None = None) -> None:
         )
     for name in args.names:
         if name in SCRIPTS:
-            _run_script(name, args.device)
+            out = ["--out", str(args.out)] if args.out else []
+            _run_script(name, args.device, [*out, *extra])
             continue
-        result = {"machine": _machine(), "result": benches[name]()}
-        path = write_json_atomic(RESULTS / f"{name}.json", result)
+        device = args.device if name == "epoch" else "cpu"
+        result = {"machine": _machine(device), "result": benches[name]()}
+        tag = name if device == "cpu" else f"{name}_{torch.device(device).type}"
+        path = write_json_atomic(args.out or RESULTS / f"{tag}.json", result)
         print(f"-> {path.relative_to(Path.cwd()) if path.is_relative_to(Path.cwd()) else path}")
 
 

@@ -33,14 +33,36 @@ def cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
+def commit() -> str | None:
+    """The git commit of the code measured (with "+" when the tree has changes), or None."""
+    import subprocess
+
+    root = Path(__file__).resolve().parents[1]
+    try:
+        head = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True
+        )
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=root, capture_output=True, text=True,
+        )  # fmt: skip
+    except OSError:
+        return None
+    if head.returncode != 0:
+        return None
+    return head.stdout.strip() + ("+" if dirty.stdout.strip() else "")
+
+
 def machine(device: object = "cpu") -> dict:
-    """What a benchmark result must name: versions, CPU model, torch threads, GPU (if used)."""
+    """What a benchmark result must name: versions, CPU model, torch threads, GPU (if used),
+    the code's commit."""
     import platform
 
     import torch
 
     device = torch.device(device)
     return {
+        "commit": commit(),
         "python": platform.python_version(),
         "torch": torch.__version__,
         "cpu": cpu_model(),

@@ -101,10 +101,11 @@ def command_help(command: str) -> str:
     import importlib
     import io
 
-    if command == "rotlearn-train":
-        from rotlearn.cli.train import usage
+    if command in ("rotlearn-train", "rotlearn-eval"):
+        from rotlearn.cli import evaluate, train
         from rotlearn.paths import config_dir
 
+        usage = train.usage if command == "rotlearn-train" else evaluate.usage
         return usage().replace(str(config_dir()), "conf")  # not the building machine's path
     module = {"rotlearn-predict": "predict", "rotlearn-report": "report",
               "rotlearn-make-demo-data": "make_demo_data"}[command]  # fmt: skip

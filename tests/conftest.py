@@ -11,6 +11,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
@@ -19,10 +20,9 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
-from scipy.spatial.transform import Rotation
 
+from rotlearn.config import compose
 from rotlearn.geometry import so3_exp
 from rotlearn.paths import config_dir
 
@@ -42,6 +42,17 @@ RESUMABLE = [
     *SMALL_NET,
 ]
 _CLI_ENV = {"HYDRA_FULL_ERROR": "0", "PYTHONWARNINGS": "ignore"}
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """One cache of compiled kernels (the A layer's C kernel) for the whole session, shared by
+    every test and every subprocess it starts, so the first compile is paid once (at collection:
+    test modules ask whether the kernel is available), and the user's ~/.cache is left alone.
+    A ROTLEARN_CACHE_DIR set by the caller is kept (a persistent cache across sessions)."""
+    if not os.environ.get("ROTLEARN_CACHE_DIR"):
+        root = Path(tempfile.mkdtemp(prefix="rotlearn-test-cache-"))
+        os.environ["ROTLEARN_CACHE_DIR"] = str(root)
+        config.add_cleanup(lambda: shutil.rmtree(root, ignore_errors=True))
 
 
 def start_cli(args: list[str], cwd: Path) -> subprocess.Popen:
@@ -137,10 +148,7 @@ def model_checkpoint(path: Path, overrides: Sequence[str] = ()) -> Path:
     `overrides` builds (epoch 0, no training): what a resume checks a run's last.ckpt against."""
     from hydra.utils import instantiate
 
-    import rotlearn.cli.schemas  # noqa: F401  (registers the schemas the config composes from)
-
-    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-        cfg = compose("train", ["paths.output_dir=.", *overrides])
+    cfg = compose(["paths.output_dir=.", *overrides], check=False)
     path.parent.mkdir(parents=True, exist_ok=True)
     torch.save({"epoch": 0, "state_dict": instantiate(cfg.model).state_dict()}, path)
     return path
@@ -208,6 +216,8 @@ def randn(seed: int, shape: tuple[int, ...], dtype: torch.dtype = torch.float64)
 
 def scipy_rotmats(seed: int, n: int) -> torch.Tensor:
     """Haar-random rotations from scipy (independent of rotlearn), float64."""
+    from scipy.spatial.transform import Rotation  # here: the solver's tests run without scipy
+
     return torch.from_numpy(Rotation.random(n, random_state=seed).as_matrix())
 
 
@@ -227,14 +237,39 @@ def config_options(group: str) -> list[str]:
 
 @pytest.fixture
 def make_cfg(tmp_path: Path) -> Callable[..., DictConfig]:
-    """compose(overrides) -> the train config, writing below a fresh temporary directory."""
+    """compose(overrides) -> the train config (`rotlearn.config.compose`, not yet validated),
+    writing below a fresh temporary directory."""
 
     def _make(overrides: Sequence[str] = (), run_dir: Path | None = None) -> DictConfig:
         out = run_dir or tmp_path / "run"
-        with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-            return compose(config_name="train", overrides=[f"paths.output_dir={out}", *overrides])
+        return compose([f"paths.output_dir={out}", *overrides], check=False)
 
     return _make
+
+
+@pytest.fixture
+def on_disk(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Callable[[DictConfig], DictConfig]:
+    """cfg -> cfg, once the (empty) folders and files that its data root must hold exist
+    (`rotlearn.config.checks.data_paths`), relative roots inside a fresh working directory:
+    enough for a config to validate without its dataset, not to read one."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("ROTLEARN_DATA_DIR", raising=False)
+    return make_data_layout
+
+
+def make_data_layout(cfg: DictConfig) -> DictConfig:
+    """Create (empty) the folders and files that the data root of `cfg` must hold; returns cfg."""
+    from omegaconf import OmegaConf
+
+    from rotlearn.config.checks import data_paths
+
+    for _, path in data_paths(OmegaConf.to_container(cfg.data, resolve=True)):
+        if path.suffix:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.touch()
+        else:
+            path.mkdir(parents=True, exist_ok=True)
+    return cfg
 
 
 @pytest.fixture(scope="session")
@@ -346,14 +381,13 @@ def train_tiny_autoencoder(kitti_root: Path, run_dir: Path, image_size: int = 16
     autoencoder_ckpt`."""
     from rotlearn.cli.train import train
 
-    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-        cfg = compose("train", [
-            f"paths.output_dir={run_dir}", "experiment=kitti_autoencoder",
-            f"data.root={kitti_root}",
-            "data.train_sequences=[01]", "data.test_sequences=[00]", "data.num_workers=0",
-            "data.batch_size=64", f"data.image_size={image_size}", "net.channels=[4,4,4,4]",
-            "net.hidden=8", "net.latent=4", "trainer=cpu", "trainer.max_epochs=1",
-            "trainer.enable_progress_bar=false", "logger=none",
-        ])  # fmt: skip
+    cfg = compose([
+        f"paths.output_dir={run_dir}", "experiment=kitti_autoencoder",
+        f"data.root={kitti_root}",
+        "data.train_sequences=[01]", "data.test_sequences=[00]", "data.num_workers=0",
+        "data.batch_size=64", f"data.image_size={image_size}", "net.channels=[4,4,4,4]",
+        "net.hidden=8", "net.latent=4", "trainer=cpu", "trainer.max_epochs=1",
+        "trainer.enable_progress_bar=false", "logger=none",
+    ])  # fmt: skip
     train(cfg)
     return run_dir

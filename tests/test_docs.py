@@ -1,18 +1,19 @@
 """The worked examples of docs/architecture.md run as written: a new head, a new dataset and a
-new OOD score, each trained or evaluated end to end."""
+new OOD score, each trained or evaluated end to end; the head and the dataset are validated like
+rotlearn's own components with no file touched but their module and their one YAML file."""
 
 from __future__ import annotations
 
 import importlib.util
 import re
+import shutil
 import sys
 from pathlib import Path
 
 import pytest
 import torch
-from omegaconf import OmegaConf, open_dict
 
-from tests.conftest import FAST
+from tests.conftest import CONFIG_DIR, SMALL_NET
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "architecture.md"
 
@@ -50,36 +51,61 @@ def cleanup():
             del sys.modules[name]
 
 
-def _train_with(make_cfg, key: str, yaml: str, overrides: list[str]) -> dict:
+@pytest.fixture
+def conf(tmp_path: Path) -> Path:
+    """A copy of conf/, for the example's one YAML file (nothing else is added or changed)."""
+    return Path(shutil.copytree(CONFIG_DIR, tmp_path / "conf"))
+
+
+def _compose(conf: Path, tmp_path: Path, overrides: list[str]):
+    from rotlearn.config import compose
+
+    quiet = ["trainer=cpu", "trainer.enable_progress_bar=false", "logger=none", *SMALL_NET]
+    return compose([*quiet, *overrides], root=conf, output_dir=tmp_path / "run")
+
+
+def test_the_head_example_is_validated_and_trains(conf, tmp_path, cleanup):
     from rotlearn.cli.train import train
+    from rotlearn.config import ConfigError
 
-    cfg = make_cfg([*FAST, "trainer.fast_dev_run=true", "logger=none", *overrides])
-    with open_dict(cfg):
-        cfg[key] = OmegaConf.create(yaml)
-    return train(cfg)
-
-
-def test_the_head_example_trains(make_cfg, tmp_path, cleanup):
     (_, code), (_, yaml) = examples("head")
     load_module("rotlearn.heads.rotvec", code, tmp_path)
-    metrics = _train_with(make_cfg, "rep", yaml, [])
+    (conf / "rep" / "rotvec.yaml").write_text(yaml)
+    with pytest.raises(ConfigError, match=r"rep\.out_dimm: unknown key; did you mean rep\.out_dim"):
+        _compose(conf, tmp_path, ["rep=rotvec", "data=tiny", "rep.out_dimm=3"])
+    with pytest.raises(ConfigError, match=r"rep\.out_dim: is 4 but the 'rotvec' head outputs 3"):
+        _compose(conf, tmp_path, ["rep=rotvec", "data=tiny", "rep.out_dim=4"])
+    cfg = _compose(conf, tmp_path, ["rep=rotvec", "data=tiny", "trainer.fast_dev_run=true"])
+    metrics = train(cfg)
     assert metrics["rep"] == "rotvec" and 0.0 <= metrics["test/err_mean"] <= 180.0
 
 
-def test_the_dataset_example_writes_its_demo_and_trains(make_cfg, tmp_path, cleanup):
+def test_the_dataset_example_is_validated_writes_its_demo_and_trains(conf, tmp_path, cleanup):
+    from rotlearn.cli.train import train
+    from rotlearn.config import ConfigError
     from rotlearn.trust import is_trusted_target
 
     (_, code), (_, writer), (_, yaml) = examples("dataset")
     module = load_module("rotlearn.data.npz_pairs", code, tmp_path)
     demo = load_module("rotlearn.data.demo.npz_pairs", writer, tmp_path / "demo")
+    (conf / "data" / "npz_pairs.yaml").write_text(yaml)
     (root,) = demo.write_demo(tmp_path, seed=0)
     assert root == tmp_path / "npz_pairs" and len(list(root.glob("*/*.npz"))) == 24
     assert is_trusted_target("rotlearn.data.npz_pairs.NpzPairsDataModule")
     with pytest.raises(FileNotFoundError, match=r"no \.npz files"):
         module.read_split(tmp_path / "nowhere", "train")
-    yaml = yaml.replace("root: data/npz_pairs", f"root: {root}")
-    metrics = _train_with(make_cfg, "data", yaml, ["trainer.fast_dev_run=false",
-                                                   "trainer.max_epochs=1"])  # fmt: skip
+    data = ["data=npz_pairs", f"data.root={root}"]
+    refused = {
+        "data.batch_sise=4": r"data\.batch_sise: unknown key; did you mean data\.batch_size\?",
+        "data.batch_size=0": r"data\.batch_size: should be greater than 0, got 0",
+        f"data.root={tmp_path / 'nowhere'}": r"data\.root: no directory .*nowhere; it must hold "
+        r"train, test",
+        f"data.root={root / 'train'}": r"data\.root: .*train/train does not exist",
+    }
+    for override, message in refused.items():
+        with pytest.raises(ConfigError, match=message):
+            _compose(conf, tmp_path, [*data, override])
+    metrics = train(_compose(conf, tmp_path, [*data, "trainer.max_epochs=1"]))
     assert 0.0 <= metrics["test/err_mean"] <= 180.0
 
 

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import SMALL_NET
+from tests.conftest import SMALL_NET, make_data_layout
 
 GUIDE = Path(__file__).resolve().parents[1] / "docs" / "guide"
 BLOCK = re.compile(
@@ -99,8 +99,10 @@ def _expand(args: list[str]) -> list[list[str]]:
 
 
 @pytest.mark.parametrize("page", pages(), ids=lambda p: p.stem)
-def test_each_page_composes_its_commands_and_runs_its_standalone_code(page, tmp_path):
-    from rotlearn.cli.schemas import validate_command_line
+def test_each_page_composes_its_commands_and_runs_its_standalone_code(page, tmp_path, monkeypatch):
+    from rotlearn.config import command_line, compose
+
+    monkeypatch.chdir(tmp_path)  # where the commands' data folders are laid out (empty)
 
     for language, code, why in blocks(page):
         if why is not None:
@@ -112,7 +114,9 @@ def test_each_page_composes_its_commands_and_runs_its_standalone_code(page, tmp_
         for line in commands(code):
             if line[0] == "rotlearn-train" and not any(a.startswith("ckpt_path=") for a in line):
                 for job in _expand(line[1:]):
-                    validate_command_line(sized(job), str(tmp_path / "run"))
+                    args = [a for a in sized(job) if not a.startswith("-")]
+                    make_data_layout(compose(args, output_dir=tmp_path / "run", check=False))
+                    command_line(sized(job), str(tmp_path / "run"))
 
 
 def _exec(code: str, page: Path, cwd: Path) -> None:

@@ -25,7 +25,16 @@ ROOT = Path(__file__).resolve().parents[1]
 SRC = Path(rotlearn.__file__).resolve().parents[1]  # the rotlearn under test, for subprocesses
 
 # Every library of an extra, by import name (lightning's own packages too).
-OPTIONAL = sorted({*EXTRAS["train"], *EXTRAS["data"], "lightning_fabric", "pytorch_lightning"})
+OPTIONAL = sorted(
+    {
+        *EXTRAS["train"],
+        *EXTRAS["data"],
+        *EXTRAS["gpu"],
+        "lightning_fabric",
+        "pytorch_lightning",
+        "annotated_types",
+    }
+)
 CORE = [
     "rotlearn",
     "rotlearn.geometry",
@@ -33,6 +42,7 @@ CORE = [
     "rotlearn.bingham",
     "rotlearn.fisher",
     "rotlearn.losses",
+    "rotlearn.nets",
 ]
 HAS_NN = importlib.util.find_spec("rotlearn.nn") is not None
 NO_NN = "rotlearn.nn is not in this tree yet (the drop-in layers land separately)"
@@ -100,6 +110,39 @@ def test_nn_layers_import_with_torch_and_numpy_only():
     assert_ok(result)
 
 
+def test_constrained_constructors_work_without_pydantic():
+    """The constraints on the nets' and heads' signatures (annotated-types metadata, read by
+    rotlearn.config) are never evaluated by the modules themselves."""
+    result = run_without_extras(
+        """
+        import torch
+        from rotlearn.heads import make_head
+        from rotlearn.nets import ConvAutoEncoder, PairCorrelationNet, PointNet
+
+        raw = PointNet(out_dim=10, point_channels=(8, 16), head_channels=(8,))(torch.randn(2, 5, 6))
+        print(make_head("a")(raw).q.shape, PairCorrelationNet(4, image_size=16).radius,
+              ConvAutoEncoder(image_size=16, channels=(4, 8)).in_channels)
+        """
+    )
+    assert_ok(result)
+    assert result.stdout.split() == ["torch.Size([2,", "4])", "2", "3"]
+
+
+def test_the_a_layer_runs_without_triton_and_its_kernel_names_the_gpu_extra():
+    result = run_without_extras(
+        """
+        import torch
+        from rotlearn.geometry import sym4_eigh_min
+        eigenvalues, q = sym4_eigh_min(torch.eye(4).expand(3, 4, 4))  # the CPU paths need no triton
+        sym4_eigh_min(torch.eye(4), kernel="triton")
+        """
+    )
+    assert result.returncode != 0
+    last = result.stderr.strip().splitlines()[-1]
+    assert last.startswith("rotlearn.extras.MissingExtraError"), last
+    assert "pip install 'rotlearn[gpu]'" in last
+
+
 def test_import_rotlearn_is_light():
     """The top-level names are imported on first use, not by `import rotlearn`."""
     result = run_without_extras(
@@ -114,7 +157,7 @@ def test_import_rotlearn_is_light():
 
 @pytest.mark.parametrize(
     "module",
-    ["rotlearn.lit", "rotlearn.cli.train", "rotlearn.data", "rotlearn.metrics"],
+    ["rotlearn.lit", "rotlearn.config", "rotlearn.cli.train", "rotlearn.data", "rotlearn.metrics"],
 )
 def test_modules_of_the_train_extra_name_it(module):
     result = run_without_extras(f"import {module}")

@@ -28,7 +28,7 @@ from rotlearn.checkpoint import UnsafeCheckpointError, load_checkpoint
 from rotlearn.cli.evaluate import evaluate
 from rotlearn.cli.predict import main as predict_main
 from rotlearn.cli.resume import resume_arguments
-from rotlearn.cli.schemas import ConfigError
+from rotlearn.config import ConfigError
 from rotlearn.lit.autoencoder import load_autoencoder
 from rotlearn.ood import OODEvaluation
 from rotlearn.paths import config_dir
@@ -198,6 +198,13 @@ def _loaders(world: World, ckpt: Path, capsys) -> dict[str, Callable[[], str]]:
             evaluate(cfg)
         return str(info.value)
 
+    def via_eval_command_line() -> str:  # its first look at the file, then load_run
+        from rotlearn.cli.evaluate import _checked
+
+        with pytest.raises(SystemExit) as info:
+            _checked([f"ckpt={ckpt}", f"hydra.run.dir={world.root / 'eval'}"])
+        return str(info.value)
+
     def via_ood_autoencoder() -> str:
         callback = OODEvaluation(autoencoder_ckpt=str(ckpt))
         with pytest.raises(UntrustedConfigError) as info:
@@ -214,6 +221,7 @@ def _loaders(world: World, ckpt: Path, capsys) -> dict[str, Callable[[], str]]:
         "rotlearn.load(run dir)": via_load_dir,
         "rotlearn-predict": via_predict,
         "rotlearn-eval": via_eval,
+        "rotlearn-eval command line": via_eval_command_line,
         "OOD auto-encoder": via_ood_autoencoder,
         "load_autoencoder": via_load_autoencoder,
     }
@@ -224,6 +232,7 @@ LOADERS = [
     "rotlearn.load(run dir)",
     "rotlearn-predict",
     "rotlearn-eval",
+    "rotlearn-eval command line",
     "OOD auto-encoder",
     "load_autoencoder",
 ]

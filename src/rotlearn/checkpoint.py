@@ -35,6 +35,7 @@ from torch import Tensor
 
 from rotlearn.extras import require
 from rotlearn.io import MAX_BYTES, read_bytes, write_bytes_atomic
+from rotlearn.paths import checkpoint_file
 from rotlearn.trust import UntrustedConfigError, trusted_config
 
 __all__ = [
@@ -68,21 +69,21 @@ class UnsafeCheckpointError(pickle.UnpicklingError, ValueError):
 
 
 def resolve_checkpoint(path: str | os.PathLike) -> Path:
-    """A checkpoint file, or a run directory (meaning its checkpoints/last.ckpt).
+    """A checkpoint file, or a run directory (meaning its checkpoints/last.ckpt): see
+    `rotlearn.paths.checkpoint_file`.
 
     Raises:
-        FileNotFoundError: no checkpoint there.
+        FileNotFoundError: no checkpoint there, saying what `path` is instead (a sweep
+            directory, naming its jobs, or a folder that holds no run).
         UnsafeCheckpointError: a run directory whose last.ckpt is a symlink out of the run.
     """
     path = Path(path)
     if path.is_dir():
-        run, path = path, path / "checkpoints" / "last.ckpt"
-        real = Path(os.path.realpath(path))
-        if os.path.lexists(path) and not real.is_relative_to(os.path.realpath(run)):
-            raise UnsafeCheckpointError(f"{path}: a symlink to {real}, outside the run; not read")
-    if not path.is_file():
-        raise FileNotFoundError(f"no checkpoint at {path}")
-    return path
+        last = path / "checkpoints" / "last.ckpt"
+        real = Path(os.path.realpath(last))
+        if os.path.lexists(last) and not real.is_relative_to(os.path.realpath(path)):
+            raise UnsafeCheckpointError(f"{last}: a symlink to {real}, outside the run; not read")
+    return checkpoint_file(path)
 
 
 def save_checkpoint(checkpoint: dict[str, Any], path: str | os.PathLike) -> Path:

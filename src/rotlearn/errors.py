@@ -7,7 +7,6 @@ __all__ = [
     "ConfigValueError",
     "NonFiniteError",
     "batch_index",
-    "require_positive_ints",
 ]
 
 
@@ -41,13 +40,6 @@ ConfigValueError = ConfigError  # the former name of a component's complaint; th
 
 class NonFiniteError(FloatingPointError):
     """A tensor holds NaN or inf during training or evaluation."""
-
-
-def require_positive_ints(**values: float) -> None:
-    """Raise `ConfigError` naming the first key whose value is not a positive integer."""
-    for key, value in values.items():
-        if isinstance(value, bool) or int(value) != value or value < 1:
-            raise ConfigError(key, f"must be a positive integer, got {value}")
 
 
 def batch_index(flat: int, shape: tuple[int, ...]) -> tuple[int, ...]:

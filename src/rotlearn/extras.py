@@ -2,10 +2,12 @@
 
 `pip install rotlearn` installs only torch and numpy: `rotlearn.geometry`, `rotlearn.heads`,
 `rotlearn.bingham`, `rotlearn.losses`, `rotlearn.nets` and `rotlearn.nn` need nothing else. The
-training stack (`rotlearn.lit`, `rotlearn.cli`, `rotlearn.data`'s DataModules, `rotlearn.ood`,
-`rotlearn.metrics`, loading a checkpoint) comes with ``pip install 'rotlearn[train]'``; image and
-mesh datasets with ``pip install 'rotlearn[data]'``. A module that needs an extra calls `require`
-before importing it, so a bare install says what to install instead of "No module named ...".
+training stack (`rotlearn.lit`, `rotlearn.config`, `rotlearn.cli`, `rotlearn.data`'s DataModules,
+`rotlearn.ood`, `rotlearn.metrics`, loading a checkpoint) comes with
+``pip install 'rotlearn[train]'``; image and mesh datasets with ``pip install 'rotlearn[data]'``;
+the A layer's Triton kernels for CUDA with ``pip install 'rotlearn[gpu]'``.
+A module that needs an extra calls `require` before importing it, so a bare install says what to
+install instead of "No module named ...".
 """
 
 from __future__ import annotations
@@ -27,8 +29,10 @@ EXTRAS: dict[str, tuple[str, ...]] = {
         "tensorboard",
         "matplotlib",
         "pandas",
+        "pydantic",
     ),
     "data": ("cv2", "trimesh", "skimage", "tqdm"),
+    "gpu": ("triton",),
 }
 
 

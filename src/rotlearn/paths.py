@@ -1,11 +1,13 @@
-"""Where rotlearn's Hydra configs live."""
+"""Where rotlearn's Hydra configs live, and which checkpoint a command line names."""
 
 from __future__ import annotations
 
 import os
 from pathlib import Path
 
-__all__ = ["config_dir"]
+__all__ = ["checkpoint_file", "config_dir"]
+
+SWEEP_FILES = ("multirun.yaml", "jobs.json", "planned_jobs.json")  # what Hydra and rotlearn write
 
 
 def config_dir() -> Path:
@@ -19,4 +21,35 @@ def config_dir() -> Path:
             return candidate
     raise FileNotFoundError(
         "rotlearn's configs were not found: set ROTLEARN_CONFIG_DIR to the repository's conf/"
+    )
+
+
+def checkpoint_file(path: str | os.PathLike) -> Path:
+    """The checkpoint a command line names: a file as it is, a run directory's
+    `checkpoints/last.ckpt`. Looks at the file system only (nothing is read or imported).
+
+    Raises:
+        FileNotFoundError: saying what `path` is instead: nothing, a sweep directory (naming its
+            job directories, one of which to pass), or a folder that holds no rotlearn run.
+    """
+    path = Path(path)
+    if not path.is_dir():
+        if not path.is_file():
+            raise FileNotFoundError(f"no checkpoint at {path}")
+        return path
+    last = path / "checkpoints" / "last.ckpt"
+    if last.is_file():
+        return last
+    jobs = sorted(p.parent.parent for p in path.glob("*/checkpoints/last.ckpt"))
+    if jobs:
+        shown = ", ".join(str(job) for job in jobs[:8])
+        more = f" and {len(jobs) - 8} more" if len(jobs) > 8 else ""
+        raise FileNotFoundError(
+            f"{path} is a sweep directory, not one run: pass one of its jobs, {shown}{more}"
+        )
+    if any((path / name).is_file() for name in SWEEP_FILES):
+        raise FileNotFoundError(f"{path} is a sweep directory; none of its jobs has a checkpoint")
+    raise FileNotFoundError(
+        f"{path} is not a rotlearn run: it has no checkpoints/last.ckpt (pass a run directory, "
+        "e.g. outputs/runs/<time>, or a .ckpt file)"
     )

@@ -14,16 +14,16 @@ from omegaconf import OmegaConf
 
 from rotlearn.cli.report import main as report_main
 from rotlearn.cli.resolvers import loguniform_trial
-from rotlearn.cli.schemas import validate
+from rotlearn.config import validate
 from rotlearn.paths import config_dir
 from rotlearn.report import collect_runs, make_report
 from tests.conftest import CONFIG_DIR, FAST, config_options, run_cli
 
 
 @pytest.mark.parametrize("experiment", config_options("experiment"))
-def test_every_experiment_composes_and_validates(make_cfg, experiment):
+def test_every_experiment_composes_and_validates(make_cfg, on_disk, experiment):
     cfg = make_cfg([f"experiment={experiment}"])
-    validate(cfg)
+    validate(on_disk(cfg))
     assert cfg.trainer.max_epochs >= 1
     data = {
         "synthetic": "SyntheticWahbaDataModule",

@@ -1,5 +1,6 @@
-"""The command lines start without the training stack when they do not need it: `rotlearn-train
---help` and `rotlearn-report` never import Lightning (checked in a fresh interpreter)."""
+"""The command lines start without the training stack when they do not need it: `--help` of
+rotlearn-train, -eval and -predict and `rotlearn-report` never import Lightning, and each help
+lists what its command takes (checked in a fresh interpreter)."""
 
 from __future__ import annotations
 
@@ -38,6 +39,29 @@ def test_the_help_lists_every_config_group_and_option():
         options = sorted(p.stem for p in (config_dir() / group).glob("*.yaml"))
         assert f"  {group:<10}  {', '.join(options)}" in text
     assert "_schema" not in text and "hydra/" not in text  # internal nodes stay out
+
+
+def test_eval_help_lists_what_it_takes_without_the_training_stack():
+    out, modules = _modules_after(
+        "import sys\nsys.argv = ['rotlearn-eval', '--help']\n"
+        "from rotlearn.cli.evaluate import main\nmain()"
+    )
+    assert "lightning" not in modules and "torch" not in modules
+    assert out.startswith("rotlearn-eval: ") and "usage: rotlearn-eval ckpt=" in out
+    for key in ("ckpt: ???", "expect_rep:", "quantiles:", "root:", "accelerator:", "ood_quantile"):
+        assert key in out, key
+    for option in ("svd9d", "pointnet", "experiment"):  # the train config's groups do not apply
+        assert option not in out, option
+
+
+def test_predict_help_lists_what_it_takes_without_torch():
+    out, modules = _modules_after(
+        "from rotlearn.cli.predict import main\ntry:\n    main(['--help'])\n"
+        "except SystemExit:\n    pass"
+    )
+    assert "torch" not in modules
+    for item in ("checkpoint", "input", "--device", "--json", "run directory", ".npy"):
+        assert item in out, item
 
 
 def test_report_imports_without_lightning():

@@ -171,15 +171,15 @@ def test_non_finite_input_is_reported_as_such(make_cfg):
 def test_cli_refuses_unknown_rep_listing_options(tmp_path):
     result = run_cli(["rep=quaternion"], tmp_path)
     assert result.returncode != 0
-    assert "Could not find 'rep/quaternion'" in result.stderr
-    for name in ("quat", "sixd", "a", "svd9d"):
-        assert f"\t{name}\n" in result.stderr
+    assert "config key rep: no option 'quaternion'; did you mean rep=quat?" in result.stderr
+    assert "options: a, fisher, quat, sixd, svd9d (nothing was written)" in result.stderr
 
 
 def test_cli_refuses_phi_max_out_of_range_naming_the_key(tmp_path):
     result = run_cli(["data.phi_max_deg=270"], tmp_path)
     assert result.returncode != 0
-    assert "config key data.phi_max_deg: must lie in (0, 180]" in result.stderr
+    message = "config key data.phi_max_deg: should be less than or equal to 180, got 270"
+    assert message in result.stderr
 
 
 def test_a_bad_value_of_a_new_run_leaves_no_run_directory(tmp_path):

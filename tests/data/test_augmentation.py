@@ -194,15 +194,28 @@ def test_jitter_factors_lie_within_their_bounds(root):
 
 
 @pytest.mark.parametrize(
+    ("override", "key"),
+    [
+        ("swap_pairs=1.5", "swap_pairs"),
+        ("swap_pairs=-0.1", "swap_pairs"),
+        ("swap_pairs=true", "swap_pairs"),
+        ("deltas=[]", "deltas"),
+        ("deltas=[1,0]", "deltas"),
+        ("deltas=[1.5]", "deltas"),
+    ],
+)
+def test_bad_augmentation_options_are_refused_by_the_config(make_cfg, on_disk, override, key):
+    from rotlearn.config import validate
+
+    with pytest.raises(ConfigError) as caught:
+        validate(on_disk(make_cfg(["data=kitti", f"data.{override}"])))
+    assert caught.value.key == f"data.{key}"
+
+
+@pytest.mark.parametrize(
     ("kwargs", "key"),
     [
-        ({"swap_pairs": 1.5}, "swap_pairs"),
-        ({"swap_pairs": -0.1}, "swap_pairs"),
-        ({"swap_pairs": True}, "swap_pairs"),
-        ({"deltas": []}, "deltas"),
-        ({"deltas": [1, 0]}, "deltas"),
         ({"deltas": [2, 2]}, "deltas"),
-        ({"deltas": [1.5]}, "deltas"),
         ({"photometric": {"gamma": 0.1}}, "photometric"),
         ({"photometric": {"brightness": 1.0}}, "photometric.brightness"),
         ({"photometric": {"contrast": -0.1}}, "photometric.contrast"),
@@ -215,18 +228,18 @@ def test_bad_augmentation_options_are_refused(tmp_path, kwargs, key):
     assert caught.value.key == key
 
 
-def test_the_options_are_config_keys_of_the_image_datamodules(make_cfg, tmp_path):
+def test_the_options_are_config_keys_of_the_image_datamodules(make_cfg, on_disk, tmp_path):
     """The config validator reads the new keys from the constructors' signatures."""
     from hydra.utils import instantiate
 
-    from rotlearn.cli.schemas import validate
+    from rotlearn.config import validate
 
     over = ["data.swap_pairs=0.5", "data.photometric={brightness: 0.2, contrast: 0.1}"]
-    cfg = make_cfg(["data=kitti", f"data.root={tmp_path}", "data.deltas=[1,2]", *over])
+    cfg = on_disk(make_cfg(["data=kitti", f"data.root={tmp_path}", "data.deltas=[1,2]", *over]))
     validate(cfg)
     dm = instantiate(cfg.data)
     assert (dm.swap_pairs, dm.deltas) == (0.5, [1, 2])
     assert dm.photometric == {"brightness": 0.2, "contrast": 0.1}
-    validate(make_cfg(["data=mav", *over]))
+    validate(on_disk(make_cfg(["data=mav", *over])))
     with pytest.raises(ConfigError, match=r"data\.swap_pairs"):
-        validate(make_cfg(["data=kitti", "data.swap_pairs=half"]))
+        validate(on_disk(make_cfg(["data=kitti", "data.swap_pairs=half"])))

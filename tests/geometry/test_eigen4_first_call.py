@@ -5,7 +5,8 @@ vector math library (VML), one call per intra-op thread. On Intel CPUs VML's fir
 races between those threads: one thread's share of the array came back wrong (up to 2520 ulp) in 3
 of 160 fresh processes on a 16-core Xeon (2 torch threads, after a LAPACK call). The Jacobi solver
 took one square root per rotation, so a wrong root for half the batch turned into eigenvectors off
-by 0.1 degrees. The solver now uses only ATen's own kernels (no op that ATen hands to MKL VML):
+by 0.1 degrees. The solver now uses no op that ATen hands to MKL VML (the eager path only ATen's own
+kernels, the fused CPU kernel the C library's sqrt):
 
 - `test_no_mkl_vml_op_on_the_cpu_paths` checks that on every machine (it fails on the code before
   the fix, which called `aten.sqrt_`);
@@ -29,6 +30,7 @@ import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from rotlearn.geometry import a_from_vec, sym4_eigh_min
+from rotlearn.geometry.eigen4 import cpu as cpu_kernel
 from rotlearn.heads.symmetric import AHead
 from tests.conftest import gen
 
@@ -50,13 +52,16 @@ class _OpNames(TorchDispatchMode):
         return func(*args, **(kwargs or {}))
 
 
+@pytest.mark.parametrize("kernel", ["cpu", "eager"])
 @pytest.mark.parametrize("method", ["jacobi", "eigh"])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_no_mkl_vml_op_on_the_cpu_paths(method: str, dtype: torch.dtype) -> None:
+def test_no_mkl_vml_op_on_the_cpu_paths(method: str, dtype: torch.dtype, kernel: str) -> None:
+    if kernel == "cpu" and not cpu_kernel.available():
+        pytest.skip("no CPU kernel here")
     theta = torch.randn(64, 10, generator=gen(0), dtype=dtype, requires_grad=True)
     mode = _OpNames()
     with mode:
-        eigenvalues, q = sym4_eigh_min(a_from_vec(theta), check=False, method=method)
+        eigenvalues, q = sym4_eigh_min(a_from_vec(theta), check=False, method=method, kernel=kernel)
         (q.sum() + eigenvalues.sum()).backward()
     assert mode.names, "no op was seen: the dispatch mode did not trace the solver"
     assert not mode.names & VML_OPS, sorted(mode.names & VML_OPS)
@@ -79,7 +84,8 @@ def layer():
     if variant == "head":
         return AHead()(theta).q
     method = "eigh" if variant == "eigh" else "jacobi"
-    return sym4_eigh_min(a_from_vec(theta), check=False, method=method)[1]
+    kernel = "eager" if variant == "eager" else "auto"
+    return sym4_eigh_min(a_from_vec(theta), check=False, method=method, kernel=kernel)[1]
 with torch.no_grad():
     q = layer()
     torch.set_num_threads(1)
@@ -119,9 +125,10 @@ def test_first_call_in_fresh_processes_head() -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("variant", ["eigh", "float64", "chunk"])
+@pytest.mark.parametrize("variant", ["eigh", "float64", "chunk", "eager"])
 def test_first_call_in_fresh_processes_other_paths(variant: str) -> None:
-    """The same with the eigh path, float64, and a batch just past the CPU chunk size."""
+    """The same with the eigh path, float64, a batch just past the CPU chunk size (of the eager
+    path; the fused kernel's thread split), and the eager path."""
     _fresh_processes(variant)
 
 
@@ -130,19 +137,33 @@ def test_first_call_in_fresh_processes_cuda() -> None:
     _fresh_processes("head", "cuda")
 
 
-def test_head_result_is_independent_of_threads_and_batch_split() -> None:
-    """In one process: 1 and 2 threads, offsets, chunks and single matrices agree bit for bit."""
+@pytest.mark.parametrize("kernel", ["auto", "eager"])
+def test_head_result_is_independent_of_threads_and_batch_split(kernel: str) -> None:
+    """In one process: 1, 2 and 3 threads, offsets, chunks and single matrices agree bit for bit
+    (forward and gradient)."""
     theta = torch.randn(40000, 10, generator=gen(3))
+    weight = torch.randn(40000, 4, generator=gen(4))
     threads = torch.get_num_threads()
+
+    def solve(rows: slice) -> tuple[torch.Tensor, ...]:
+        leaf = theta[rows].clone().requires_grad_()
+        eigenvalues, q = sym4_eigh_min(
+            a_from_vec(leaf), check=False, method="jacobi", kernel=kernel
+        )
+        (grad,) = torch.autograd.grad((q * weight[rows]).sum() + eigenvalues.sum(), leaf)
+        return eigenvalues.detach(), q.detach(), grad
+
     try:
         torch.set_num_threads(1)
-        reference = sym4_eigh_min(a_from_vec(theta), check=False, method="jacobi")
-        torch.set_num_threads(2)
-        for start, stop in ((0, 40000), (1, 40000), (17, 33000), (39990, 40000), (5, 6)):
-            got = sym4_eigh_min(a_from_vec(theta[start:stop]), check=False, method="jacobi")
-            for x, ref in zip(got, reference, strict=True):
-                assert torch.equal(x, ref[start:stop]), (start, stop)
-        head = AHead(solver="jacobi")
-        assert torch.equal(head(theta[:4096]).q, reference[1][:4096])
+        reference = solve(slice(None))
+        for count in (2, 3):
+            torch.set_num_threads(count)
+            for start, stop in ((0, 40000), (1, 40000), (17, 33000), (39990, 40000), (5, 6)):
+                got = solve(slice(start, stop))
+                for x, ref in zip(got, reference, strict=True):
+                    assert torch.equal(x, ref[start:stop]), (count, start, stop)
+        if kernel == "auto":
+            head = AHead(solver="jacobi")
+            assert torch.equal(head(theta[:4096]).q, reference[1][:4096])
     finally:
         torch.set_num_threads(threads)

@@ -52,9 +52,12 @@ def test_paper_sizes_and_a_plain_last_layer():
     assert deconvs[-1].out_channels == 3
 
 
-def test_odd_pair_channels_are_refused():
-    with pytest.raises(ValueError, match="pair_channels: must be even"):
-        ConvAutoEncoder(pair_channels=3)
+def test_odd_pair_channels_are_refused(make_cfg, on_disk):
+    from rotlearn.config import validate
+
+    cfg = make_cfg(["experiment=kitti_autoencoder", "net.pair_channels=3"])
+    with pytest.raises(ConfigError, match=r"net\.pair_channels: should be a multiple of 2, got 3"):
+        validate(on_disk(cfg))
 
 
 # -- the module ---------------------------------------------------------------------------------
@@ -100,13 +103,13 @@ def test_experiments_select_the_autoencoder(make_cfg, experiment):
     assert cfg.callbacks.checkpoint.monitor == "val/loss"
 
 
-def test_build_refuses_a_model_with_a_mismatched_net(make_cfg):
+def test_build_refuses_a_model_with_a_mismatched_net(make_cfg, on_disk):
     with pytest.raises(ConfigError, match=r"config key .*net: model=autoencoder trains net=auto"):
         build(make_cfg(["model=autoencoder"]))
     with pytest.raises(
         ConfigError, match=r"config key .*net: the auto-encoder .* model=autoencoder"
     ):
-        build(make_cfg(["net=autoencoder", "data=kitti"]))
+        build(on_disk(make_cfg(["net=autoencoder", "data=kitti"])))
 
 
 def csv_column(run: Path, key: str) -> list[float]:

@@ -80,17 +80,17 @@ def test_the_record_names_the_tested_checkpoint_and_reaches_metrics_json(make_cf
     assert metrics["tested_weights"] == "best"
 
 
-def test_calibration_is_refused_for_a_head_without_a_belief(make_cfg, tmp_path):
-    from rotlearn.cli.schemas import validate_command_line
+def test_calibration_is_refused_for_a_head_without_a_belief(make_cfg, on_disk, tmp_path):
+    from rotlearn.config import command_line
 
     with pytest.raises(ConfigError, match=r"config key calibrate: .*rep=sixd has none"):
         build(make_cfg(["rep=sixd", *FAST, "calibrate=true"]))
     # rotlearn-train checks the command line this way before Hydra makes the run directory
     with pytest.raises(ConfigError, match=r"config key calibrate: .*rep=quat has none"):
-        validate_command_line(["rep=quat", "calibrate=true"], str(tmp_path / "run"))
+        command_line(["rep=quat", "calibrate=true"], str(tmp_path / "run"))
     assert not (tmp_path / "run").exists()
-    with pytest.raises(ConfigError, match=r"calibrate: .*AutoEncoderModule has none"):
-        build(make_cfg(["experiment=kitti_autoencoder", "calibrate=true"]))
+    with pytest.raises(ConfigError, match=r"calibrate: .*AutoEncoderModule has no head"):
+        build(on_disk(make_cfg(["experiment=kitti_autoencoder", "calibrate=true"])))
     with pytest.raises(ConfigError, match="calibrate"):
         PostHocCalibration("x").setup(None, torch.nn.Module(), "test")
 

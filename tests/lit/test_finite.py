@@ -86,7 +86,7 @@ def test_validation_is_checked_at_its_end(make_cfg):
 
 @pytest.mark.parametrize("value", [0, -3])
 def test_finite_check_every_must_be_positive(make_cfg, value):
-    with pytest.raises(ConfigError, match=r"model\.finite_check_every: must be a positive"):
+    with pytest.raises(ConfigError, match=r"model\.finite_check_every: should be greater than 0"):
         build(make_cfg([*FAST, f"model.finite_check_every={value}"]))
 
 

@@ -113,16 +113,22 @@ def test_a_swapped_pair_gives_another_output():
 
 
 @pytest.mark.parametrize(
-    ("kwargs", "message"), [({"in_channels": 3}, "even"), ({"radius": -1}, "radius")]
+    ("override", "message"),
+    [
+        ("net.in_channels=3", r"net\.in_channels: should be a multiple of 2, got 3"),
+        ("net.radius=-1", r"net\.radius: should be greater than or equal to 0, got -1"),
+    ],
 )
-def test_bad_arguments_are_refused(kwargs, message):
-    with pytest.raises(ValueError, match=message):
-        small_net(**kwargs)
+def test_bad_arguments_are_refused(make_cfg, on_disk, override, message):
+    from rotlearn.config import ConfigError, validate
+
+    with pytest.raises(ConfigError, match=message):
+        validate(on_disk(make_cfg(["data=kitti", "net=pair_corr", override])))
 
 
 @pytest.mark.parametrize("data", ["kitti", "mav"])
 def test_net_pair_corr_composes_and_runs_on_a_batch(make_cfg, demo_data, data):
-    from rotlearn.cli.schemas import validate
+    from rotlearn.config import validate
 
     cfg = make_cfg([f"data={data}", "net=pair_corr", "rep=a", *demo_overrides(demo_data, data)])
     validate(cfg)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 
 import numpy as np
 import pandas as pd
@@ -12,8 +13,8 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from rotlearn.cli.schemas import ConfigError
 from rotlearn.cli.train import train
+from rotlearn.config import ConfigError
 from rotlearn.ood import rejection_row
 from rotlearn.paths import config_dir
 from rotlearn.scores import SCORES
@@ -180,6 +181,24 @@ def test_rotlearn_eval_of_several_runs_scores_their_ensemble(trained_run, tiny_k
     assert (frame[frame["score"] == "disagreement"]["nan_scores"] == 0).all()
 
 
+def test_the_rotlearn_eval_command_checks_the_run_then_evaluates_it(
+    trained_run, tmp_path, monkeypatch
+):
+    """The command line passes its checks (a data key eval.yaml does not list needs no `+`) and
+    evaluates the run where hydra.run.dir says."""
+    from rotlearn.cli.evaluate import main
+
+    run_dir, metrics = trained_run
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "eval"
+    args = [f"ckpt={run_dir}", "ood.quantiles=[0.5]", "data.batch_size=4", f"hydra.run.dir={out}"]
+    monkeypatch.setattr(sys, "argv", ["rotlearn-eval", *args])
+    main()
+    evaluated = json.loads((out / "metrics.json").read_text())
+    assert evaluated["test/err_median"] == pytest.approx(metrics["test/err_median"], rel=1e-6)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["eval", "kitti", "run"]  # nothing else
+
+
 def test_rotlearn_eval_refuses_bad_input(trained_run, tmp_path):
     from rotlearn.cli.evaluate import evaluate
 
@@ -188,7 +207,8 @@ def test_rotlearn_eval_refuses_bad_input(trained_run, tmp_path):
         evaluate(_eval_cfg([f"ckpt={tmp_path / 'nowhere'}"], tmp_path / "e1"))
     with pytest.raises(ConfigError, match="trained with rep=a, not expect_rep=sixd"):
         evaluate(_eval_cfg([f"ckpt={run_dir}", "expect_rep=sixd"], tmp_path / "e2"))
-    with pytest.raises(ConfigError, match=r"callbacks\.ood\.quantiles: each must lie in \[0, 1\]"):
+    with pytest.raises(ConfigError, match=r"callbacks\.ood\.quantiles: should be less than or "
+                       r"equal to 1 \(at \[1\]\), got \[0\.5, 1\.5\]"):  # fmt: skip
         evaluate(_eval_cfg([f"ckpt={run_dir}", "ood.quantiles=[0.5,1.5]"], tmp_path / "e3"))
 
 
@@ -277,14 +297,19 @@ def test_unseen_scenes_count_as_ood(tmp_path, make_cfg):
     assert (clean["n_corrupted"] == 3).all() and (clean["n"] == 6).all()
 
 
-def test_ood_config_keys_are_checked_before_training(make_cfg):
-    from rotlearn.cli.schemas import validate
+def test_ood_config_keys_are_checked_before_training(make_cfg, on_disk):
+    from rotlearn.config import validate
 
-    validate(make_cfg(["experiment=kitti_ood_demo"]))
-    with pytest.raises(ConfigError, match=r"callbacks\.ood\.quantile: unknown \(did you mean"):
-        validate(make_cfg(["data=kitti", "callbacks=ood", "+callbacks.ood.quantile=[0.5]"]))
-    with pytest.raises(ConfigError, match=r"callbacks\.ood\.noise_pairs: expected int"):
-        validate(make_cfg(["data=kitti", "callbacks=ood", "callbacks.ood.noise_pairs=many"]))
+    validate(on_disk(make_cfg(["experiment=kitti_ood_demo"])))
+    ood = ["data=kitti", "callbacks=ood"]
+    with pytest.raises(ConfigError, match=r"callbacks\.ood\.quantile: unknown key; did you mean"):
+        validate(on_disk(make_cfg([*ood, "+callbacks.ood.quantile=[0.5]"])))
+    with pytest.raises(ConfigError, match=r"callbacks\.ood\.noise_pairs: should be a valid int"):
+        validate(on_disk(make_cfg([*ood, "callbacks.ood.noise_pairs=many"])))
+    with pytest.raises(ConfigError, match=r"callbacks\.ood\.examples: should be greater than or"):
+        validate(on_disk(make_cfg([*ood, "callbacks.ood.examples=-1"])))
+    with pytest.raises(ConfigError, match=r"callbacks\.ood: needs an image-pair datamodule"):
+        validate(make_cfg(["callbacks=ood"]))  # synthetic data: nothing to erase
 
 
 def test_calibrated_threshold_gives_keep_flags_for_image_pairs(trained_run, tiny_kitti, capsys):

@@ -1,4 +1,4 @@
-"""Floor 4: command-line entry points (Hydra mains), config schemas, resolvers, Hydra callbacks."""
+"""Floor 5: command-line entry points (Hydra mains and argparse), resolvers, Hydra callbacks."""
 
 from rotlearn.extras import require
 

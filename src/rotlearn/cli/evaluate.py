@@ -17,17 +17,18 @@ import logging
 import math
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import hydra
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from rotlearn.checkpoint import SavedRun, load_run
 from rotlearn.errors import ConfigError
-from rotlearn.io import write_json_atomic
-from rotlearn.paths import config_dir
+from rotlearn.paths import checkpoint_file, config_dir
 
-__all__ = ["evaluate", "evaluation_config", "main"]
+if TYPE_CHECKING:
+    from rotlearn.checkpoint import SavedRun
+
+__all__ = ["evaluate", "evaluation_config", "main", "usage"]
 
 log = logging.getLogger("rotlearn")
 
@@ -82,20 +83,31 @@ def evaluation_config(cfg: DictConfig, saved: SavedRun) -> DictConfig:
     return run
 
 
+def _saved_run(cfg: DictConfig) -> SavedRun:
+    """The run `cfg.ckpt` names, read through the one loader (`rotlearn.checkpoint.load_run`)."""
+    from rotlearn.checkpoint import load_run
+
+    try:
+        return load_run(cfg.ckpt)
+    except (FileNotFoundError, ValueError) as exc:  # unsafe file, untrusted config, other task
+        raise ConfigError("ckpt", f"{cfg.ckpt}: {exc}") from None
+
+
 def evaluate(cfg: DictConfig) -> dict[str, Any]:
     """Test the checkpoint `cfg.ckpt` (or the ensemble of a list of them) with the OOD callback;
     writes metrics.json; returns it."""
     from rotlearn.cli.train import build
     from rotlearn.inference import ensemble_members
+    from rotlearn.io import write_json_atomic
 
     paths = list(cfg.ckpt) if isinstance(cfg.ckpt, ListConfig) else None
-    try:
-        if paths is None:
-            saved = load_run(cfg.ckpt)
-        else:
+    if paths is None:
+        saved = _saved_run(cfg)
+    else:
+        try:
             net, head, saved = ensemble_members(paths)
-    except (FileNotFoundError, ValueError) as exc:  # unsafe file, untrusted config, other task
-        raise ConfigError("ckpt", f"{cfg.ckpt}: {exc}") from None
+        except (FileNotFoundError, ValueError) as exc:  # unsafe file, untrusted config, ...
+            raise ConfigError("ckpt", f"{cfg.ckpt}: {exc}") from None
     ckpt = saved.path
     run = evaluation_config(cfg, saved)
     try:  # the weights against the model the config describes, built on the meta device first
@@ -139,17 +151,119 @@ def _hydra_main(cfg: DictConfig) -> float:
     return metrics.get("test/err_median", math.nan)
 
 
-def main() -> float:
-    """Entry point of `rotlearn-eval`. A new evaluation never writes into an existing,
-    non-empty directory (refused before Hydra writes anything)."""
+def usage(root: Path | None = None) -> str:
+    """The `--help` text: what conf/eval.yaml says it takes (its comments and keys). Reads the
+    file only."""
+    text = (Path(root or config_dir()) / "eval.yaml").read_text()
+    head, _, body = text.partition("defaults:")
+    keys = body[body.index("ckpt:") : body.index("\npaths:")]
+    lines = [
+        "rotlearn-eval: test a trained run again, with the OOD evaluation, without retraining.",
+        "",
+        "usage: rotlearn-eval ckpt=<run dir or .ckpt> [key=value ...] [-m]",
+        *(line.removeprefix("# ") for line in head.strip().splitlines()),
+        "",
+        "keys (conf/eval.yaml; null keeps the run's own value):",
+        *(f"  {line}" for line in keys.rstrip().splitlines()),
+        "",
+        "sweep=ood_quantile (with -m): one evaluation per OOD quantile",
+        "outputs: outputs/eval/<time>/ (metrics.json, ood.csv, ood.md, tensorboard/)",
+        "rotlearn-eval --hydra-help: Hydra's own flags",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def _targets(tree: Any):
+    """Every `_target_` value in plain data."""
+    if isinstance(tree, dict):
+        if "_target_" in tree:
+            yield tree["_target_"]
+        tree = list(tree.values())
+    for item in tree if isinstance(tree, list) else ():
+        yield from _targets(item)
+
+
+def _first_look(cfg: DictConfig) -> None:
+    """Refuse what the files alone tell (`rotlearn.config.checks.check_keys`: e.g. OOD callbacks
+    on data that is not image pairs, a data folder that is not there) before the components load.
+    The checkpoint is read with torch only; its config is looked at only where every `_target_`
+    is an allowlisted library class or a rotlearn component (its source marks it
+    `@config_target`), and nothing is built or imported from it; `load_run` then checks it in
+    full (the allowlist by import). Anything else is left to those checks."""
+    from types import SimpleNamespace
+
+    from rotlearn.checkpoint import load_checkpoint
+    from rotlearn.config.checks import check_keys, plain
+    from rotlearn.config.source import class_attribute, is_marked
+    from rotlearn.trust import LIBRARY_TARGETS
+
+    try:
+        saved = load_checkpoint(cfg.ckpt).get("rotlearn_config")
+    except (OSError, ValueError):
+        return  # load_run says why
+    try:  # a deep, odd or foreign config is left to load_run (RecursionError, TypeError, ...)
+        named = [str(t) for t in _targets(saved) if t not in LIBRARY_TARGETS]
+        if "${" in repr(saved) or not all(
+            t.startswith("rotlearn.") and is_marked(t) for t in named
+        ):
+            return
+        model = saved.get("model") or {}
+        task = class_attribute(str(model["_target_"]), "task") if "_target_" in model else None
+        task = task or saved.get("task", "rotation")
+        values = plain(
+            evaluation_config(cfg, SimpleNamespace(config=OmegaConf.create(saved), task=task))
+        )
+    except ConfigError:
+        raise
+    except Exception:
+        return
+    check_keys(values)
+
+
+def _checked(argv: list[str]) -> list[str]:
+    """Refuse, before Hydra makes the evaluation's directory, a command line that cannot work
+    (SystemExit naming the key; nothing is written): no ckpt, a ckpt that is not a run (a sweep
+    directory: its jobs listed), an evaluation or sweep directory that exists and is not empty,
+    and, for one evaluation, a run config that does not validate
+    with the evaluation's settings (e.g. OOD callbacks on data that is not image pairs).
+    Returns the arguments for Hydra (`+` before a data key that eval.yaml does not list)."""
+    from rotlearn.config import command_line, compose, validate
+
+    if any(a.startswith("-") and a not in ("-m", "--multirun") for a in argv):
+        return argv  # Hydra's own flags (--cfg, --hydra-help, ...)
+    values = [a.split("=", 1)[1] for a in argv if a.startswith("ckpt=")]
+    if not values:
+        raise SystemExit("rotlearn-eval: ckpt=<run directory or .ckpt file> is missing (--help)")
+    try:
+        checkpoint_file(values[-1])
+    except FileNotFoundError as exc:
+        raise SystemExit(f"rotlearn-eval: ckpt: {exc} (nothing was written)") from None
     from rotlearn.cli.rundir import is_child_rank, refuse_an_existing_output_dir
 
-    argv = sys.argv[1:]
-    flags = [a for a in argv if a.startswith("-") and a not in ("-m", "--multirun")]
-    if not is_child_rank() and not flags:  # --cfg, --help and the like write nothing
+    if not is_child_rank():  # another rank repeats rank 0's command line, already checked
         refuse_an_existing_output_dir(argv, "eval", "rotlearn-eval")
+    if "-m" in argv or "--multirun" in argv:  # each job is checked as it runs
+        return argv
+    try:
+        args = command_line(argv, "new-eval", config_name="eval", check=False)
+        cfg = compose(args, config_name="eval", output_dir="new-eval", check=False)
+        _first_look(cfg)
+        validate(evaluation_config(cfg, _saved_run(cfg)))
+    except ConfigError as exc:
+        raise SystemExit(f"rotlearn-eval: {exc} (nothing was written)") from None
+    return args
+
+
+def main() -> float | None:
+    """Entry point of `rotlearn-eval`; None after `--help`. A new evaluation never writes into an
+    existing, non-empty directory (`_checked`)."""
+    argv = sys.argv[1:]
+    if any(a in ("-h", "--help") for a in argv):
+        print(usage(), end="")
+        return None
+    sys.argv[1:] = _checked(argv)
     return _hydra_main()
 
 
 if __name__ == "__main__":
-    sys.exit(main() is None)
+    main()

@@ -29,9 +29,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
 from rotlearn.io import read_number_rows
+from rotlearn.paths import checkpoint_file
 
 __all__ = ["describe", "main", "read_point_pairs", "text_lines"]
 
@@ -74,14 +74,25 @@ def main(argv: list[str] | None = None) -> int:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("checkpoint", help="a .ckpt file or a run directory (uses its last.ckpt)")
     parser.add_argument(
-        "input", nargs="+", help="point-cloud pair file (.npy or text), or two image files"
+        "checkpoint", help="a run directory (its checkpoints/last.ckpt) or a .ckpt file"
     )
-    parser.add_argument("--device", default="cpu")
+    parser.add_argument(
+        "input",
+        nargs="+",
+        help="a point-pair file (.npy (N, 6) or (B, N, 6), or text rows 'ux uy uz vx vy vz'), "
+        "or the two image files of an image-pair model",
+    )
+    parser.add_argument(
+        "--device", default="cpu", help="where the model runs: cpu (default), cuda, cuda:1, ..."
+    )
     parser.add_argument("--json", action="store_true", help="print JSON instead of text")
     args = parser.parse_args(argv)
-
+    try:  # a folder that is no run (or a sweep: its jobs named) is refused before torch loads
+        checkpoint_file(args.checkpoint)
+    except FileNotFoundError as exc:
+        print(f"rotlearn-predict: {exc}", file=sys.stderr)
+        return 2
     from rotlearn.inference import load
 
     try:
@@ -109,6 +120,8 @@ def describe(estimate: Any, ood: dict[str, Any] | None) -> list[dict[str, Any]]:
     """Per pair of a `RotationEstimate`: the rotation (R, q_xyzw, angle_deg, axis), and where the
     head has a belief its uncertainty (the 90 % credible radius in degrees, the dispersion, the
     DT score, the temperature) and, given a calibrated threshold (`ood`), the OOD decision."""
+    import torch  # here, not at the top: --help and a refused folder answer before torch loads
+
     q = estimate.q.double().cpu()
     sine = torch.linalg.vector_norm(q[:, :3], dim=-1)
     angles = torch.rad2deg(2.0 * torch.atan2(sine, q[:, 3].abs()))

@@ -264,7 +264,7 @@ def _check_the_config_that_runs(run_dir: Path, args: list[str], new: list[str], 
     """Compose the resumed run's config exactly as Hydra will and check it against the allowlist
     (`replay.replayed_config`), then validate it, check that it writes only inside the run, and
     that the checkpoint and its callbacks' states are sound."""
-    from rotlearn.cli.schemas import validate
+    from rotlearn.config import validate
     from rotlearn.lit.boundary import checked_checkpoint_states
 
     try:

@@ -1,8 +1,9 @@
 """`rotlearn-train` (also `python -m rotlearn.train`): train and test one run (or a sweep, -m).
 
 The entry point only. `rotlearn-train --help` is answered from the config directory alone, without
-importing torch, Lightning or the config schemas (a second instead of several); everything else
-registers the schemas and starts the Hydra app, which builds and trains with
+importing torch or Lightning (a second instead of several); a command line with an unknown option
+or key, or missing data, is refused as fast (`rotlearn.config` reads the components' source, not
+their modules); everything else is validated, then the Hydra app starts, which trains with
 `rotlearn.cli.training` (`build`, `train`, `RunInterrupted`, `ConfigError`: importable from here
 too, loaded on first use). See conf/train.yaml.
 """
@@ -89,30 +90,42 @@ def _hydra_main(cfg: DictConfig) -> float:
     return metrics.get("val/err_median", metrics.get("val/loss", math.nan))
 
 
-def _refuse_an_invalid_new_run(argv: list[str]) -> None:
-    """Before Hydra creates anything for a new run (or sweep): refuse a run or sweep directory
-    that already exists and is not empty, then validate a single run's config and build its
-    datamodule and (on the meta device: nothing allocated) its model, so that a bad value
-    leaves nothing behind (SystemExit naming the key). Sweep jobs are validated by `build` and
-    listed FAILED; a config that does not compose is left for Hydra to report (before it writes
+def _refuse_an_invalid_new_run(argv: list[str]) -> list[str]:
+    """Before Hydra creates anything for a new run (or sweep): validate the command line
+    (`rotlearn.config.command_line`: a bad option, key or value exits naming it; a sweep with
+    the first value of each swept key), refuse a run or sweep directory that already exists and
+    is not empty, then build a single run's datamodule and (on the meta device: nothing
+    allocated) its model, so that a bad value leaves nothing behind (SystemExit naming the key).
+    Returns the arguments for Hydra, with `+` before each component argument that its YAML does
+    not list. A config that does not compose is left for Hydra to report (before it writes
     anything); flags such as --cfg or --info are Hydra's."""
+    from hydra.errors import HydraException
     from hydra.types import RunMode
+    from omegaconf.errors import OmegaConfBaseException
 
-    from rotlearn.cli.resume import requeued_on_slurm
-    from rotlearn.cli.rundir import refuse_an_existing_output_dir
+    from rotlearn.config import ConfigError, command_line
 
     if any(a.startswith("-") and a not in ("-m", "--multirun") for a in argv):
-        return
+        return argv
+    try:
+        argv = command_line(argv, "new-run")
+    except (HydraException, OmegaConfBaseException):
+        return argv
+    except ConfigError as exc:
+        raise SystemExit(f"rotlearn-train: {exc} (nothing was written)") from None
+    from rotlearn.cli.resume import requeued_on_slurm  # loads Lightning: after the fast checks
+    from rotlearn.cli.rundir import refuse_an_existing_output_dir
+
     cfg = refuse_an_existing_output_dir(argv, "train", "rotlearn-train", requeued_on_slurm())
     if cfg is None or "-m" in argv or "--multirun" in argv or cfg.hydra.mode == RunMode.MULTIRUN:
-        return
+        return argv
     from rotlearn.cli.training import check_buildable
-    from rotlearn.errors import ConfigError
 
     try:
         check_buildable(cfg)
     except ConfigError as exc:
         raise SystemExit(f"rotlearn-train: {exc} (nothing was written)") from None
+    return argv
 
 
 def main() -> float | None:
@@ -126,8 +139,6 @@ def main() -> float | None:
 
     if not is_child_rank():  # another rank repeats rank 0's command line, already checked
         _refuse_a_run_in_use(argv)
-        import rotlearn.cli.schemas  # noqa: F401  (registers the schemas the config composes from)
-
         sys.argv[1:] = _checked_command_line(argv)
     return _hydra_main()
 
@@ -153,13 +164,14 @@ def _checked_command_line(argv: list[str]) -> list[str]:
     """The command line Hydra runs, after every check that must come before Hydra writes
     anything: a resume's (`rotlearn.cli.resume.plan_resume`), then its lock on the run and its
     earlier records moved to history/<n>/; a new run's (`_refuse_an_invalid_new_run`)."""
+    if not any(a.startswith("ckpt_path=") for a in argv):  # before the resume's slow imports
+        return _refuse_an_invalid_new_run(argv)
     from rotlearn.cli.resume import keep_earlier_records, plan_resume
     from rotlearn.locks import RunLockedError, hold_run
 
     plan = plan_resume(argv)
     if plan is None:
-        _refuse_an_invalid_new_run(argv)
-        return argv
+        return _refuse_an_invalid_new_run(argv)
     if any(a.startswith("-") for a in argv):  # --cfg, --info: Hydra shows, nothing trains
         return plan.args
     try:

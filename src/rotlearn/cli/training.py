@@ -3,8 +3,8 @@
 
 Every component comes from the Hydra config with `hydra.utils.instantiate` (`build`); every file
 goes below `paths.output_dir` (Hydra's run directory), the records written by
-`rotlearn.lit.RunRecords`. Resuming is `rotlearn.cli.resume`. See conf/train.yaml. Importing this
-module registers the config schemas (`rotlearn.cli.schemas`) that composing a config needs.
+`rotlearn.lit.RunRecords`. Resuming is `rotlearn.cli.resume`. See conf/train.yaml; the config is
+validated and the model built by `rotlearn.config`.
 """
 
 from __future__ import annotations
@@ -12,7 +12,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-import re
 import signal
 import sys
 import warnings
@@ -25,11 +24,11 @@ import torch
 from hydra.errors import InstantiationException
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from rotlearn import config
 from rotlearn.checkpoint import load_checkpoint
 from rotlearn.cli.callbacks import PLANNED, record_job
 from rotlearn.cli.resume import checkpoint_to_resume
 from rotlearn.cli.rundir import is_child_rank
-from rotlearn.cli.schemas import validate
 from rotlearn.errors import ConfigError
 from rotlearn.io import plain_name, read_json
 from rotlearn.lit import (
@@ -80,32 +79,12 @@ logging.getLogger("lightning.pytorch.utilities.rank_zero").addFilter(_WithoutClo
 def _instantiate(cfg: DictConfig, key: str, **kwargs: Any) -> Any:
     """Instantiate the config node `key`; a component's `ConfigError` (its key relative to the
     node) is re-raised with the full key."""
-    node = OmegaConf.select(cfg, key)
-    if node is None:
-        raise ConfigError(key, "is missing")
     try:
-        return hydra.utils.instantiate(node, **kwargs)
+        return hydra.utils.instantiate(OmegaConf.select(cfg, key), **kwargs)
     except InstantiationException as exc:  # Hydra wraps what the constructor raised
         if isinstance(exc.__cause__, ConfigError):
-            raise exc.__cause__.within(_component_key(cfg, key, exc)) from None
+            raise exc.__cause__.within(key) from None
         raise
-
-
-def _component_key(cfg: DictConfig, key: str, exc: InstantiationException) -> str:
-    """The config key of the component that failed while `key` was built: `key` itself, or, for
-    the model, the group its failing part comes from (model.head is `${rep}`: rep)."""
-    match = re.search(r"full_key: ([\w.]+)", str(exc))
-    if key != "model" or match is None:
-        return key
-    parts = match.group(1).split(".")
-    parts = parts[1:] if parts[0] == key else parts  # relative to the model node
-    if not parts:  # the model's own constructor
-        return key
-    part = parts[0]
-    raw = OmegaConf.to_container(OmegaConf.select(cfg, key), resolve=False).get(part)
-    if isinstance(raw, str) and raw.startswith("${") and raw.endswith("}"):
-        return raw[2:-1]
-    return f"{key}.{part}"
 
 
 def _instantiate_all(cfg: DictConfig, key: str, **kwargs: Any) -> list[Any]:
@@ -186,7 +165,7 @@ def check_buildable(cfg: DictConfig) -> None:
     Raises:
         ConfigError: naming the full key.
     """
-    validate(cfg)
+    config.validate(cfg)
     _instantiate(cfg, "data")
     with torch.device("meta"):
         try:
@@ -198,35 +177,25 @@ def check_buildable(cfg: DictConfig) -> None:
 
 
 def build(cfg: DictConfig) -> tuple[pl.LightningModule, pl.LightningDataModule, pl.Trainer]:
-    """Model, datamodule and trainer for a composed config (validated, seeds set first).
-
-    `instantiate(cfg.model)` is the whole model (`model=regressor`: net, head, loss, optimizer
-    and scheduler from their groups; `model=autoencoder`: the OOD baseline). The trainer gets
-    the configured callbacks plus the run's record keeping (`InterruptRecorder`, `EpochLosses`,
-    and `RunRecords` last, with the run's HPARAMS record) and the guard of restored checkpoint
-    states (`CheckpointStateGuard`), whatever `callbacks=` says, and rotlearn's checkpoint I/O
-    (`RunCheckpointIO`: durable writes, bounded loads, deletes only the run's own checkpoints);
-    `calibrate` adds the post-hoc calibration of the belief on the validation set
-    (`rotlearn.lit.calibration.PostHocCalibration`): `auto` (the default) for a head with a
-    belief, `true` always (refused with a `ConfigError` naming `calibrate` for a head without a
-    belief, and an error without a validation set); `trainer.enable_model_summary` gives
-    rotlearn's `ModelSummary` (in a sweep, job 0 only: once per sweep) and
-    `trainer.enable_progress_bar` its `ProgressBar` (training loss and last validation error). A
-    `TensorBoardRunLogger` is named by the run's overrides."""
-    validate(cfg)
-    pl.seed_everything(cfg.seed, workers=True, verbose=False)
-    datamodule = _instantiate(cfg, "data")
-    model = _instantiate(cfg, "model")
-    model.run_config = OmegaConf.to_container(cfg, resolve=True)
+    """Model, datamodule and trainer for a composed config: `rotlearn.config.build` (validated,
+    seeded; the model with its net, head, loss, optimizer and scheduler, or the auto-encoder)
+    and a trainer with the configured callbacks plus the run's record keeping
+    (`InterruptRecorder`, `EpochLosses`, and `RunRecords` last, with the run's HPARAMS record) and
+    the guard of restored checkpoint states (`CheckpointStateGuard`), whatever `callbacks=` says,
+    and rotlearn's checkpoint I/O (`RunCheckpointIO`: durable writes, bounded loads, deletes only
+    the run's own checkpoints); `calibrate` adds the post-hoc calibration of the belief on the
+    validation set (`rotlearn.lit.calibration.PostHocCalibration`): `auto` (the default) for a
+    head with a belief, `true` always (refused by `rotlearn.config` for a head without a belief;
+    an error without a validation set); `trainer.enable_model_summary` gives rotlearn's
+    `ModelSummary` (in a sweep, job 0 only: once per sweep) and `trainer.enable_progress_bar` its
+    `ProgressBar` (training loss and last validation error). A `TensorBoardRunLogger` is named by
+    the run's overrides."""
+    model, datamodule = config.build(cfg)
     runtime = _Runtime()
     callbacks = _instantiate_all(cfg, "callbacks")
     callbacks += [InterruptRecorder(), EpochLosses(), CheckpointStateGuard(cfg.paths.output_dir)]
     calibrate = OmegaConf.select(cfg, "calibrate", default="auto")
     has_belief = getattr(getattr(model, "head", None), "defines_belief", False)
-    if calibrate is True and not has_belief:
-        head = getattr(model, "head", None)
-        what = f"rep={head.name}" if head is not None else f"the {type(model).__name__}"
-        raise ConfigError("calibrate", f"fits the temperature of a belief; {what} has none")
     if calibrate is True or (calibrate == "auto" and has_belief):
         callbacks.append(PostHocCalibration(cfg.paths.output_dir, required=calibrate is True))
     summary = OmegaConf.select(cfg, "trainer.enable_model_summary", default=True)

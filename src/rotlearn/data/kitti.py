@@ -15,16 +15,20 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Literal
 
 import numpy as np
 import torch
 
 from rotlearn.data.images import frame_cache, resize_square
 from rotlearn.data.pairs import ImagePairDataModule, PairIndex
-from rotlearn.errors import ConfigValueError, require_positive_ints
+from rotlearn.errors import ConfigValueError
 from rotlearn.geometry import relative_rotation, special_orthogonalize
 from rotlearn.io import cache_file, plain_name, read_number_rows, resolve_inside
 from rotlearn.trust import config_target
+
+if TYPE_CHECKING:  # constraints of the config values, checked by rotlearn.config
+    from annotated_types import Gt, MinLen
 
 __all__ = ["KittiOdometryDataModule", "read_kitti_poses", "sequence_name"]
 
@@ -99,28 +103,30 @@ class KittiOdometryDataModule(ImagePairDataModule):
             (`ImagePairDataModule`).
     """
 
+    # What data.root holds, checked when a config is validated (rotlearn.config): each
+    # sequence's frames and poses (a number n names the folder "0n").
+    layout = (
+        "sequences/{train_sequences:0>2}/{camera}",
+        "poses/{train_sequences:0>2}.txt",
+        "sequences/{test_sequences:0>2}/{camera}",
+        "poses/{test_sequences:0>2}.txt",
+    )
+
     def __init__(
         self,
         root: str,
         train_sequences: Sequence[int | str] = ("00", "02", "05", "06", "07", "08", "09", "10"),
-        test_sequences: Sequence[int | str] = ("00",),
+        test_sequences: Annotated[Sequence[int | str], MinLen(1)] = ("00",),
         val_sequences: Sequence[int | str] = (),
-        camera: str = "image_2",
-        delta: int = 1,
-        deltas: Sequence[int] | None = None,
-        image_size: int = 224,
-        pair_channels: int = 6,
+        camera: Literal["image_2", "image_0"] = "image_2",
+        delta: Annotated[int, Gt(0)] = 1,
+        deltas: Annotated[Sequence[Annotated[int, Gt(0)]], MinLen(1)] | None = None,
+        image_size: Annotated[int, Gt(0)] = 224,
+        pair_channels: Literal[6] = 6,  # two RGB frames
         cache_dir: str | None = None,
         **kwargs,
     ) -> None:
         super().__init__(**kwargs)
-        require_positive_ints(delta=delta, image_size=image_size)
-        if camera not in ("image_2", "image_0"):
-            raise ConfigValueError("camera", f"must be image_2 or image_0, got {camera!r}")
-        if pair_channels != 6:
-            raise ConfigValueError(
-                "pair_channels", f"KITTI pairs have 6 channels, got {pair_channels}"
-            )
         self.root, self.camera = Path(root), camera
         self.test_sequences = _sequence_names("test_sequences", test_sequences)
         self.val_sequences = _sequence_names("val_sequences", val_sequences)
@@ -141,13 +147,8 @@ class KittiOdometryDataModule(ImagePairDataModule):
             if not names:
                 raise ConfigValueError(key, "no sequence left (train minus test sequences)")
         self.delta, self.image_size = int(delta), int(image_size)
-        if deltas is not None:
-            steps = list(deltas)
-            bad = [d for d in steps if isinstance(d, bool) or not isinstance(d, int) or d < 1]
-            if not steps or bad or len(set(steps)) != len(steps):
-                raise ConfigValueError(
-                    "deltas", f"must be distinct positive integers or null, got {steps!r}"
-                )
+        if deltas is not None and len(set(deltas)) != len(deltas):
+            raise ConfigValueError("deltas", f"must be distinct, got {list(deltas)!r}")
         self.deltas = [int(d) for d in deltas] if deltas is not None else None
         self.cache_dir = Path(cache_dir) if cache_dir else self.root / ".rotlearn_cache"
 

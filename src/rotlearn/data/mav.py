@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
-from typing import NamedTuple
+from typing import TYPE_CHECKING, Annotated, Literal, NamedTuple
 
 import numpy as np
 import torch
@@ -29,7 +29,7 @@ import torch
 from rotlearn.data.draws import draw_seed
 from rotlearn.data.images import frame_cache, resize_center_crop
 from rotlearn.data.pairs import ImagePairDataModule, PairIndex
-from rotlearn.errors import ConfigValueError, require_positive_ints
+from rotlearn.errors import ConfigValueError
 from rotlearn.geometry import quat_normalize, quat_to_rotmat, relative_rotation
 from rotlearn.io import (
     cache_file,
@@ -40,6 +40,9 @@ from rotlearn.io import (
     strict_int,
 )
 from rotlearn.trust import config_target
+
+if TYPE_CHECKING:  # constraints of the config values, checked by rotlearn.config
+    from annotated_types import Gt, Lt, MinLen
 
 __all__ = ["MAVDataModule", "match_poses", "read_frame_list", "read_pair_file", "read_pose_file"]
 
@@ -205,36 +208,28 @@ class MAVDataModule(ImagePairDataModule):
             (`ImagePairDataModule`).
     """
 
+    # What data.root holds, checked when a config is validated (rotlearn.config).
+    layout = ("flea3/data.csv", "pose/data.csv", "pairs/{train_scenes}.csv",
+              "pairs/{test_scenes}.csv")  # fmt: skip
+
     def __init__(
         self,
         root: str,
-        train_scenes: Sequence[str] = ("outdoor",),
-        test_scenes: Sequence[str] = ("outdoor",),
-        test_fraction: float = 0.1,
-        pose_tolerance_ms: float = 30.0,
-        resize: int = 256,
-        image_size: int = 224,
-        pair_channels: int = 2,
+        train_scenes: Annotated[Sequence[str], MinLen(1)] = ("outdoor",),
+        test_scenes: Annotated[Sequence[str], MinLen(1)] = ("outdoor",),
+        test_fraction: Annotated[float, Gt(0), Lt(1)] = 0.1,
+        pose_tolerance_ms: Annotated[float, Gt(0)] = 30.0,
+        resize: Annotated[int, Gt(0)] = 256,
+        image_size: Annotated[int, Gt(0)] = 224,
+        pair_channels: Literal[2] = 2,  # two gray frames
         cache_dir: str | None = None,
         mean: float = 0.45,
-        std: float = 0.25,
+        std: Annotated[float, Gt(0)] = 0.25,
         **kwargs,
     ) -> None:
         super().__init__(mean=mean, std=std, **kwargs)
-        require_positive_ints(resize=resize, image_size=image_size)
         if image_size > resize:
             raise ConfigValueError("image_size", f"the crop {image_size} exceeds resize={resize}")
-        if not 0.0 < test_fraction < 1.0:
-            raise ConfigValueError("test_fraction", f"must lie in (0, 1), got {test_fraction}")
-        if not pose_tolerance_ms > 0:
-            raise ConfigValueError("pose_tolerance_ms", f"must be > 0, got {pose_tolerance_ms}")
-        if pair_channels != 2:
-            raise ConfigValueError(
-                "pair_channels", f"MAV pairs have 2 channels, got {pair_channels}"
-            )
-        for key, scenes in (("train_scenes", train_scenes), ("test_scenes", test_scenes)):
-            if not scenes:
-                raise ConfigValueError(key, "lists no scene")
         self.root = Path(root)
         self.train_scenes = [plain_name(s, key="train_scenes") for s in train_scenes]
         self.test_scenes = [plain_name(s, key="test_scenes") for s in test_scenes]

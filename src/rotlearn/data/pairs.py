@@ -19,7 +19,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import lightning.pytorch as pl
 import numpy as np
@@ -30,8 +30,10 @@ from torch.utils.data import DataLoader, Dataset, get_worker_info
 from rotlearn.data import augment
 from rotlearn.data.corruption import corrupted_flags, draw_erasing_boxes, erase_boxes
 from rotlearn.data.draws import SPLITS, draw_seed
-from rotlearn.errors import ConfigValueError, require_positive_ints
 from rotlearn.geometry import rotmat_to_quat
+
+if TYPE_CHECKING:  # constraints of the config values, checked by rotlearn.config
+    from annotated_types import Ge, Gt, Le, Lt
 
 __all__ = ["ImagePairDataModule", "ImagePairs", "PairIndex"]
 
@@ -188,35 +190,22 @@ class ImagePairDataModule(pl.LightningDataModule):
 
     def __init__(
         self,
-        batch_size: int = 32,
-        eval_batch_size: int = 64,
-        num_workers: int = 2,
-        corrupt_fraction: float = 0.0,
-        val_fraction: float = 0.1,
+        batch_size: Annotated[int, Gt(0)] = 32,
+        eval_batch_size: Annotated[int, Gt(0)] = 64,
+        num_workers: Annotated[int, Ge(0)] = 2,
+        corrupt_fraction: Annotated[float, Ge(0), Le(1)] = 0.0,
+        val_fraction: Annotated[float, Ge(0), Lt(1)] = 0.1,
         mean: float = 0.0,
-        std: float = 1.0,
-        seed: int = 0,
-        swap_pairs: float = 0.0,
+        std: Annotated[float, Gt(0)] = 1.0,
+        seed: Annotated[int, Ge(0)] = 0,
+        swap_pairs: Annotated[float, Ge(0), Le(1)] = 0.0,
         photometric: dict[str, float] | None = None,
     ) -> None:
         super().__init__()
-        require_positive_ints(batch_size=batch_size, eval_batch_size=eval_batch_size)
-        if not 0.0 <= corrupt_fraction <= 1.0:
-            raise ConfigValueError(
-                "corrupt_fraction", f"must lie in [0, 1], got {corrupt_fraction}"
-            )
-        if int(num_workers) < 0:
-            raise ConfigValueError("num_workers", "must be >= 0")
-        if isinstance(val_fraction, bool) or not 0.0 <= val_fraction < 1.0:
-            raise ConfigValueError("val_fraction", f"must lie in [0, 1), got {val_fraction!r}")
-        if not std > 0:
-            raise ConfigValueError("std", f"must be > 0, got {std}")
         self.batch_size, self.eval_batch_size = int(batch_size), int(eval_batch_size)
         self.num_workers, self.val_fraction = int(num_workers), float(val_fraction)
         self.corrupt_fraction = float(corrupt_fraction)
         self.mean, self.std, self.seed = float(mean), float(std), int(seed)
-        if isinstance(swap_pairs, bool) or not 0.0 <= swap_pairs <= 1.0:
-            raise ConfigValueError("swap_pairs", f"must lie in [0, 1], got {swap_pairs!r}")
         self.swap_pairs = float(swap_pairs)
         self.photometric = augment.check_photometric(photometric)
         self.sets: dict[str, ImagePairs] = {}

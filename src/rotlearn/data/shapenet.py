@@ -17,6 +17,7 @@ import json
 import logging
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Literal
 
 import numpy as np
 import torch
@@ -30,7 +31,6 @@ from rotlearn.data.heteroscedastic import (
     keep_random_rows,
     log_uniform,
 )
-from rotlearn.errors import ConfigValueError, require_positive_ints
 from rotlearn.extras import import_extra
 from rotlearn.geometry import quat_to_rotmat, so3_exp_quat
 from rotlearn.io import (
@@ -46,6 +46,9 @@ from rotlearn.io import (
     write_text_atomic,
 )
 from rotlearn.trust import config_target
+
+if TYPE_CHECKING:  # constraints of the config values, checked by rotlearn.config
+    from annotated_types import Ge, Gt, Le
 
 __all__ = ["AIRPLANE_SYNSET", "ShapeNetDataModule", "read_mesh", "read_point_file", "sample_meshes"]
 
@@ -189,45 +192,35 @@ class ShapeNetDataModule(DrawDataModule):
             without noise_range so that it still ranks samples by their number of points.
     """
 
+    # What data.root holds, checked when a config is validated (rotlearn.config): the split
+    # folders of the 6D paper's clouds (format=pts) or the category's folder of meshes.
+    layout = ("format=pts: train", "format=pts: test", "format=mesh: {synset}")
+
     def __init__(
         self,
         root: str,
-        format: str = "pts",
+        format: Literal["pts", "mesh"] = "pts",
         synset: str = AIRPLANE_SYNSET,
-        num_train: int = 2290,
-        num_test: int = 400,
-        point_fraction: float = 0.5,
-        num_points: int = 1024,
-        rotations_per_cloud: int = 10,
-        iterations_per_epoch: int = 200,
-        test_rotations: int = 100,
-        num_val: int = 20,
-        seed: int = 0,
+        num_train: Annotated[int, Gt(0)] = 2290,
+        num_test: Annotated[int, Gt(0)] = 400,
+        point_fraction: Annotated[float, Gt(0), Le(1)] = 0.5,
+        num_points: Annotated[int, Gt(0)] = 1024,
+        rotations_per_cloud: Annotated[int, Gt(0)] = 10,
+        iterations_per_epoch: Annotated[int, Gt(0)] = 200,
+        test_rotations: Annotated[int, Gt(0)] = 100,
+        num_val: Annotated[int, Ge(0)] = 20,
+        seed: Annotated[int, Ge(0)] = 0,
         cache_dir: str | None = None,
         noise_range: list[float] | None = None,
         keep_range: list[float] | None = None,
     ) -> None:
         super().__init__()
-        if format not in ("pts", "mesh"):
-            raise ConfigValueError("format", f"must be 'pts' or 'mesh', got {format!r}")
-        if not 0.0 < point_fraction <= 1.0:
-            raise ConfigValueError("point_fraction", f"must lie in (0, 1], got {point_fraction}")
-        require_positive_ints(
-            num_train=num_train,
-            num_test=num_test,
-            num_points=num_points,
-            rotations_per_cloud=rotations_per_cloud,
-            iterations_per_epoch=iterations_per_epoch,
-            test_rotations=test_rotations,
-        )
         self.root, self.format = Path(root), format
         self.synset = plain_name(synset, key="synset")
         self.num_train, self.num_test = int(num_train), int(num_test)
         self.point_fraction, self.num_points = float(point_fraction), int(num_points)
         self.rotations_per_cloud = int(rotations_per_cloud)
         self.iterations_per_epoch = int(iterations_per_epoch)
-        if isinstance(num_val, bool) or int(num_val) < 0:
-            raise ConfigValueError("num_val", f"must be an integer >= 0, got {num_val!r}")
         self.test_rotations, self.num_val = int(test_rotations), int(num_val)
         self.seed = int(seed)
         self.noise_range = check_range("noise_range", noise_range, minimum=0.0, strict=True)

@@ -8,6 +8,7 @@ Batches are drawn on the model's device (see `rotlearn.data.draws`). Optionally 
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING, Annotated
 
 import torch
 from torch import Tensor
@@ -21,7 +22,7 @@ from rotlearn.data.heteroscedastic import (
     repeat_rows,
     uniform_counts,
 )
-from rotlearn.errors import ConfigValueError, require_positive_ints
+from rotlearn.errors import ConfigValueError
 from rotlearn.geometry import (
     quat_to_rotmat,
     random_rotvec_uniform_angle,
@@ -29,6 +30,9 @@ from rotlearn.geometry import (
     so3_exp_quat,
 )
 from rotlearn.trust import config_target
+
+if TYPE_CHECKING:  # constraints of the config values, checked by rotlearn.config
+    from annotated_types import Ge, Gt, Le
 
 __all__ = ["MIN_MATCHES", "SyntheticWahbaDataModule", "wahba_batch"]
 
@@ -126,36 +130,20 @@ class SyntheticWahbaDataModule(DrawDataModule):
 
     def __init__(
         self,
-        phi_max_deg: float = 180.0,
-        sigma: float = 0.01,
-        num_matches: int = 100,
-        batch_size: int = 100,
-        batches_per_epoch: int = 5,
-        num_val: int = 100,
-        num_test: int = 500,
-        eval_batch_size: int = 100,
+        phi_max_deg: Annotated[float, Gt(0), Le(180)] = 180.0,
+        sigma: Annotated[float, Ge(0)] = 0.01,
+        num_matches: Annotated[int, Gt(0)] = 100,
+        batch_size: Annotated[int, Gt(0)] = 100,
+        batches_per_epoch: Annotated[int, Gt(0)] = 5,
+        num_val: Annotated[int, Gt(0)] = 100,
+        num_test: Annotated[int, Gt(0)] = 500,
+        eval_batch_size: Annotated[int, Gt(0)] = 100,
         redraw_test: bool = False,
-        seed: int = 0,
+        seed: Annotated[int, Ge(0)] = 0,
         sigma_range: list[float] | None = None,
         matches_range: list[int] | None = None,
     ) -> None:
         super().__init__()
-        if not 0.0 < phi_max_deg <= 180.0:
-            raise ConfigValueError(
-                "phi_max_deg", f"must lie in (0, 180] degrees, got {phi_max_deg}"
-            )
-        if sigma < 0:
-            raise ConfigValueError("sigma", f"must be >= 0, got {sigma}")
-        require_positive_ints(
-            num_matches=num_matches,
-            batch_size=batch_size,
-            batches_per_epoch=batches_per_epoch,
-            num_val=num_val,
-            num_test=num_test,
-            eval_batch_size=eval_batch_size,
-        )
-        if seed < 0:
-            raise ConfigValueError("seed", f"must be >= 0, got {seed}")
         self.sigma_range = check_range("sigma_range", sigma_range, minimum=0.0, strict=True)
         matches = check_range("matches_range", matches_range, minimum=MIN_MATCHES, integer=True)
         self.matches_range = None if matches is None else (int(matches[0]), int(matches[1]))

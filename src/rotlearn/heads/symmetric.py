@@ -30,7 +30,8 @@ def a_min_eigvec(A: Tensor, solver: str = "auto") -> tuple[Tensor, Tensor]:
     Args:
         A: (..., 4, 4) symmetric matrices, float32 or float64.
         solver: the forward of `rotlearn.geometry.sym4_eigh_min` (its `method`): "jacobi" (the
-            batched Jacobi solver), "eigh" (torch.linalg.eigh) or "auto" (eigh below
+            batched Jacobi solver), "eigh" (torch.linalg.eigh) or "auto" (jacobi on its fused
+            kernel, C on the CPU and Triton on CUDA; where none runs, eigh below
             `rotlearn.geometry.eigen4.EIGH_BELOW` matrices, jacobi from there on). The backward
             is the same for all three: the analytic gradient of eq. 9, finite where eigenvalues
             coincide (torch.linalg.eigh's own backward is NaN there, e.g. for A = cI).

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Iterable
-from typing import Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import lightning.pytorch as pl
 import torch
@@ -19,6 +19,9 @@ from rotlearn.lit.finite import FINITE_CHECK_EVERY, FiniteChecks
 from rotlearn.lit.state import RunStateHooks
 from rotlearn.nets.autoencoder import ConvAutoEncoder, load_autoencoder_net
 from rotlearn.trust import config_target
+
+if TYPE_CHECKING:  # constraints of the config values, checked by rotlearn.config
+    from annotated_types import Gt
 
 __all__ = ["AutoEncoderModule", "load_autoencoder"]
 
@@ -47,7 +50,7 @@ class AutoEncoderModule(FiniteChecks, RunStateHooks, pl.LightningModule):
         self,
         net: ConvAutoEncoder,
         optimizer: OptimizerFactory | None = None,
-        finite_check_every: int = FINITE_CHECK_EVERY,
+        finite_check_every: Annotated[int, Gt(0)] = FINITE_CHECK_EVERY,
     ) -> None:
         super().__init__()
         self._init_finite_checks(finite_check_every)

@@ -119,13 +119,22 @@ class PostHocCalibration(pl.Callback):
         self.required = bool(required)
         self.record: dict[str, Any] | None = None
 
+    @staticmethod
+    def refusal(head: Any, model: Any = None) -> str | None:
+        """Why a model with `head` has nothing to calibrate (None: its head defines a belief).
+        Asked by `rotlearn.config` for `calibrate: true`, before anything is built; `model` names
+        the model (its class or config) when it has no head."""
+        if getattr(head, "defines_belief", False):
+            return None
+        if head is None:
+            name = model.get("_target_") if isinstance(model, dict) else type(model).__name__
+            return f"fits the temperature of a belief; the model {name} has no head"
+        return f"fits the temperature of a belief; rep={head.name} has none"
+
     def setup(self, trainer: pl.Trainer, pl_module: pl.LightningModule, stage: str) -> None:
-        head = getattr(pl_module, "head", None)
-        if not getattr(head, "defines_belief", False):
-            name = getattr(head, "name", type(head).__name__)
-            raise ConfigError(
-                "calibrate", f"needs a head that defines a belief; rep={name} has none"
-            )
+        why = self.refusal(getattr(pl_module, "head", None), pl_module)
+        if why is not None:
+            raise ConfigError("calibrate", why)
 
     def on_test_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         validation = validation_beliefs(pl_module, trainer.datamodule)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
-from typing import Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import lightning.pytorch as pl
 import torch
@@ -21,6 +21,9 @@ from rotlearn.metrics import AngularError, BeliefCalibration, SampleValues
 from rotlearn.nets.autoencoder import ConvAutoEncoder
 from rotlearn.scores import SCORES, auroc, spearman
 from rotlearn.trust import config_target
+
+if TYPE_CHECKING:  # constraints of the config values, checked by rotlearn.config
+    from annotated_types import Gt, MinLen
 
 __all__ = ["NOISIEST_FRACTION", "RotationRegressor", "compile_modules", "noisiest"]
 
@@ -40,8 +43,6 @@ def compile_modules(compile: bool | str, *modules: nn.Module) -> None:
     """Compile each module's forward in place with `torch.compile` (`nn.Module.compile`: the
     parameters and state_dict keys stay those of the eager module). `compile`: False does
     nothing, True uses torch.compile's default backend, a string names the backend."""
-    if isinstance(compile, str) and not compile:
-        raise ConfigValueError("compile", "must be true, false or a torch.compile backend's name")
     if compile is False:
         return
     options = {} if compile is True else {"backend": compile}
@@ -111,9 +112,9 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
         loss: nn.Module,
         optimizer: OptimizerFactory,
         scheduler: SchedulerFactory | None = None,
-        finite_check_every: int = FINITE_CHECK_EVERY,
-        compile: bool | str = False,
-        belief_samples: int = 1000,
+        finite_check_every: Annotated[int, Gt(0)] = FINITE_CHECK_EVERY,
+        compile: bool | Annotated[str, MinLen(1)] = False,
+        belief_samples: Annotated[int, Gt(0)] = 1000,
     ) -> None:
         super().__init__()
         self._init_finite_checks(finite_check_every)
@@ -135,8 +136,6 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
         self._scores = {name: s for name, s in SCORES.items() if s.fn is not None}
         self.test_samples = SampleValues(("error", "difficulty", *self._scores))
         # heads with a belief: is it calibrated (as used, and untempered when tempered)?
-        if belief_samples < 1:
-            raise ConfigValueError("belief_samples", f"must be >= 1, got {belief_samples}")
         self.test_belief = BeliefCalibration(belief_samples)
         self.test_untempered_belief = BeliefCalibration(belief_samples)
         self.belief_temperature: float = 1.0

@@ -5,14 +5,21 @@ from __future__ import annotations
 import itertools
 import os
 from collections.abc import Sequence
+from typing import TYPE_CHECKING, Annotated
 
 import torch
 from torch import Tensor, nn
 
-from rotlearn.errors import ConfigValueError, require_positive_ints
-from rotlearn.nets.pair_cnn import conv_encoder, encoded_size
+from rotlearn.nets.pair_cnn import PAPER_CHANNELS, conv_encoder, encoded_size
 from rotlearn.nets.pointnet import mlp
 from rotlearn.trust import config_target
+
+if TYPE_CHECKING:  # constraints of the config values, checked by rotlearn.config (pydantic);
+    from annotated_types import (  # never evaluated here: torch is all a bare install has
+        Gt,
+        MinLen,
+        MultipleOf,
+    )
 
 __all__ = ["ConvAutoEncoder", "conv_decoder", "encoder_sizes"]
 
@@ -66,21 +73,14 @@ class ConvAutoEncoder(nn.Module):
 
     def __init__(
         self,
-        pair_channels: int = 6,
-        image_size: int = 224,
-        channels: Sequence[int] = (64, 128, 256, 512, 1024, 1024, 1024),
-        hidden: int = 128,
-        latent: int = 16,
+        pair_channels: Annotated[int, Gt(0), MultipleOf(2)] = 6,
+        image_size: Annotated[int, Gt(0)] = 224,
+        channels: Annotated[Sequence[Annotated[int, Gt(0)]], MinLen(1)] = PAPER_CHANNELS,
+        hidden: Annotated[int, Gt(0)] = 128,
+        latent: Annotated[int, Gt(0)] = 16,
     ) -> None:
         super().__init__()
         channels = list(channels)
-        require_positive_ints(
-            pair_channels=pair_channels, image_size=image_size, hidden=hidden, latent=latent
-        )
-        if pair_channels % 2:
-            raise ConfigValueError("pair_channels", f"must be even (2C), got {pair_channels}")
-        if not channels:
-            raise ConfigValueError("channels", "must list at least one width")
         self.pair_channels, self.image_size = int(pair_channels), int(image_size)
         self.in_channels = self.pair_channels // 2
         sizes = encoder_sizes(self.image_size, len(channels))

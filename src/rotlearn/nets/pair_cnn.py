@@ -4,11 +4,18 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Sequence
+from typing import TYPE_CHECKING, Annotated
 
 from torch import Tensor, nn
 
 from rotlearn.nets.pointnet import mlp
 from rotlearn.trust import config_target
+
+if TYPE_CHECKING:  # constraints of the config values, checked by rotlearn.config (pydantic);
+    from annotated_types import Gt, MinLen  # never evaluated here: torch is all a bare install has
+
+# The paper's convolution widths (section VI-C): 224 -> 2 pixels in seven stride-2 steps.
+PAPER_CHANNELS = (64, 128, 256, 512, 1024, 1024, 1024)
 
 __all__ = ["PairCNN", "conv_encoder", "encoded_size"]
 
@@ -57,11 +64,11 @@ class PairCNN(nn.Module):
 
     def __init__(
         self,
-        out_dim: int,
-        in_channels: int = 6,
-        image_size: int = 224,
-        channels: Sequence[int] = (64, 128, 256, 512, 1024, 1024, 1024),
-        hidden: int = 512,
+        out_dim: Annotated[int, Gt(0)],
+        in_channels: Annotated[int, Gt(0)] = 6,
+        image_size: Annotated[int, Gt(0)] = 224,
+        channels: Annotated[Sequence[Annotated[int, Gt(0)]], MinLen(1)] = PAPER_CHANNELS,
+        hidden: Annotated[int, Gt(0)] = 512,
     ) -> None:
         super().__init__()
         self.in_channels, self.image_size = in_channels, image_size

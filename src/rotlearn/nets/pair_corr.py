@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Sequence
+from typing import TYPE_CHECKING, Annotated
 
 import torch
 import torch.nn.functional as F
@@ -21,6 +22,14 @@ from torch import Tensor, nn
 from rotlearn.nets.pair_cnn import conv_encoder, encoded_size
 from rotlearn.nets.pointnet import mlp
 from rotlearn.trust import config_target
+
+if TYPE_CHECKING:  # constraints of the config values, checked by rotlearn.config (pydantic);
+    from annotated_types import (  # never evaluated here: torch is all a bare install has
+        Ge,
+        Gt,
+        MinLen,
+        MultipleOf,
+    )
 
 __all__ = ["PairCorrelationNet", "correlation"]
 
@@ -88,19 +97,15 @@ class PairCorrelationNet(nn.Module):
 
     def __init__(
         self,
-        out_dim: int,
-        in_channels: int = 6,
-        image_size: int = 224,
-        channels: Sequence[int] = (16, 32),
-        radius: int = 2,
-        head_channels: Sequence[int] = (64, 128, 128),
-        hidden: int = 256,
+        out_dim: Annotated[int, Gt(0)],
+        in_channels: Annotated[int, Gt(0), MultipleOf(2)] = 6,  # two stacked frames
+        image_size: Annotated[int, Gt(0)] = 224,
+        channels: Annotated[Sequence[Annotated[int, Gt(0)]], MinLen(1)] = (16, 32),
+        radius: Annotated[int, Ge(0)] = 2,
+        head_channels: Annotated[Sequence[Annotated[int, Gt(0)]], MinLen(1)] = (64, 128, 128),
+        hidden: Annotated[int, Gt(0)] = 256,
     ) -> None:
         super().__init__()
-        if in_channels % 2 or in_channels < 2:
-            raise ValueError(f"in_channels must be even (two stacked frames), got {in_channels}")
-        if isinstance(radius, bool) or not isinstance(radius, int) or radius < 0:
-            raise ValueError(f"radius must be an integer >= 0, got {radius!r}")
         self.in_channels, self.image_size, self.radius = in_channels, image_size, radius
         self.encoder = conv_encoder(in_channels // 2, channels, refine=True)
         self.mixer = conv_encoder((2 * radius + 1) ** 2, head_channels)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Sequence
+from typing import TYPE_CHECKING, Annotated
 
 import torch
 from torch import Tensor, nn
@@ -11,6 +12,9 @@ from torch import Tensor, nn
 from rotlearn.errors import NonFiniteError
 from rotlearn.nets.pooling import LinearMaxPool
 from rotlearn.trust import config_target
+
+if TYPE_CHECKING:  # constraints of the config values, checked by rotlearn.config (pydantic);
+    from annotated_types import Gt, MinLen  # never evaluated here: torch is all a bare install has
 
 __all__ = ["PointNet", "mlp"]
 
@@ -56,10 +60,10 @@ class PointNet(nn.Module):
 
     def __init__(
         self,
-        out_dim: int,
-        in_channels: int = 6,
-        point_channels: Sequence[int] = (64, 128, 1024),
-        head_channels: Sequence[int] = (256, 128),
+        out_dim: Annotated[int, Gt(0)],
+        in_channels: Annotated[int, Gt(0)] = 6,
+        point_channels: Annotated[Sequence[Annotated[int, Gt(0)]], MinLen(1)] = (64, 128, 1024),
+        head_channels: Annotated[Sequence[Annotated[int, Gt(0)]], MinLen(1)] = (256, 128),
         center_init: bool = True,
         output_gain: bool = False,
     ) -> None:

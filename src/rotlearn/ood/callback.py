@@ -23,10 +23,9 @@ from __future__ import annotations
 import copy
 import functools
 import logging
-import math
 from collections.abc import Iterable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import lightning.pytorch as pl
 import numpy as np
@@ -46,6 +45,9 @@ from rotlearn.ood.evaluation import (
 from rotlearn.ood.source import OODDataSource
 from rotlearn.scores import SCORES, available_scores
 from rotlearn.trust import config_target
+
+if TYPE_CHECKING:  # constraints of the config values, checked by rotlearn.config
+    from annotated_types import Ge, Gt, Le, MinLen
 
 __all__ = ["OODEvaluation", "extra_source"]
 
@@ -124,18 +126,33 @@ class OODEvaluation(pl.Callback):
             `ood_examples.png`; 0: none.
     """
 
+    # What a run config must hold for this callback, (key, class, what) read from this source by
+    # `rotlearn.config` before anything is imported: its datamodule defines OODDataSource's methods.
+    config_needs = (
+        (
+            "data",
+            "rotlearn.ood.source.OODDataSource",
+            "an image-pair datamodule (an OODDataSource: data=kitti or data=mav)",
+        ),
+    )
+
     def __init__(
         self,
-        quantiles: list[float] = (0.25, 0.5, 0.75, 1.0),
+        quantiles: Annotated[list[Annotated[float, Ge(0), Le(1)]], MinLen(1)] = (
+            0.25,
+            0.5,
+            0.75,
+            1.0,
+        ),
         scores: list[str] = ("dt", "eigengap", "raw_norm", "autoencoder", "disagreement"),
         autoencoder_ckpt: str | None = None,
-        corrupt_fraction: float = 0.5,
-        table: dict[str, float] | None = None,
-        noise_pairs: int = 64,
-        max_train_pairs: int | None = None,
+        corrupt_fraction: Annotated[float, Gt(0), Le(1)] = 0.5,
+        table: dict[str, Annotated[float, Ge(0), Le(1)]] | None = None,
+        noise_pairs: Annotated[int, Ge(0)] = 64,
+        max_train_pairs: Annotated[int, Gt(0)] | None = None,
         unseen_scenes_ood: bool = False,
         extra_sets: dict[str, dict[str, Any]] | None = None,
-        examples: int = 6,
+        examples: Annotated[int, Ge(0)] = 6,
         thresholds_from: str = "val",
     ) -> None:
         super().__init__()
@@ -145,18 +162,11 @@ class OODEvaluation(pl.Callback):
             )
         self.thresholds_from = thresholds_from
         self.quantiles = [float(q) for q in quantiles]
-        bad = [q for q in self.quantiles if not 0.0 <= q <= 1.0 or math.isnan(q)]
-        if bad or not self.quantiles:
-            raise ConfigValueError("quantiles", f"each must lie in [0, 1], got {list(quantiles)}")
         unknown = sorted(set(scores) - set(SCORES))
         if unknown:
             raise ConfigValueError("scores", f"unknown {unknown}; choose from {sorted(SCORES)}")
         if autoencoder_ckpt and not Path(autoencoder_ckpt).exists():
             raise ConfigValueError("autoencoder_ckpt", f"{autoencoder_ckpt} does not exist")
-        if not 0.0 < corrupt_fraction <= 1.0:
-            raise ConfigValueError(
-                "corrupt_fraction", f"must lie in (0, 1], got {corrupt_fraction}"
-            )
         self.score_names = list(scores)
         self.autoencoder_ckpt = autoencoder_ckpt
         self.corrupt_fraction = float(corrupt_fraction)
@@ -173,8 +183,6 @@ class OODEvaluation(pl.Callback):
                     f"needs a name other than {list(RESERVED_SETS)} and a non-empty mapping of "
                     f"datamodule settings (e.g. {{test_scenes: [indoor]}}), got {overrides!r}",
                 )
-        if int(examples) < 0:
-            raise ConfigValueError("examples", f"must be >= 0, got {examples}")
         self.examples = int(examples)
         self.results: dict[str, float] = {}  # the run's one-shot results (RunRecords)
 

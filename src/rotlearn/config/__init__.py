@@ -1,0 +1,210 @@
+"""Floor 4: a run's config composed, validated and built, from a command line, a notebook or a
+test::
+
+    from rotlearn.config import build, compose
+
+    cfg = compose(["rep=a", "loss=bingham", "data=tiny"])  # conf/train.yaml + overrides, validated
+    model, datamodule = build(cfg)  # the LightningModule and LightningDataModule, not yet trained
+
+`compose` is Hydra's compose API with rotlearn's answer to an unknown option (`rep=aa`: the real
+options and the nearest) and key (`optim.lrr=1e-3`, with or without `+`: the nearest key and the
+allowed ones, `rotlearn.config.checks`); an argument a component takes is set without `+` even
+where its YAML does not list it. `rotlearn-train` and `rotlearn-eval` check their command line the
+same way (`command_line`) before Hydra starts, so a refused command writes nothing. Each YAML
+starts from its component's defaults: `schema/` + its target in Hydra's ConfigStore
+(`register_schemas`, which rotlearn's Hydra plugin runs wherever Hydra composes, so a plain
+`hydra.compose` on conf/ works).
+
+Why pydantic (a strict `TypeAdapter` per argument) rather than hydra-zen: the constraints live on
+the constructors' own signatures as annotated-types metadata (`Annotated[int, Gt(0)]`), which
+pydantic reads as they are, the YAML files stay the configs, and an adapter checks `Literal`s,
+unions, nested lists and bounds with messages that say what was expected. hydra-zen would generate
+a second, dataclass representation of the same signatures and check it with pydantic when a node
+is instantiated, i.e. once the run has started; here every value is checked before anything is
+built or written.
+"""
+
+from __future__ import annotations
+
+import difflib
+from collections.abc import Sequence
+from functools import cache
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from rotlearn.extras import require
+
+require("train", "rotlearn.config")
+
+from hydra.errors import ConfigCompositionException, MissingConfigException  # noqa: E402
+from omegaconf import DictConfig, OmegaConf, open_dict  # noqa: E402
+
+from rotlearn.config.checks import check_keys, check_values, plain  # noqa: E402
+from rotlearn.config.source import marked, parameters  # noqa: E402
+from rotlearn.errors import ConfigError  # noqa: E402
+from rotlearn.paths import config_dir  # noqa: E402
+
+if TYPE_CHECKING:
+    import lightning.pytorch as pl
+
+__all__ = ["ConfigError", "build", "command_line", "compose", "register_schemas", "validate"]
+
+
+def schema(target: str) -> dict[str, Any]:
+    """The defaults node of a component: `_target_` and each argument's default (`???` where
+    required), read from its source (`rotlearn.config.source`)."""
+    return {"_target_": target, **{p.name: p.default for p in parameters(target)[0]}}
+
+
+@cache
+def register_schemas() -> tuple[str, ...]:
+    """Store `schema/` + the dotted name where it is defined in Hydra's ConfigStore, for every
+    component marked `@config_target` (once per process); returns their names."""
+    from hydra.core.config_store import ConfigStore
+
+    for target in marked():
+        ConfigStore.instance().store(group="schema", name=target, node=schema(target))
+    return marked()
+
+
+def _parse(overrides: Sequence[str]) -> list[Any]:
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    return OverridesParser.create().parse_overrides(list(overrides))
+
+
+def _compose(name: str, overrides: list[str], root: Path) -> tuple[DictConfig, list[str]]:
+    """Hydra's compose (with its `hydra` node) and the overrides it took: a `+` before each
+    `key=value` whose key the config lacks (validation then names a misspelt one)."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.override_parser.types import OverrideType
+
+    register_schemas()
+    parsed, taken = _parse(overrides), list(overrides)
+    with initialize_config_dir(config_dir=str(root), version_base="1.3"):
+        try:
+            while True:
+                try:
+                    return compose(name, taken, return_hydra_config=True), taken
+                except ConfigCompositionException as exc:  # "Could not override 'optim.lrr'"
+                    key = getattr(exc.__cause__, "full_key", None)
+                    absent = [i for i, o in enumerate(parsed) if o.type == OverrideType.CHANGE
+                              and not taken[i].startswith("+") and key
+                              and (o.key_or_group + ".").startswith(f"{key}.")]  # fmt: skip
+                    if isinstance(exc, MissingConfigException) or not absent:
+                        raise
+                    taken[absent[0]] = f"+{taken[absent[0]]}"
+        except MissingConfigException as exc:
+            group, _, option = str(exc.missing_cfg_file).rpartition("/")
+            if (group, option) not in {(o.key_or_group, str(o.value())) for o in parsed}:
+                raise
+            real = sorted(p.stem for p in root.joinpath(group).glob("*.yaml"))
+            near = difflib.get_close_matches(option, real, n=1, cutoff=0.5)
+            hint = f"; did you mean {group}={near[0]}?" if near else ""
+            message = f"no option {option!r}{hint}; options: {', '.join(real)}"
+            raise ConfigError(group, message) from None
+
+
+def _composed(overrides, output_dir, config_name, root) -> tuple[DictConfig, list[str]]:
+    kept = [o for o in overrides if not o.lstrip("+~").startswith(("hydra.", "hydra/"))]
+    cfg, taken = _compose(config_name, kept, Path(root or config_dir()))
+    run_dir = OmegaConf.select(cfg, "hydra.run.dir")
+    with open_dict(cfg):
+        del cfg["hydra"]
+        if output_dir is not None or OmegaConf.is_interpolation(cfg.paths, "output_dir"):
+            cfg.paths.output_dir = str(output_dir if output_dir is not None else run_dir)
+    return cfg, taken
+
+
+def compose(
+    overrides: Sequence[str] = (),
+    *,
+    output_dir: str | Path | None = None,
+    config_name: str = "train",
+    root: str | Path | None = None,
+    check: bool = True,
+) -> DictConfig:
+    """The config of conf/<config_name>.yaml with `overrides`, as `rotlearn-train` composes it.
+
+    Args:
+        overrides: e.g. ["rep=a", "optim.lr=1e-3"] (Hydra's own `hydra.*` keys are left out).
+        output_dir: `paths.output_dir`, where a run of it would write (default: the directory
+            `rotlearn-train` would make, outputs/runs/<time>; nothing is written here).
+        config_name: the primary config; root: the config directory (default: rotlearn's conf/).
+        check: validate it (`validate`); False returns it as composed.
+
+    Raises:
+        ConfigError: an unknown option or key, or a value its component refuses (naming it).
+    """
+    cfg, _ = _composed(list(overrides), output_dir, config_name, root)
+    if check:
+        validate(cfg)
+    return cfg
+
+
+def command_line(
+    args: Sequence[str], output_dir: str = "new-run", config_name: str = "train", check: bool = True
+) -> list[str]:
+    """Compose (and, with `check`, validate) the config of a command line before Hydra starts;
+    returns the arguments for Hydra, with `+` before each component argument that its YAML does
+    not list. A sweep (-m) is checked with the first value of each swept key.
+
+    Raises:
+        ConfigError: naming the option or key at fault; Hydra's and OmegaConf's own errors where
+            the command line does not compose (left for Hydra to report).
+    """
+    first = []
+    for override in _parse([a for a in args if not a.startswith("-")]):
+        if not override.is_sweep_override():
+            first.append(override.input_line)
+        elif values := list(override.sweep_string_iterator()):
+            first.append(f"{override.get_key_element()}={values[0]}")
+    cfg, taken = _composed(first, output_dir, config_name, None)
+    if check:
+        validate(cfg)
+    added = {o[1:].split("=", 1)[0] for o in taken if o.startswith("+") and o[1:] in first}
+    return [f"+{a}" if a.split("=", 1)[0] in added else a for a in args]
+
+
+def validate(cfg: DictConfig) -> None:
+    """Check every key and value of a composed train config (`rotlearn.config.checks`): what
+    files alone tell (unknown keys, required arguments, data folders), then each value against
+    its constructor's annotation and the rules that span keys. Builds only the head and the loss.
+
+    Raises:
+        ConfigError: naming the full key, and what was expected or the allowed keys.
+    """
+    values = plain(cfg)
+    check_keys(values)
+    check_values(values)
+
+
+def build(cfg: DictConfig) -> tuple[pl.LightningModule, pl.LightningDataModule]:
+    """The model and datamodule of a composed train config: validated, seeded with `cfg.seed`,
+    `instantiate(cfg.data)` and `instantiate(cfg.model)` (the regressor with its net, head, loss
+    and optimizer from their groups, or the auto-encoder). The model keeps the resolved config
+    (`run_config`) for its checkpoints.
+
+    Raises:
+        ConfigError: see `validate`; a constructor's own (its key under the node's).
+    """
+    import lightning.pytorch as pl
+    from hydra.errors import InstantiationException
+    from hydra.utils import instantiate
+
+    validate(cfg)
+    pl.seed_everything(cfg.seed, workers=True, verbose=False)
+    built = []
+    for key in ("data", "model"):
+        try:
+            built.append(instantiate(cfg[key]))
+        except InstantiationException as exc:  # for the model: the group a `${net}` names
+            if not isinstance(cause := exc.__cause__, ConfigError):
+                raise
+            part, _, rest = cause.key.partition(".")
+            raw = str(OmegaConf.to_container(cfg[key]).get(part, ""))
+            node = raw[2:-1] if raw.startswith("${") else f"{key}.{part}"
+            raise ConfigError(f"{node}.{rest}" if rest else node, cause.message) from None
+    datamodule, model = built
+    model.run_config = plain(cfg)
+    return model, datamodule
