@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import sys
 
 import numpy as np
@@ -197,6 +198,24 @@ def test_the_rotlearn_eval_command_checks_the_run_then_evaluates_it(
     evaluated = json.loads((out / "metrics.json").read_text())
     assert evaluated["test/err_median"] == pytest.approx(metrics["test/err_median"], rel=1e-6)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["eval", "kitti", "run"]  # nothing else
+
+
+def test_the_rotlearn_eval_command_takes_a_list_of_runs_and_names_a_missing_member(
+    trained_run, tmp_path, monkeypatch
+):
+    """`rotlearn-eval ckpt=[<run>,<run>]` (make reproduce-ood's ensembles) passes the command
+    line's checks member by member; a member that is not a run is named, nothing written."""
+    from rotlearn.cli.evaluate import _checked
+
+    run_dir, _ = trained_run
+    monkeypatch.chdir(tmp_path)
+    args = [f"ckpt=[{run_dir},{run_dir}/checkpoints/last.ckpt]", f"hydra.run.dir={tmp_path / 'e'}"]
+    assert _checked(args) == args
+    missing = tmp_path / "nowhere"
+    refusal = re.escape(f"ckpt: no checkpoint at {missing} (nothing was written)")
+    with pytest.raises(SystemExit, match=refusal):
+        _checked([f"ckpt=[{run_dir},{missing}]", f"hydra.run.dir={tmp_path / 'e'}"])
+    assert not (tmp_path / "e").exists()
 
 
 def test_rotlearn_eval_refuses_bad_input(trained_run, tmp_path):

@@ -220,6 +220,23 @@ def _first_look(cfg: DictConfig) -> None:
     check_keys(values)
 
 
+def _ckpt_values(value: str) -> list[str]:
+    """The checkpoint paths of a `ckpt=` value: one path, or Hydra's list `[<run>,<run>,...]`
+    (parsed by Hydra's own override grammar, so quoting works as on the command line)."""
+    if not value.lstrip().startswith("["):
+        return [value]
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import OverrideParseException
+
+    try:
+        parsed = OverridesParser.create().parse_override(f"ckpt={value}").value()
+    except OverrideParseException as exc:
+        raise SystemExit(f"rotlearn-eval: ckpt: {value} is not a list of runs ({exc})") from None
+    if not isinstance(parsed, list) or not parsed:
+        raise SystemExit(f"rotlearn-eval: ckpt: {value} is not a list of runs")
+    return [str(v) for v in parsed]
+
+
 def _checked(argv: list[str]) -> list[str]:
     """Refuse, before Hydra makes the evaluation's directory, a command line that cannot work
     (SystemExit naming the key; nothing is written): no ckpt, a ckpt that is not a run (a sweep
@@ -234,8 +251,10 @@ def _checked(argv: list[str]) -> list[str]:
     values = [a.split("=", 1)[1] for a in argv if a.startswith("ckpt=")]
     if not values:
         raise SystemExit("rotlearn-eval: ckpt=<run directory or .ckpt file> is missing (--help)")
+    members = _ckpt_values(values[-1])
     try:
-        checkpoint_file(values[-1])
+        for member in members:
+            checkpoint_file(member)
     except FileNotFoundError as exc:
         raise SystemExit(f"rotlearn-eval: ckpt: {exc} (nothing was written)") from None
     from rotlearn.cli.rundir import is_child_rank, refuse_an_existing_output_dir
@@ -244,6 +263,8 @@ def _checked(argv: list[str]) -> list[str]:
         refuse_an_existing_output_dir(argv, "eval", "rotlearn-eval")
     if "-m" in argv or "--multirun" in argv:  # each job is checked as it runs
         return argv
+    if len(members) > 1 or values[-1].lstrip().startswith("["):
+        return argv  # an ensemble: `evaluate` loads and checks every member through load_run
     try:
         args = command_line(argv, "new-eval", config_name="eval", check=False)
         cfg = compose(args, config_name="eval", output_dir="new-eval", check=False)
