@@ -244,7 +244,7 @@ def _checked(argv: list[str]) -> list[str]:
     and, for one evaluation, a run config that does not validate
     with the evaluation's settings (e.g. OOD callbacks on data that is not image pairs).
     Returns the arguments for Hydra (`+` before a data key that eval.yaml does not list)."""
-    from rotlearn.config import command_line, compose, validate
+    from rotlearn.config import composed_command_line, validate
 
     if any(a.startswith("-") and a not in ("-m", "--multirun") for a in argv):
         return argv  # Hydra's own flags (--cfg, --hydra-help, ...)
@@ -266,8 +266,7 @@ def _checked(argv: list[str]) -> list[str]:
     if len(members) > 1 or values[-1].lstrip().startswith("["):
         return argv  # an ensemble: `evaluate` loads and checks every member through load_run
     try:
-        args = command_line(argv, "new-eval", config_name="eval", check=False)
-        cfg = compose(args, config_name="eval", output_dir="new-eval", check=False)
+        cfg, args = composed_command_line(argv, "new-eval", config_name="eval")
         _first_look(cfg)
         validate(evaluation_config(cfg, _saved_run(cfg)))
     except ConfigError as exc:
@@ -282,7 +281,10 @@ def main() -> float | None:
     if any(a in ("-h", "--help") for a in argv):
         print(usage(), end="")
         return None
-    sys.argv[1:] = _checked(argv)
+    from rotlearn.cli.rundir import refusals_exit_at_once
+
+    with refusals_exit_at_once():
+        sys.argv[1:] = _checked(argv)
     return _hydra_main()
 
 

@@ -135,11 +135,12 @@ def main() -> float | None:
     if any(a in HELP_FLAGS for a in argv):
         print(usage(), end="")
         return None
-    from rotlearn.cli.rundir import is_child_rank
+    from rotlearn.cli.rundir import is_child_rank, refusals_exit_at_once
 
     if not is_child_rank():  # another rank repeats rank 0's command line, already checked
-        _refuse_a_run_in_use(argv)
-        sys.argv[1:] = _checked_command_line(argv)
+        with refusals_exit_at_once():
+            _refuse_a_run_in_use(argv)
+            sys.argv[1:] = _checked_command_line(argv)
     return _hydra_main()
 
 

@@ -47,7 +47,15 @@ from rotlearn.paths import config_dir  # noqa: E402
 if TYPE_CHECKING:
     import lightning.pytorch as pl
 
-__all__ = ["ConfigError", "build", "command_line", "compose", "register_schemas", "validate"]
+__all__ = [
+    "ConfigError",
+    "build",
+    "command_line",
+    "compose",
+    "composed_command_line",
+    "register_schemas",
+    "validate",
+]
 
 
 def schema(target: str) -> dict[str, Any]:
@@ -153,6 +161,17 @@ def command_line(
         ConfigError: naming the option or key at fault; Hydra's and OmegaConf's own errors where
             the command line does not compose (left for Hydra to report).
     """
+    cfg, hydra_args = composed_command_line(args, output_dir, config_name)
+    if check:
+        validate(cfg)
+    return hydra_args
+
+
+def composed_command_line(
+    args: Sequence[str], output_dir: str = "new-run", config_name: str = "train"
+) -> tuple[DictConfig, list[str]]:
+    """`command_line` without the validation: the composed config (the first value of each
+    swept key) and the arguments for Hydra, from one composition."""
     first = []
     for override in _parse([a for a in args if not a.startswith("-")]):
         if not override.is_sweep_override():
@@ -160,10 +179,8 @@ def command_line(
         elif values := list(override.sweep_string_iterator()):
             first.append(f"{override.get_key_element()}={values[0]}")
     cfg, taken = _composed(first, output_dir, config_name, None)
-    if check:
-        validate(cfg)
     added = {o[1:].split("=", 1)[0] for o in taken if o.startswith("+") and o[1:] in first}
-    return [f"+{a}" if a.split("=", 1)[0] in added else a for a in args]
+    return cfg, [f"+{a}" if a.split("=", 1)[0] in added else a for a in args]
 
 
 def validate(cfg: DictConfig) -> None:
