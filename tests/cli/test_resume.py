@@ -193,3 +193,18 @@ def test_keep_earlier_records_numbers_each_attempt(tmp_path):
         assert (run / ".hydra" / "overrides.yaml").is_file()  # Hydra rewrites it; kept till then
     assert json.loads((run / "history" / "2" / "status.json").read_text()) == {"attempt": 2}
     assert (run / "history" / "1" / ".hydra" / "overrides.yaml").read_text() == "- rep=a\n"
+
+
+def test_a_resume_names_a_misspelt_key_and_takes_an_argument_its_yaml_leaves_out(tmp_path):
+    """The user's new keys on a resume get what a new run's get (issue 23): a misspelt one is
+    refused with rotlearn's "did you mean", not Hydra's append advice about the run's file; a
+    constructor argument the YAML does not list is passed with `+`."""
+    run = _fake_run(tmp_path, "run", ["rep=quat"])
+    (run / "status.json").write_text(json.dumps({"status": "INTERRUPTED"}))
+    with pytest.raises(SystemExit) as refused:
+        resume_arguments([f"ckpt_path={run}", "optim.lrr=1e-3"])
+    said = str(refused.value)
+    assert "optim.lrr: unknown key; did you mean optim.lr?" in said
+    assert "overrides.yaml" not in said and "+optim.lrr" not in said
+    args = resume_arguments([f"ckpt_path={run}", "optim.amsgrad=true"])
+    assert args[:2] == ["rep=quat", "+optim.amsgrad=true"]

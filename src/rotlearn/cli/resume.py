@@ -260,13 +260,26 @@ def _check_the_weights(cfg: DictConfig, checkpoint: dict, ckpt: Path) -> None:
         raise UnsafeCheckpointError(str(exc)) from None
 
 
-def _check_the_config_that_runs(run_dir: Path, args: list[str], new: list[str], ckpt: Path) -> None:
+def _check_the_config_that_runs(
+    run_dir: Path, args: list[str], new: list[str], ckpt: Path
+) -> list[str]:
     """Compose the resumed run's config exactly as Hydra will and check it against the allowlist
     (`replay.replayed_config`), then validate it, check that it writes only inside the run, and
-    that the checkpoint and its callbacks' states are sound."""
-    from rotlearn.config import validate
+    that the checkpoint and its callbacks' states are sound. Returns the arguments for Hydra:
+    `+` before a key the YAML does not list, as for a new run, so that validation names a
+    misspelt key ("did you mean ...?") and a component argument the YAML leaves out can be set."""
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    from rotlearn.config import composed_command_line, validate
     from rotlearn.lit.boundary import checked_checkpoint_states
 
+    try:
+        args = composed_command_line(args, str(run_dir))[1]
+    except ConfigError as exc:  # e.g. an option that does not exist: named, with the nearest
+        raise _refuse(f"refusing to resume {run_dir}: {exc}") from None
+    except (HydraException, OmegaConfBaseException):
+        pass  # replayed_config names the file whose overrides do not compose
     try:
         cfg = replayed_config(args, run_dir)
     except UntrustedConfigError as exc:
@@ -284,6 +297,7 @@ def _check_the_config_that_runs(run_dir: Path, args: list[str], new: list[str], 
         raise _refuse(
             f"refusing to resume {run_dir}: {reason[0] if reason else type(exc).__name__}"
         ) from None
+    return args
 
 
 @dataclass(frozen=True)
@@ -327,7 +341,7 @@ def plan_resume(argv: list[str], runs_root: Path = Path("outputs/runs")) -> Resu
         _refuse_rewriting_a_completed_run(run_dir, previous, new)
         args = [*previous, *new, f"ckpt_path={quoted(str(ckpt.resolve()))}",
                 f"hydra.run.dir={quoted(str(run_dir))}"]  # fmt: skip
-        _check_the_config_that_runs(run_dir, args, new, ckpt.resolve())
+        args = _check_the_config_that_runs(run_dir, args, new, ckpt.resolve())
     except RunLockedError as exc:
         raise _refuse(f"refusing to resume: {exc}") from None
     except UnreadableFileError as exc:
