@@ -7,6 +7,7 @@ import json
 import math
 import re
 import sys
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -150,16 +151,33 @@ def _eval_cfg(overrides, out):
         return compose("eval", overrides=[f"paths.output_dir={out}", *overrides])
 
 
-def test_rotlearn_eval_reproduces_the_test_error(trained_run, tmp_path):
+def test_rotlearn_eval_reproduces_the_test_error(trained_run, tmp_path, monkeypatch):
+    """...and writes its metrics.json once: the run's records and the evaluation's facts (the
+    checkpoint, the temperature) in one file, as `evaluate` returns it."""
+    import rotlearn.io
+    import rotlearn.lit.records
     from rotlearn.cli.evaluate import evaluate
 
+    written, write = [], rotlearn.io.write_json_atomic
+
+    def counted(path, *args, **kwargs):
+        written.append(Path(path).name)
+        return write(path, *args, **kwargs)
+
+    monkeypatch.setattr(rotlearn.io, "write_json_atomic", counted)
+    monkeypatch.setattr(rotlearn.lit.records, "write_json_atomic", counted)
     run_dir, metrics = trained_run
     out = tmp_path / "eval"
     result = evaluate(_eval_cfg([f"ckpt={run_dir}", "ood.quantiles=[0.5]"], out))
     assert result["test/err_mean"] == pytest.approx(metrics["test/err_mean"], rel=1e-6)
     frame = pd.read_csv(out / "ood.csv")
     assert set(frame["q"]) == {0.5, 0.75}  # the asked quantile and DT's Table I quantile
-    assert json.loads((out / "metrics.json").read_text())["rep"] == "a"
+    assert written.count("metrics.json") == 1
+    on_disk = json.loads((out / "metrics.json").read_text())
+    assert set(on_disk) == set(result) and on_disk["rep"] == "a" and on_disk["temperature"] > 0
+    assert Path(on_disk["ckpt"]).parent.parent == Path(run_dir).resolve()
+    assert on_disk["seed"] == metrics["seed"]  # a fact of the run's records
+    assert "epochs" not in on_disk and "tested_weights" not in on_disk  # no fitting here
     assert not (run_dir / "ood.csv").stat().st_mtime > (out / "ood.csv").stat().st_mtime
 
 

@@ -95,10 +95,10 @@ def _saved_run(cfg: DictConfig) -> SavedRun:
 
 def evaluate(cfg: DictConfig) -> dict[str, Any]:
     """Test the checkpoint `cfg.ckpt` (or the ensemble of a list of them) with the OOD callback;
-    writes metrics.json; returns it."""
+    returns what the run's records (`rotlearn.lit.RunRecords`) wrote to metrics.json."""
     from rotlearn.cli.train import build
     from rotlearn.inference import ensemble_members
-    from rotlearn.io import write_json_atomic
+    from rotlearn.lit.records import RunRecords
 
     paths = list(cfg.ckpt) if isinstance(cfg.ckpt, ListConfig) else None
     if paths is None:
@@ -123,14 +123,12 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
         model.belief_levels = saved.level_map
     else:
         model.net, model.head = net, head
-    trainer.test(model, datamodule=datamodule, verbose=False)
-    metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
-    metrics.update({"ckpt": str(ckpt.resolve()), "rep": run.rep.name,
-                    "temperature": float(model.belief_temperature)})  # fmt: skip
+    records = next(c for c in trainer.callbacks if isinstance(c, RunRecords))
+    records.facts = {"ckpt": str(ckpt.resolve()), "rep": run.rep.name}
     if paths is not None:
-        metrics.update({"members": [str(Path(p).resolve()) for p in paths], "rep": "ensemble"})
-    write_json_atomic(Path(cfg.paths.output_dir) / "metrics.json", metrics)
-    return metrics
+        records.facts |= {"members": [str(Path(p).resolve()) for p in paths], "rep": "ensemble"}
+    trainer.test(model, datamodule=datamodule, verbose=False)  # writes metrics.json, once
+    return records.metrics
 
 
 @hydra.main(version_base="1.3", config_path=str(config_dir()), config_name="eval")

@@ -2,10 +2,11 @@
 
 `RunRecords` writes, when testing ends, on global rank 0, atomically (`rotlearn.io`):
 - `metrics.json`: the final scalars of fitting and testing, the epochs and steps, the seeds, the
-  task and head, which weights were tested, the best checkpoint's monitored value, whether the run
-  `diverged`, and `test/err_vs_identity` (the test error over that of predicting the identity; a
-  WARNING says when it stays above 0.9). Only what the config and seeds determine, so a rerun
-  gives an identical file;
+  task and head, the belief's temperature the test used, which weights were tested, the best
+  checkpoint's monitored value, whether the run `diverged`, and `test/err_vs_identity` (the test
+  error over that of predicting the identity; a WARNING says when it stays above 0.9), then the
+  command's own `facts` (`rotlearn-eval`: the checkpoint). Only what the config and seeds
+  determine, so a rerun gives an identical file; written once;
 - `timing.json`: wall-clock seconds per epoch (from `EpochTimer`);
 - `test_errors.json`: the per-sample test errors in degrees, where the model keeps them (box plots
   of paper Fig. 4);
@@ -104,16 +105,22 @@ class RunRecords(pl.Callback):
 
     Attributes:
         metrics: what was written to metrics.json (empty before the test ends).
+        facts: what the command knows of the run beyond the trainer (`rotlearn-eval`: the
+            checkpoint and its members), set before testing; written into
+            metrics.json over the facts found, so that the file is written once.
     """
 
     def __init__(self, dirpath: str | Path, hparams: dict[str, Any] | None = None) -> None:
         self.dirpath = Path(dirpath)
         self.hparams = dict(hparams or {})
         self.metrics: dict[str, Any] = {}
+        self.facts: dict[str, Any] = {}
         self._fit_metrics: dict[str, float] = {}
+        self._fitted = False
 
     def on_fit_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         self._fit_metrics = _scalars(trainer.callback_metrics)
+        self._fitted = True
 
     def on_test_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         metrics = {**self._fit_metrics, **_scalars(trainer.callback_metrics)}
@@ -122,7 +129,7 @@ class RunRecords(pl.Callback):
             results = getattr(callback, "results", None)
             if callback is not self and isinstance(results, dict):
                 metrics.update(_scalars(results))
-        metrics.update(self._facts(trainer, pl_module))
+        metrics.update(self._facts(trainer, pl_module), **self.facts)
         reasons = divergence(metrics, getattr(_find(trainer, EpochLosses), "losses", []))
         for reason in reasons:
             log.warning("%s diverged: %s", self.dirpath, reason)
@@ -138,22 +145,24 @@ class RunRecords(pl.Callback):
         if trainer.is_global_zero:
             self._write(trainer, pl_module, metrics)
 
-    @staticmethod
-    def _facts(trainer: pl.Trainer, pl_module: pl.LightningModule) -> dict[str, Any]:
+    def _facts(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> dict[str, Any]:
+        """The run's facts; those of fitting (epochs, steps, which weights, the best checkpoint's
+        value) only where this trainer fitted (a test of saved weights has none of its own)."""
         config = getattr(pl_module, "run_config", None) or {}
         facts: dict[str, Any] = {
-            "epochs": trainer.current_epoch,
-            "global_step": trainer.global_step,
             "seed": config.get("seed"),
             "data_seed": (config.get("data") or {}).get("seed"),
             "task": getattr(pl_module, "task", None),
-            "tested_weights": "best" if trainer.ckpt_path else "last",
         }
+        if self._fitted:
+            facts |= {"epochs": trainer.current_epoch, "global_step": trainer.global_step,
+                      "tested_weights": "best" if trainer.ckpt_path else "last"}  # fmt: skip
         if facts["task"] == "rotation":
             facts["rep"] = getattr(pl_module.head, "name", None)
+            facts["temperature"] = float(pl_module.belief_temperature)  # the one the test used
         checkpoints = trainer.checkpoint_callback
-        if checkpoints and checkpoints.best_model_score is not None:  # best/val_err_mean, ...
-            key = f"best/{checkpoints.monitor.replace('/', '_')}"
+        if self._fitted and checkpoints and checkpoints.best_model_score is not None:
+            key = f"best/{checkpoints.monitor.replace('/', '_')}"  # best/val_err_mean, ...
             facts[key] = float(checkpoints.best_model_score)
         return facts
 
