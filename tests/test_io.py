@@ -70,19 +70,28 @@ def test_each_kind_has_its_cap(tmp_path, monkeypatch):
 
 
 @pytest.mark.parametrize(
-    ("text", "reason"),
+    ("name", "text", "reason"),
     [
-        ("[" * 100_000 + "]" * 100_000, "nested too deeply"),
-        ("[" * 100 + "]" * 100, "nested too deeply"),  # parses, but deeper than MAX_DEPTH
-        ("{not json", "not JSON"),
-        (b"\xff\xfe", "not UTF-8"),
+        ("status.json", "[" * 100_000 + "]" * 100_000, "nested too deeply"),
+        (
+            "status.json",
+            "[" * 100 + "]" * 100,
+            "nested too deeply",
+        ),  # parses, deeper than MAX_DEPTH
+        ("status.json", "{not json", "not JSON"),
+        ("status.json", b"\xff\xfe", "not UTF-8"),
+        ("config.yaml", "[" * 100 + "]" * 100, "nested too deeply"),
+        ("config.yaml", "[" * 10_000 + "]" * 10_000, "not plain YAML data"),  # the parser's limit
+        ("config.yaml", "!!python/object/apply:os.system ['true']", "not plain YAML data"),
+        ("config.yaml", "a: [unclosed", "not plain YAML data"),
     ],
 )
-def test_malformed_json_is_named(tmp_path, text, reason):
-    path = tmp_path / "status.json"
+def test_a_malformed_record_or_config_is_named(tmp_path, name, text, reason):
+    path = tmp_path / name
     path.write_bytes(text if isinstance(text, bytes) else text.encode())
+    read = read_record if name.endswith(".json") else read_yaml
     with within(10), pytest.raises(UnreadableFileError, match=reason) as info:
-        read_record(path)
+        read(path)
     assert str(path) in str(info.value)
 
 
@@ -102,23 +111,6 @@ def test_a_yaml_alias_bomb_is_refused_unexpanded(tmp_path):
     assert path.stat().st_size < 1000
     with within(5), pytest.raises(UnreadableFileError, match=r"config\.yaml:2: YAML alias \*a"):
         read_yaml(path)
-
-
-@pytest.mark.parametrize(
-    ("text", "reason"),
-    [
-        ("[" * 100 + "]" * 100, "nested too deeply"),
-        ("[" * 10_000 + "]" * 10_000, "not plain YAML data"),  # the parser's own limit
-        ("!!python/object/apply:os.system ['true']", "not plain YAML data"),
-        ("a: [unclosed", "not plain YAML data"),
-    ],
-)
-def test_yaml_that_is_not_plain_data_is_named(tmp_path, text, reason):
-    path = tmp_path / "config.yaml"
-    path.write_text(text)
-    with within(10), pytest.raises(UnreadableFileError, match=reason) as info:
-        read_yaml(path)
-    assert str(path) in str(info.value)
 
 
 def test_genuine_yaml_reads(tmp_path):

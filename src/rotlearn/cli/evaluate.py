@@ -98,7 +98,7 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     returns what the run's records (`rotlearn.lit.RunRecords`) wrote to metrics.json."""
     from rotlearn.cli.train import build
     from rotlearn.inference import ensemble_members
-    from rotlearn.lit.records import RunRecords
+    from rotlearn.lit import RunRecords, find_callback
 
     paths = list(cfg.ckpt) if isinstance(cfg.ckpt, ListConfig) else None
     if paths is None:
@@ -123,7 +123,7 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
         model.belief_levels = saved.level_map
     else:
         model.net, model.head = net, head
-    records = next(c for c in trainer.callbacks if isinstance(c, RunRecords))
+    records = find_callback(trainer, RunRecords)
     records.facts = {"ckpt": str(ckpt.resolve()), "rep": run.rep.name}
     if paths is not None:
         records.facts |= {"members": [str(Path(p).resolve()) for p in paths], "rep": "ensemble"}
@@ -242,7 +242,7 @@ def _checked(argv: list[str]) -> list[str]:
     and, for one evaluation, a run config that does not validate
     with the evaluation's settings (e.g. OOD callbacks on data that is not image pairs).
     Returns the arguments for Hydra (`+` before a data key that eval.yaml does not list)."""
-    from rotlearn.config import composed_command_line, validate
+    from rotlearn.config import command_line_config, validate
 
     if any(a.startswith("-") and a not in ("-m", "--multirun") for a in argv):
         return argv  # Hydra's own flags (--cfg, --hydra-help, ...)
@@ -264,7 +264,7 @@ def _checked(argv: list[str]) -> list[str]:
     if len(members) > 1 or values[-1].lstrip().startswith("["):
         return argv  # an ensemble: `evaluate` loads and checks every member through load_run
     try:
-        cfg, args = composed_command_line(argv, "new-eval", config_name="eval")
+        cfg, args = command_line_config(argv, "new-eval", config_name="eval")
         _first_look(cfg)
         validate(evaluation_config(cfg, _saved_run(cfg)))
     except ConfigError as exc:
@@ -279,7 +279,7 @@ def main() -> float | None:
     if any(a in ("-h", "--help") for a in argv):
         print(usage(), end="")
         return None
-    from rotlearn.cli.rundir import refusals_exit_at_once
+    from rotlearn.cli import refusals_exit_at_once
 
     with refusals_exit_at_once():
         sys.argv[1:] = _checked(argv)

@@ -8,17 +8,13 @@
   elsewhere, unless the user's own command line set that key.
 - `compose_command_line` / `refuse_an_existing_output_dir`: a new run or sweep never writes into
   an existing, non-empty directory (refused before Hydra creates or writes anything).
-- `refusals_exit_at_once`: a command refused before it wrote anything exits without the
-  collector's last walk over torch's objects.
 - `is_child_rank`: a process started by Lightning or SLURM for another rank of a distributed run,
   which repeats its rank 0's command line and must not repeat its checks.
 """
 
 from __future__ import annotations
 
-import atexit
 import contextlib
-import gc
 import os
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -36,7 +32,6 @@ __all__ = [
     "is_child_rank",
     "output_paths",
     "place_output_dir",
-    "refusals_exit_at_once",
     "refuse_an_existing_output_dir",
     "user_keys",
 ]
@@ -258,20 +253,6 @@ def refuse_an_existing_output_dir(
     if not multirun:
         place_output_dir(cfg, folder.absolute())
     return cfg
-
-
-@contextlib.contextmanager
-def refusals_exit_at_once() -> Iterator[None]:
-    """A refusal (SystemExit) inside the block ends the process without the garbage collector's
-    last walk over every object at exit (`gc.freeze` at exit: torch's objects make that walk
-    0.3-0.5 s on 2 cores, a fifth of the time a mistake takes to be answered). Nothing was
-    written, so no finaliser has anything to finish; in a process that goes on (a test), only
-    its own exit is affected."""
-    try:
-        yield
-    except SystemExit:
-        atexit.register(gc.freeze)
-        raise
 
 
 def place_output_dir(cfg: DictConfig, run_dir: str | os.PathLike) -> DictConfig:

@@ -135,7 +135,8 @@ def main() -> float | None:
     if any(a in HELP_FLAGS for a in argv):
         print(usage(), end="")
         return None
-    from rotlearn.cli.rundir import is_child_rank, refusals_exit_at_once
+    from rotlearn.cli import refusals_exit_at_once
+    from rotlearn.cli.rundir import is_child_rank
 
     if not is_child_rank():  # another rank repeats rank 0's command line, already checked
         with refusals_exit_at_once():

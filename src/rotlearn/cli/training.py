@@ -40,6 +40,7 @@ from rotlearn.lit import (
     ProgressBar,
     RunCheckpointIO,
     RunRecords,
+    find_callback,
 )
 from rotlearn.locks import hold_run, release_run
 from rotlearn.report.identity import hparams_record, run_name, swept_keys
@@ -256,8 +257,7 @@ def _interruptions_recorded(trainer: pl.Trainer, run_dir: Path):
     try:
         yield
     except (SystemExit, KeyboardInterrupt):
-        recorders = [cb for cb in trainer.callbacks if isinstance(cb, InterruptRecorder)]
-        name = recorders[0].signal_name if recorders else None
+        name = getattr(find_callback(trainer, InterruptRecorder), "signal_name", None)
         if name is None:
             raise
         stop = RunInterrupted(run_dir, name, _last_finished_epoch(run_dir, trainer))
@@ -315,7 +315,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     finally:
         if not child:
             release_run(run_dir)
-    return next(cb for cb in trainer.callbacks if isinstance(cb, RunRecords)).metrics
+    return find_callback(trainer, RunRecords).metrics
 
 
 def report(cfg: DictConfig, metrics: dict[str, Any]) -> None:

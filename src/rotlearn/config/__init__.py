@@ -51,8 +51,8 @@ __all__ = [
     "ConfigError",
     "build",
     "command_line",
+    "command_line_config",
     "compose",
-    "composed_command_line",
     "register_schemas",
     "validate",
 ]
@@ -161,13 +161,13 @@ def command_line(
         ConfigError: naming the option or key at fault; Hydra's and OmegaConf's own errors where
             the command line does not compose (left for Hydra to report).
     """
-    cfg, hydra_args = composed_command_line(args, output_dir, config_name)
+    cfg, hydra_args = command_line_config(args, output_dir, config_name)
     if check:
         validate(cfg)
     return hydra_args
 
 
-def composed_command_line(
+def command_line_config(
     args: Sequence[str], output_dir: str = "new-run", config_name: str = "train"
 ) -> tuple[DictConfig, list[str]]:
     """`command_line` without the validation: the composed config (the first value of each

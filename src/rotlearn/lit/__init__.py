@@ -13,6 +13,7 @@ from rotlearn.lit.callbacks import (
     InterruptRecorder,
     ModelSummary,
     ProgressBar,
+    find_callback,
 )
 from rotlearn.lit.records import RunRecords, barely_learned, divergence
 from rotlearn.lit.regressor import RotationRegressor
@@ -33,5 +34,6 @@ __all__ = [
     "TensorBoardRunLogger",
     "barely_learned",
     "divergence",
+    "find_callback",
     "load_autoencoder",
 ]

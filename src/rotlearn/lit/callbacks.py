@@ -26,9 +26,15 @@ __all__ = [
     "InterruptRecorder",
     "ModelSummary",
     "ProgressBar",
+    "find_callback",
 ]
 
 log = logging.getLogger("rotlearn")
+
+
+def find_callback(trainer: pl.Trainer, kind: type) -> Any:
+    """The trainer's first callback of type `kind`; None if it has none."""
+    return next((cb for cb in trainer.callbacks if isinstance(cb, kind)), None)
 
 
 @config_target
@@ -248,7 +254,7 @@ class ProgressBar(TQDMProgressBar):
 
     def get_metrics(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> dict[str, Any]:
         now = time.monotonic()
-        losses = next((cb for cb in trainer.callbacks if isinstance(cb, EpochLosses)), None)
+        losses = find_callback(trainer, EpochLosses)
         if losses is not None and now - self._read_at >= self.refresh_s:
             running = losses.running_mean()
             self._loss = running if running is not None else self._loss

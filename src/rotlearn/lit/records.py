@@ -34,7 +34,7 @@ import lightning.pytorch as pl
 import torch
 
 from rotlearn.io import write_json_atomic
-from rotlearn.lit.callbacks import EpochLosses, EpochTimer
+from rotlearn.lit.callbacks import EpochLosses, EpochTimer, find_callback
 from rotlearn.report.tables import results_table
 
 __all__ = ["HEADLINE_RESULTS", "RunRecords", "barely_learned", "divergence"]
@@ -91,11 +91,6 @@ def _scalars(metrics: dict[str, Any]) -> dict[str, float]:
     return {k: float(v) for k, v in metrics.items() if torch.as_tensor(v).numel() == 1}
 
 
-def _find(trainer: pl.Trainer, kind: type) -> Any:
-    found = [cb for cb in trainer.callbacks if isinstance(cb, kind)]
-    return found[0] if found else None
-
-
 class RunRecords(pl.Callback):
     """Write the run's records into `dirpath` when testing ends (module docstring).
 
@@ -130,7 +125,7 @@ class RunRecords(pl.Callback):
             if callback is not self and isinstance(results, dict):
                 metrics.update(_scalars(results))
         metrics.update(self._facts(trainer, pl_module), **self.facts)
-        reasons = divergence(metrics, getattr(_find(trainer, EpochLosses), "losses", []))
+        reasons = divergence(metrics, getattr(find_callback(trainer, EpochLosses), "losses", []))
         for reason in reasons:
             log.warning("%s diverged: %s", self.dirpath, reason)
         metrics["diverged"] = bool(reasons)
@@ -167,7 +162,7 @@ class RunRecords(pl.Callback):
         return facts
 
     def _write(self, trainer: pl.Trainer, pl_module: pl.LightningModule, metrics: dict) -> None:
-        timer = _find(trainer, EpochTimer)
+        timer = find_callback(trainer, EpochTimer)
         times = timer.epoch_times if timer else []
         steady = times[1:]  # the first epoch carries one-off start-up costs
         timing = {
