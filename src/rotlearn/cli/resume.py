@@ -275,7 +275,7 @@ def _check_the_config_that_runs(
     from rotlearn.lit.boundary import checked_checkpoint_states
 
     try:
-        args = command_line(args, str(run_dir), check=False)
+        args = command_line(args, str(run_dir), check=False, appendable=new)
     except ConfigError as exc:  # e.g. an option that does not exist: named, with the nearest
         raise _refuse(f"refusing to resume {run_dir}: {exc}") from None
     except (HydraException, OmegaConfBaseException):

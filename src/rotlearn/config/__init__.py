@@ -81,9 +81,12 @@ def _parse(overrides: Sequence[str]) -> list[Any]:
     return OverridesParser.create().parse_overrides(list(overrides))
 
 
-def _compose(name: str, overrides: list[str], root: Path) -> tuple[DictConfig, list[str]]:
+def _compose(
+    name: str, overrides: list[str], root: Path, appendable: Sequence[str] | None = None
+) -> tuple[DictConfig, list[str]]:
     """Hydra's compose (with its `hydra` node) and the overrides it took: a `+` before each
-    `key=value` whose key the config lacks (validation then names a misspelt one)."""
+    `key=value` of `appendable` (default: every override) whose key the config lacks
+    (validation then names a misspelt one); one composition more per `+`."""
     from hydra import compose, initialize_config_dir
     from hydra.core.override_parser.types import OverrideType
 
@@ -98,6 +101,7 @@ def _compose(name: str, overrides: list[str], root: Path) -> tuple[DictConfig, l
                     key = getattr(exc.__cause__, "full_key", None)
                     absent = [i for i, o in enumerate(parsed) if o.type == OverrideType.CHANGE
                               and not taken[i].startswith("+") and key
+                              and (appendable is None or overrides[i] in appendable)
                               and (o.key_or_group + ".").startswith(f"{key}.")]  # fmt: skip
                     if isinstance(exc, MissingConfigException) or not absent:
                         raise
@@ -113,9 +117,11 @@ def _compose(name: str, overrides: list[str], root: Path) -> tuple[DictConfig, l
             raise ConfigError(group, message) from None
 
 
-def _composed(overrides, output_dir, config_name, root) -> tuple[DictConfig, list[str]]:
+def _composed(
+    overrides, output_dir, config_name, root, appendable=None
+) -> tuple[DictConfig, list[str]]:
     kept = [o for o in overrides if not o.lstrip("+~").startswith(("hydra.", "hydra/"))]
-    cfg, taken = _compose(config_name, kept, Path(root or config_dir()))
+    cfg, taken = _compose(config_name, kept, Path(root or config_dir()), appendable)
     run_dir = OmegaConf.select(cfg, "hydra.run.dir")
     with open_dict(cfg):
         del cfg["hydra"]
@@ -151,24 +157,33 @@ def compose(
 
 
 def command_line(
-    args: Sequence[str], output_dir: str = "new-run", config_name: str = "train", check: bool = True
+    args: Sequence[str],
+    output_dir: str = "new-run",
+    config_name: str = "train",
+    check: bool = True,
+    appendable: Sequence[str] | None = None,
 ) -> list[str]:
     """Compose (and, with `check`, validate) the config of a command line before Hydra starts;
     returns the arguments for Hydra, with `+` before each component argument that its YAML does
-    not list. A sweep (-m) is checked with the first value of each swept key.
+    not list (only those of `appendable`, if given: a resume's saved overrides never get one, so
+    a file's unknown keys cost one composition, not one each). A sweep (-m) is checked with the
+    first value of each swept key.
 
     Raises:
         ConfigError: naming the option or key at fault; Hydra's and OmegaConf's own errors where
             the command line does not compose (left for Hydra to report).
     """
-    cfg, hydra_args = command_line_config(args, output_dir, config_name)
+    cfg, hydra_args = command_line_config(args, output_dir, config_name, appendable)
     if check:
         validate(cfg)
     return hydra_args
 
 
 def command_line_config(
-    args: Sequence[str], output_dir: str = "new-run", config_name: str = "train"
+    args: Sequence[str],
+    output_dir: str = "new-run",
+    config_name: str = "train",
+    appendable: Sequence[str] | None = None,
 ) -> tuple[DictConfig, list[str]]:
     """`command_line` without the validation: the composed config (the first value of each
     swept key) and the arguments for Hydra, from one composition."""
@@ -178,7 +193,7 @@ def command_line_config(
             first.append(override.input_line)
         elif values := list(override.sweep_string_iterator()):
             first.append(f"{override.get_key_element()}={values[0]}")
-    cfg, taken = _composed(first, output_dir, config_name, None)
+    cfg, taken = _composed(first, output_dir, config_name, None, appendable)
     added = {o[1:].split("=", 1)[0] for o in taken if o.startswith("+") and o[1:] in first}
     return cfg, [f"+{a}" if a.split("=", 1)[0] in added else a for a in args]
 
