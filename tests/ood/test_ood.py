@@ -218,6 +218,25 @@ def test_the_rotlearn_eval_command_checks_the_run_then_evaluates_it(
     assert sorted(p.name for p in tmp_path.iterdir()) == ["eval", "kitti", "run"]  # nothing else
 
 
+def test_an_evaluation_with_an_unlisted_key_never_writes_into_an_existing_directory(
+    trained_run, tmp_path, monkeypatch
+):
+    """The existing-directory refusal sees the arguments Hydra runs: with a data key eval.yaml
+    does not list (it gets its `+`), an existing, non-empty hydra.run.dir is refused too."""
+    from rotlearn.cli.evaluate import _checked
+
+    run_dir, _ = trained_run
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "taken"
+    out.mkdir()
+    (out / "precious.txt").write_text("keep")
+    args = [f"ckpt={run_dir}", "data.batch_size=4", f"hydra.run.dir={out}"]
+    with pytest.raises(SystemExit, match="already exists and is not empty") as refused:
+        _checked(args)
+    assert "ckpt_path" not in str(refused.value)  # no resume advice: evaluations do not resume
+    assert [p.name for p in out.iterdir()] == ["precious.txt"]
+
+
 def test_the_rotlearn_eval_command_takes_a_list_of_runs_and_names_a_missing_member(
     trained_run, tmp_path, monkeypatch
 ):

@@ -257,16 +257,17 @@ def _checked(argv: list[str]) -> list[str]:
         raise SystemExit(f"rotlearn-eval: ckpt: {exc} (nothing was written)") from None
     from rotlearn.cli.rundir import is_child_rank, refuse_an_existing_output_dir
 
-    if not is_child_rank():  # another rank repeats rank 0's command line, already checked
-        refuse_an_existing_output_dir(argv, "eval", "rotlearn-eval")
-    if "-m" in argv or "--multirun" in argv:  # each job is checked as it runs
-        return argv
-    if len(members) > 1 or values[-1].lstrip().startswith("["):
-        return argv  # an ensemble: `evaluate` loads and checks every member through load_run
+    multirun = "-m" in argv or "--multirun" in argv  # each job is checked as it runs
+    ensemble = len(members) > 1 or values[-1].lstrip().startswith("[")  # `evaluate` checks each
+    args = argv
     try:
-        cfg, args = command_line_config(argv, "new-eval", config_name="eval")
-        _first_look(cfg)
-        validate(evaluation_config(cfg, _saved_run(cfg)))
+        if not (multirun or ensemble):
+            cfg, args = command_line_config(argv, "new-eval", config_name="eval")
+        if not is_child_rank():  # the directory of the arguments Hydra runs (with their `+`)
+            refuse_an_existing_output_dir(args, "eval", "rotlearn-eval")
+        if not (multirun or ensemble):
+            _first_look(cfg)
+            validate(evaluation_config(cfg, _saved_run(cfg)))
     except ConfigError as exc:
         raise SystemExit(f"rotlearn-eval: {exc} (nothing was written)") from None
     return args

@@ -244,8 +244,8 @@ def refuse_an_existing_output_dir(
     with _hydra_config(cfg):
         folder = Path(cfg.hydra.sweep.dir if multirun else cfg.hydra.run.dir)
     if _non_empty(folder) and not allow:
-        what = "sweep" if multirun else "run"
-        hint = "" if multirun else f" (to continue the run in it: {prog} ckpt_path={folder})"
+        what = "sweep" if multirun else "run" if config_name == "train" else "evaluation"
+        hint = f" (to continue the run in it: {prog} ckpt_path={folder})" if what == "run" else ""
         raise SystemExit(
             f"{prog}: {folder} already exists and is not empty; a new {what} never writes into "
             f"an existing directory{hint}; nothing was written"
