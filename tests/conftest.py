@@ -287,15 +287,17 @@ def demo_data(tmp_path_factory) -> dict[str, Path]:
     return roots
 
 
-# Overrides that point each dataset config at the demo copies, small enough for a unit test.
+# Overrides that point each dataset config (and its `_demo` option) at the test session's demo
+# copies, small enough for a unit test.
 def demo_overrides(demo_data: dict[str, Path], data: str) -> list[str]:
     return {
         "shapenet": [f"data.root={demo_data['pts']}"],
         "kitti": [f"data.root={demo_data['kitti']}", "data.train_sequences=[02]",
-                  "data.test_sequences=[00]", "data.image_size=16", "data.num_workers=0"],
+                  "data.test_sequences=[00]", "data.val_sequences=[]", "data.val_fraction=0.1",
+                  "data.image_size=16", "data.num_workers=0"],
         "mav": [f"data.root={demo_data['mav']}", "data.resize=18", "data.image_size=16",
                 "data.num_workers=0"],
-    }.get(data, [])  # fmt: skip
+    }.get(data.removesuffix("_demo"), [])  # fmt: skip
 
 
 # -- small datasets in the real on-disk layouts ---------------------------------------------
