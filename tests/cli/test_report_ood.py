@@ -14,6 +14,7 @@ from rotlearn.cli.report import main as report_main
 from rotlearn.ood import mixed_set, rejection_table
 from rotlearn.ood.records import write_samples
 from rotlearn.report import make_report
+from rotlearn.report.tables import mean_range
 from rotlearn.scores import SCORES
 
 PAPER = {
@@ -98,7 +99,7 @@ def test_table_one_is_shown_beside_the_paper_and_pooled_runs_are_named(tmp_path)
     dt_row = next(line for line in lines[side:] if line.startswith("| a loss=chordal + DT |"))
     ours = table[table["method"] == "a loss=chordal + DT"].iloc[0]
     assert f"{ours['precision %']:.2f} (99)" in dt_row and "(37.3)" in dt_row
-    assert "| quat loss=chordal | quat | " in text
+    assert "| quat loss=chordal | 1 | quat | " in text
     bingham = next(line for line in lines[side:] if line.startswith("| a loss=bingham + DT |"))
     assert "| - |" in bingham and "(-)" in bingham  # no paper row for the trained belief
     # the per-score table: AUROC 1 for the separated A runs, 0 for the reversed quat norm
@@ -117,7 +118,7 @@ def test_table_one_is_shown_beside_the_paper_and_pooled_runs_are_named(tmp_path)
 def test_runs_differing_only_in_their_seeds_get_mean_and_range(tmp_path):
     """Three seeds of one setting pool into one row of the seeds table: the mean and range of
     each number over the seeds, beside the per-job rows (whose numbers they must match)."""
-    report = {"ood": {"quantiles": [0.75]}}
+    report = {"ood": {"quantiles": [0.75]}, "paper": {**PAPER, "where": {"loss": "bingham"}}}
     for seed, separation in enumerate((0.0, 1.0, 3.0)):  # chance, some, perfect separation
         _fabricate_run(tmp_path / "a" / str(seed), "a", "bingham", report, seed=seed,
                        separation=separation)  # fmt: skip
@@ -136,6 +137,15 @@ def test_runs_differing_only_in_their_seeds_get_mean_and_range(tmp_path):
     quat = next(line for line in lines[start:] if line.startswith("| quat |"))
     assert quat.split("|")[2].strip() == "1"  # one run: its numbers alone, no range
     assert "(" not in quat.split("|")[4]
+    # beside the paper: one row per method, its seeds pooled the same way
+    side = lines.index("### Side by side with the paper (paper Table I, sequence 00)")
+    end = next(i for i in range(side + 1, len(lines)) if lines[i].startswith("#"))
+    rows = [line for line in lines[side:end] if line.startswith("| a + DT |")]
+    assert len(rows) == 1
+    cells = [c.strip() for c in rows[0].split("|")[1:-1]]
+    assert cells[1:3] == ["3", "a + DT"]
+    assert cells[-1] == f"{auroc.mean():.2f} ({auroc.min():.2f}-{auroc.max():.2f})"
+    assert cells[4] == f"{mean_range(dt['clean kept %'], '[]')} (69.5)"  # as seeds_table
 
 
 def test_extra_sets_give_the_error_per_test_set(tmp_path, capsys):

@@ -367,7 +367,8 @@ def _ood_sections(frames, layout, out: Path, files: dict[str, Path]) -> list[str
     if isinstance(paper, Mapping) and paper.get("rows"):
         where = ", ".join(f"{k}={v}" for k, v in (paper.get("where") or {}).items())
         md += [f"### Side by side with the paper ({paper.get('source', 'paper')})", "",
-               "Each cell: ours (the paper's). The paper's numbers are on real data at full "
+               "Each cell: ours (the paper's); ours over a method's runs (seeds) as mean "
+               "[min-max], AUROC as mean (min-max). The paper's numbers are on real data at full "
                "size" + (f"; compared: our runs with {where}" if where else "") + ". "
                + str(paper.get("note", "")), "", tables.paper_table(ood, paper), ""]  # fmt: skip
     quantiles = options.get("quantiles")

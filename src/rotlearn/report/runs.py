@@ -9,7 +9,8 @@ trial keys; a key may name a config group (`rep`: every key below it) or one key
 
 A setting is labelled by the value of `report.lead` (the head's name), then each other grouping
 key as `group=option` where the config group's option differs between the runs (`loss=bingham`),
-else as `key=value` (`optim.lr=0.001`).
+else as `key=value` (`optim.lr=0.001`; a key left null is not shown: `quat` beside `sixd
+callbacks.ood.autoencoder_ckpt=kitti_ae`, not `quat callbacks.ood.autoencoder_ckpt=null`).
 """
 
 from __future__ import annotations
@@ -258,8 +259,10 @@ def _settings(
                 continue
             if node in varied:
                 part = f"{node}={chosen[node]}"
+            elif (value := flat.get(key, _MISSING)) is None:
+                continue  # unset: the settings that set it say so
             else:
-                part = f"{key}={short_value(flat.get(key, _MISSING))}"
+                part = f"{key}={short_value(value)}"
             if part not in [p for _, p in parts]:
                 parts.append((key, part))
         if not flat:  # a damaged or missing .hydra/config.yaml

@@ -24,6 +24,7 @@ __all__ = [
     "box_table",
     "failed_table",
     "markdown_table",
+    "mean_range",
     "ood_markdown",
     "paper_table",
     "percentile_table",
@@ -320,16 +321,21 @@ def seeds_table(rows: pd.DataFrame) -> str:
     records = []
     for method, group in rows.groupby("method", sort=False):
         record = {"method": method, "runs": len(group), "q": group["q"].iloc[0]}
-        for column in SEED_COLUMNS:
-            values = pd.to_numeric(group[column], errors="coerce").dropna().to_numpy(float)
-            if len(values) == 0:
-                record[column] = None
-            elif len(values) == 1 or np.ptp(values) == 0:
-                record[column] = f"{values.mean():.2f}"
-            else:
-                record[column] = f"{values.mean():.2f} ({values.min():.2f}-{values.max():.2f})"
+        record.update({column: mean_range(group[column]) for column in SEED_COLUMNS})
         records.append(record)
     return markdown_table(records, ["method", "runs", "q", *SEED_COLUMNS])
+
+
+def mean_range(column: pd.Series, brackets: str = "()") -> str | None:
+    """A number over runs as `mean (min-max)` (`brackets`: around the range), or alone where
+    the runs agree (None: no number)."""
+    values = pd.to_numeric(column, errors="coerce").dropna().to_numpy(float)
+    if len(values) == 0:
+        return None
+    if len(values) == 1 or np.ptp(values) == 0:
+        return f"{values.mean():.2f}"
+    opening, closing = brackets
+    return f"{values.mean():.2f} {opening}{values.min():.2f}-{values.max():.2f}{closing}"
 
 
 REFERENCE_WORDS = {  # how ood.md names the set the thresholds come from
@@ -386,29 +392,31 @@ PAPER_COLUMNS = [
 ]
 
 
-def _number(value: Any) -> str:
-    return (
-        "-"
-        if _missing(value)
-        else f"{value:.2f}"
-        if isinstance(value, (int, float))
-        else str(value)
-    )
-
-
 def paper_table(ood: pd.DataFrame, paper: Mapping[str, Any]) -> str:
     """Our Table I rows beside the paper's: for each paper row ({rep, score (absent: the head
-    alone), clean_err, clean_kept, corrupted_err, corrupted_kept, precision}), the first of our
-    rows with that head and score among the runs matching `paper.where` ({group: choice}), each
-    number as `ours (paper)`; our rows without a paper row are listed after, as `ours (-)`."""
+    alone), clean_err, clean_kept, corrupted_err, corrupted_kept, precision}), our first method
+    with that head and score among the runs matching `paper.where` ({group: choice}), each
+    number as `ours (paper)`, ours over that method's runs (seeds) as `mean [min-max]`; our
+    methods without a paper row are listed after, as `ours (-)`."""
     where = {f"group:{k}": str(v) for k, v in (paper.get("where") or {}).items()}
     comparable = ood
     for key, value in where.items():
         if key in comparable:
             comparable = comparable[comparable[key].astype(str) == value]
 
-    def cell(ours: Any, theirs: Any) -> str:
-        return f"{_number(ours)} ({'-' if theirs is None else f'{float(theirs):g}'})"
+    def cell(runs: pd.DataFrame | None, column: str, theirs: Any) -> str:
+        ours = None if runs is None else mean_range(runs[column], "[]")
+        return f"{ours or '-'} ({'-' if theirs is None else f'{float(theirs):g}'})"
+
+    def record(method: str | None, paper_method: str | None, theirs: Mapping[str, Any]) -> dict:
+        runs = None if method is None else ood[ood["method"] == method]
+        return {
+            "method": "(not run)" if method is None else method,
+            "runs": 0 if runs is None else len(runs),
+            "paper": paper_method,
+            "AUROC": None if runs is None else mean_range(runs["AUROC"]),
+            **{column: cell(runs, column, theirs.get(key)) for column, key in PAPER_COLUMNS},
+        }
 
     records, used = [], set()
     for entry in paper.get("rows") or []:
@@ -416,24 +424,14 @@ def paper_table(ood: pd.DataFrame, paper: Mapping[str, Any]) -> str:
             continue
         rep, score = str(entry.get("rep")), str(entry.get("score") or "")
         match = comparable[(comparable["rep"] == rep) & (comparable["score"] == score)]
-        ours = match.iloc[0] if len(match) else None
-        if ours is not None:
-            used.add(ours.name)
-        record = {
-            "method": ours["method"] if ours is not None else "(not run)",
-            "paper": entry.get("label", rep + (f" + {LABELS.get(score, score)}" if score else "")),
-            "AUROC": None if ours is None else ours["AUROC"],
-        }
-        for column, key in PAPER_COLUMNS:
-            record[column] = cell(None if ours is None else ours[column], entry.get(key))
-        records.append(record)
-    for index, ours in ood.iterrows():
-        if index not in used:
-            record = {"method": ours["method"], "paper": None, "AUROC": ours["AUROC"]}
-            record.update({column: cell(ours[column], None) for column, _ in PAPER_COLUMNS})
-            records.append(record)
+        method = match["method"].iloc[0] if len(match) else None
+        used.add(method)
+        label = entry.get("label", rep + (f" + {LABELS.get(score, score)}" if score else ""))
+        records.append(record(method, label, entry))
+    records += [record(m, None, {}) for m in ood["method"].unique() if m not in used]
     columns = [
         ("method", "method"),
+        ("runs", "runs"),
         ("paper", "paper method"),
         *[(c, c) for c, _ in PAPER_COLUMNS],
         ("AUROC", "AUROC"),
