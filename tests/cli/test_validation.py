@@ -118,6 +118,19 @@ def test_another_torch_optimizer_is_checked_by_its_own_signature(make_cfg):
         validate(make_cfg([*sgd[:2], "+optim.betas=[0.9,0.99]"]))
 
 
+def test_a_library_callback_with_an_object_as_a_default_is_checked(make_cfg):
+    """Lightning's SWA defaults `device` to `torch.device("cpu")`, no literal: its keys and
+    values are still checked (the source reader crashed on it, a traceback before training)."""
+    swa = ["+callbacks.swa._target_=lightning.pytorch.callbacks.StochasticWeightAveraging",
+           "+callbacks.swa.swa_lrs=0.001"]  # fmt: skip
+    validate(make_cfg(swa))
+    with pytest.raises(ConfigError, match=r"callbacks\.swa\.swa_lr: unknown key; did you mean "
+                                          r"callbacks\.swa\.swa_lrs\?"):  # fmt: skip
+        validate(make_cfg([swa[0], "+callbacks.swa.swa_lr=0.001"]))
+    with pytest.raises(ConfigError, match=r"callbacks\.swa\.swa_lrs: .*got 'fast'"):
+        validate(make_cfg([swa[0], "+callbacks.swa.swa_lrs=fast"]))
+
+
 def test_a_users_own_target_is_left_to_its_constructor(make_cfg):
     validate(make_cfg(["+callbacks.mine={_target_: my.package.Callback, anything: 1}"]))
 

@@ -40,7 +40,7 @@ from hydra.errors import ConfigCompositionException, MissingConfigException  # n
 from omegaconf import DictConfig, OmegaConf, open_dict  # noqa: E402
 
 from rotlearn.config.checks import check_keys, check_values, plain  # noqa: E402
-from rotlearn.config.source import marked, parameters  # noqa: E402
+from rotlearn.config.source import NOT_LITERAL, marked, parameters  # noqa: E402
 from rotlearn.errors import ConfigError  # noqa: E402
 from rotlearn.paths import config_dir  # noqa: E402
 
@@ -60,8 +60,16 @@ __all__ = [
 
 def schema(target: str) -> dict[str, Any]:
     """The defaults node of a component: `_target_` and each argument's default (`???` where
-    required), read from its source (`rotlearn.config.source`)."""
-    return {"_target_": target, **{p.name: p.default for p in parameters(target)[0]}}
+    required), read from its source (`rotlearn.config.source`).
+
+    Raises:
+        ValueError: a default that is no literal (a YAML value cannot hold it).
+    """
+    found = parameters(target)[0]
+    for p in (p for p in found if p.default is NOT_LITERAL):
+        raise ValueError(f"{target}: the default of {p.name} is no literal; a component's "
+                         "defaults must be YAML values")  # fmt: skip
+    return {"_target_": target, **{p.name: p.default for p in found}}
 
 
 @cache

@@ -17,6 +17,7 @@ from typing import Any, NamedTuple
 
 __all__ = [
     "MISSING",
+    "NOT_LITERAL",
     "Parameter",
     "class_attribute",
     "is_marked",
@@ -26,11 +27,12 @@ __all__ = [
 ]
 
 MISSING = "???"  # OmegaConf's mark of a value still to set: a required argument
+NOT_LITERAL = object()  # a default that is no literal (`device=torch.device("cpu")`)
 
 
 class Parameter(NamedTuple):
     name: str
-    default: Any  # MISSING where required
+    default: Any  # MISSING where required, NOT_LITERAL where its source is no literal
     owner: str  # the dotted class or function whose signature declares it
 
 
@@ -85,14 +87,12 @@ def _find(name: str, depth: int = 0) -> tuple[str, ast.AST] | None:
 
 
 def _value(module: str, expr: ast.expr) -> Any:
-    """A default: a literal (a tuple as a list), or the module constant it names."""
+    """A default: a literal (a tuple as a list), the module constant it names, or NOT_LITERAL."""
     try:
         value = ast.literal_eval(expr)
     except ValueError:
         found = _find(f"{module}.{ast.unparse(expr)}")
-        if found is None or not isinstance(found[1], ast.expr):
-            raise ValueError(f"{module}: the default {ast.unparse(expr)} is no literal") from None
-        return _value(*found)
+        return _value(*found) if found and isinstance(found[1], ast.expr) else NOT_LITERAL
     return list(value) if isinstance(value, tuple) else value
 
 
