@@ -118,6 +118,19 @@ def test_another_torch_optimizer_is_checked_by_its_own_signature(make_cfg):
         validate(make_cfg([*sgd[:2], "+optim.betas=[0.9,0.99]"]))
 
 
+def test_a_tuple_argument_takes_a_yaml_list(make_cfg):
+    """Rprop's `etas: tuple[float, float]` is written as a list in YAML; it was refused as 'no
+    valid tuple' whatever the value. Its elements and length are still checked."""
+    rprop = ["optim._target_=torch.optim.Rprop", "~optim.weight_decay"]
+    validate(make_cfg([*rprop, "+optim.etas=[0.4,1.3]", "+optim.step_sizes=[1e-6,10]"]))
+    with pytest.raises(ConfigError, match=r"optim\.etas: .*got \['x', 1\.3\]"):
+        validate(make_cfg([*rprop, "+optim.etas=[x,1.3]"]))
+    with pytest.raises(ConfigError, match=r"optim\.etas: .*got \[0\.4, 1\.3, 2\.0\]"):
+        validate(make_cfg([*rprop, "+optim.etas=[0.4,1.3,2.0]"]))
+    with pytest.raises(ConfigError, match=r"lr_range: should be greater than 0 \(at \[0\]\)"):
+        validate(make_cfg(["+lr_range=[-1.0,1.0]"]))  # a list argument keeps its own message
+
+
 def test_a_library_callback_with_an_object_as_a_default_is_checked(make_cfg):
     """Lightning's SWA defaults `device` to `torch.device("cpu")`, no literal: its keys and
     values are still checked (the source reader crashed on it, a traceback before training)."""

@@ -260,13 +260,20 @@ def _annotation(owner: str, name: str) -> Any:
 @cache
 def _adapter(annotation: Any):
     """A strict pydantic validator of `annotation`; a mapping with a `_target_` passes (Hydra
-    builds it into what the annotation asks for), a float never passes as an integer."""
-    from pydantic import ConfigDict, TypeAdapter, WrapValidator
+    builds it into what the annotation asks for), a list passes as a tuple (YAML's way to write
+    one: `betas: [0.9, 0.99]`), a float never passes as an integer."""
+    from pydantic import ConfigDict, TypeAdapter, ValidationError, WrapValidator
 
     def nested(value: Any, handler: Any) -> Any:
         if isinstance(value, dict) and "_target_" in value:
             return value
-        result = handler(value)
+        try:
+            result = handler(value)
+        except ValidationError as error:  # a list where a tuple is asked: checked as that tuple
+            tuple_asked = any(e["type"] == "tuple_type" for e in error.errors())
+            if not (isinstance(value, list) and tuple_asked):
+                raise
+            result = handler(tuple(value))
         if isinstance(value, float) and type(result) is int:  # 32.0 for Literal[32]
             raise ValueError(f"should be an integer, not {value!r}")
         return result
