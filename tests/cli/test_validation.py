@@ -118,6 +118,31 @@ def test_another_torch_optimizer_is_checked_by_its_own_signature(make_cfg):
         validate(make_cfg([*sgd[:2], "+optim.betas=[0.9,0.99]"]))
 
 
+@pytest.mark.parametrize(
+    ("module", "group"),
+    [("lightning.pytorch.callbacks", "callbacks"), ("lightning.pytorch.loggers", "logger"),
+     ("torch.optim", "optim"), ("torch.optim.lr_scheduler", "scheduler")],
+)  # fmt: skip
+def test_every_library_class_accepts_its_own_defaults(module, group):
+    """Every class a user may name from these modules is read (keys) and each literal default
+    passes the check of its own annotation: a tuple default written as a YAML list, an object
+    default (`NOT_LITERAL`) skipped. Both once failed (a crash, 9 refusals)."""
+    from hydra.utils import get_object
+
+    from rotlearn.config.checks import _annotation, _check
+    from rotlearn.config.source import MISSING, NOT_LITERAL
+
+    found = get_object(module)
+    classes = [
+        n for n, c in vars(found).items() if inspect.isclass(c) and c.__module__.startswith(module)
+    ]
+    assert len(classes) >= 5
+    for name in classes:
+        for p in arguments(f"{module}.{name}", group) or ():
+            if p.default is not NOT_LITERAL and p.default != MISSING:
+                _check(f"{group}.{p.name}", p.default, _annotation(p.owner, p.name))
+
+
 def test_a_tuple_argument_takes_a_yaml_list(make_cfg):
     """Rprop's `etas: tuple[float, float]` is written as a list in YAML; it was refused as 'no
     valid tuple' whatever the value. Its elements and length are still checked."""
