@@ -115,6 +115,21 @@ def test_table_one_is_shown_beside_the_paper_and_pooled_runs_are_named(tmp_path)
     assert "group:loss" in summary and "group:hydra/launcher" not in summary
 
 
+def test_a_crafted_paper_table_in_a_runs_config_is_shown_not_obeyed(tmp_path):
+    """The paper's rows come from a run's config (untrusted): a value that is no number, a row
+    that is no mapping, a head that is a mapping give '-' cells, not a crash."""
+    rows = [{"rep": "a", "score": "dt", "clean_err": "abc", "precision": [1, 2],
+             "clean_kept": True}, "junk", {"rep": {"x": 1}}]  # fmt: skip
+    report = {"paper": {**PAPER, "rows": rows}, "ood": {"quantiles": [0.75]}}
+    _fabricate_run(tmp_path / "a", "a", "chordal", report)
+    lines = make_report([tmp_path / "a"])["report"].read_text().splitlines()
+    side = lines.index("### Side by side with the paper (paper Table I, sequence 00)")
+    dt = next(line for line in lines[side:] if line.startswith("| a + DT |"))
+    cells = [c.strip() for c in dt.split("|")[1:-1]]
+    assert cells[3].endswith("(-)") and cells[4].endswith("(-)") and cells[7].endswith("(-)")
+    assert any(line.startswith("| (not run) |") for line in lines[side:])
+
+
 def test_runs_differing_only_in_their_seeds_get_mean_and_range(tmp_path):
     """Three seeds of one setting pool into one row of the seeds table: the mean and range of
     each number over the seeds, beside the per-job rows (whose numbers they must match)."""

@@ -406,7 +406,8 @@ def paper_table(ood: pd.DataFrame, paper: Mapping[str, Any]) -> str:
 
     def cell(runs: pd.DataFrame | None, column: str, theirs: Any) -> str:
         ours = None if runs is None else mean_range(runs[column], "[]")
-        return f"{ours or '-'} ({'-' if theirs is None else f'{float(theirs):g}'})"
+        number = isinstance(theirs, (int, float)) and not isinstance(theirs, bool)
+        return f"{ours or '-'} ({f'{theirs:g}' if number else '-'})"  # a run's config: any value
 
     def record(method: str | None, paper_method: str | None, theirs: Mapping[str, Any]) -> dict:
         runs = None if method is None else ood[ood["method"] == method]
