@@ -271,11 +271,11 @@ def _check_the_config_that_runs(
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
-    from rotlearn.config import command_line, validate
+    from rotlearn.config import command_line_config, validate
     from rotlearn.lit.boundary import checked_checkpoint_states
 
     try:
-        args = command_line(args, str(run_dir), check=False, appendable=new)
+        _, args = command_line_config(args, str(run_dir), appendable=new)
     except ConfigError as exc:  # e.g. an option that does not exist: named, with the nearest
         raise _refuse(f"refusing to resume {run_dir}: {exc}") from None
     except (HydraException, OmegaConfBaseException):

@@ -165,25 +165,19 @@ def compose(
 
 
 def command_line(
-    args: Sequence[str],
-    output_dir: str = "new-run",
-    config_name: str = "train",
-    check: bool = True,
-    appendable: Sequence[str] | None = None,
+    args: Sequence[str], output_dir: str = "new-run", config_name: str = "train"
 ) -> list[str]:
-    """Compose (and, with `check`, validate) the config of a command line before Hydra starts;
-    returns the arguments for Hydra, with `+` before each component argument that its YAML does
-    not list (only those of `appendable`, if given: a resume's saved overrides never get one, so
-    a file's unknown keys cost one composition, not one each). A sweep (-m) is checked with the
-    first value of each swept key.
+    """Compose and validate the config of a command line before Hydra starts; returns the
+    arguments for Hydra, with `+` before each component argument that its YAML does not list. A
+    sweep (-m) is checked with the first value of each swept key. (Composing alone:
+    `command_line_config`.)
 
     Raises:
         ConfigError: naming the option or key at fault; Hydra's and OmegaConf's own errors where
             the command line does not compose (left for Hydra to report).
     """
-    cfg, hydra_args = command_line_config(args, output_dir, config_name, appendable)
-    if check:
-        validate(cfg)
+    cfg, hydra_args = command_line_config(args, output_dir, config_name)
+    validate(cfg)
     return hydra_args
 
 
@@ -194,7 +188,9 @@ def command_line_config(
     appendable: Sequence[str] | None = None,
 ) -> tuple[DictConfig, list[str]]:
     """`command_line` without the validation: the composed config (the first value of each
-    swept key) and the arguments for Hydra, from one composition."""
+    swept key) and the arguments for Hydra, from one composition. `appendable`: only these
+    arguments may get a `+` (a resume's saved overrides never get one, so a file's unknown keys
+    cost one composition, not one each)."""
     first = []
     for override in _parse([a for a in args if not a.startswith("-")]):
         if not override.is_sweep_override():
