@@ -198,6 +198,9 @@ def test_rotlearn_eval_of_several_runs_scores_their_ensemble(trained_run, tiny_k
     frame = pd.read_csv(out / "ood.csv")
     assert {"dt", "eigengap", "raw_norm", "disagreement"} <= set(frame["score"])
     assert (frame[frame["score"] == "disagreement"]["nan_scores"] == 0).all()
+    # nothing is trained, so nothing is checkpointed: no stray checkpoints/ with the ensemble's
+    # temperature.json and ood_thresholds.json below tensorboard/ (Lightning's default folder)
+    assert not list(out.rglob("checkpoints")) and not list(out.rglob("*thresholds*"))
 
 
 def test_the_rotlearn_eval_command_checks_the_run_then_evaluates_it(

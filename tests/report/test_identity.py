@@ -27,6 +27,9 @@ def test_a_run_is_named_by_its_overrides_in_their_shortest_form():
     assert run_name(CONFIG, overrides, CHOICES, keys=["rep", "optim.lr"]) == "rep=a,optim.lr=0.001"
     assert run_name(CONFIG, [], CHOICES) == "defaults"
     assert run_name(CONFIG, ["data.root=/data/kitti/"], CHOICES) == "data.root=kitti"
+    # a list typed on the command line (rotlearn-eval's ensembles), item by item: no "2]"
+    ensemble = "ckpt=[outputs/sweep/0,outputs/sweep/1,outputs/sweep/2/]"
+    assert run_name({}, [ensemble]) == "ckpt=[0,1,2]"
     long = run_name({}, [f"k{i}=value{i}" for i in range(40)])
     assert len(long) == 120 and "/" not in long and long != run_name({}, ["k0=other"] * 40)
 

@@ -68,9 +68,10 @@ def evaluation_config(cfg: DictConfig, saved: SavedRun) -> DictConfig:
     run.data = OmegaConf.merge(run.data, _set(cfg.data))
     trainer = {k: v for k, v in run.trainer.items() if k in SAVED_TRAINER_KEYS}
     trainer["_target_"] = "lightning.pytorch.Trainer"
-    run.trainer = OmegaConf.merge(
-        trainer, DEFAULT_DEVICES, _set(cfg.trainer), {"default_root_dir": out}
-    )
+    run.trainer = OmegaConf.merge(  # no checkpointing: nothing is trained, nothing is saved
+        trainer, DEFAULT_DEVICES, _set(cfg.trainer), {"default_root_dir": out},
+        {"enable_checkpointing": False},
+    )  # fmt: skip
     run.logger = {
         "tensorboard": {
             "_target_": "rotlearn.lit.TensorBoardRunLogger",

@@ -182,7 +182,7 @@ class PostHocCalibration(pl.Callback):
         if not trainer.is_global_zero:
             return
         if folder is None:
-            log.warning("calibration: no checkpoint directory; %s not written", TEMPERATURE_FILE)
+            log.info("calibration: no checkpoint to write %s beside", TEMPERATURE_FILE)
         elif not folder.resolve().is_relative_to(self.dirpath.resolve()):
             log.warning(
                 "calibration: the tested checkpoint's directory %s is outside this run's "

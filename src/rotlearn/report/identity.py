@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import re
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
@@ -34,6 +35,7 @@ PLUMBING = ("hydra", "paths", "logger", "callbacks", "ckpt_path", "report")
 HEADLINE_KEYS = ("rep", "loss", "net", "data", "optim.lr", "seed")
 MAX_NAME_LENGTH = 120  # characters of a run's name (a directory name); longer ones end in a hash
 _ABSENT = object()
+_TYPED_LIST = re.compile(r"\[[^\[\]]*\]")  # a flat list as a command line types it: [a,b]
 
 
 def parse_override(text: str) -> tuple[str, str] | None:
@@ -87,14 +89,17 @@ def _value(
 
 def short_value(value: Any) -> str:
     """A value as a person reads it in a name or a label: numbers in their shortest form
-    (1e-3 -> 0.001), booleans and None as true / false / null, a path by its last part."""
+    (1e-3 -> 0.001), booleans and None as true / false / null, a path by its last part, a list
+    item by item (also as typed on a command line: `[runs/a/0,runs/a/1]` -> `[0,1]`)."""
     if isinstance(value, bool) or value is None:
         return {True: "true", False: "false", None: "null"}[value]
     if isinstance(value, float):
         return f"{value:g}" if math.isfinite(value) else str(value)
+    text = str(value)
+    if isinstance(value, str) and _TYPED_LIST.fullmatch(text):
+        value = text[1:-1].split(",")
     if isinstance(value, (list, tuple)):
         return "[" + ",".join(short_value(v) for v in value) + "]"
-    text = str(value)
     if "/" in text.strip("/"):
         text = text.rstrip("/").rsplit("/", 1)[-1]
     return text.replace("/", "_")
