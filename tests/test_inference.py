@@ -48,6 +48,20 @@ def _points(n: int = 3, generator_seed: int = 0) -> torch.Tensor:
     return torch.randn(n, 16, 6, generator=g)
 
 
+def test_a_run_trained_with_a_usual_lightning_callback_loads(make_cfg, tmp_path):
+    """A run's saved config names every callback it trained with; weight averaging (tried for
+    issue 25 from the command line) is one of Lightning's usual ones, so its run loads instead of
+    being refused as untrusted."""
+    out = tmp_path / "swa"
+    swa = "+callbacks.swa._target_=lightning.pytorch.callbacks.StochasticWeightAveraging"
+    cfg = make_cfg([*FAST, "rep=a", "trainer.max_epochs=2", "logger=none", "calibrate=false",
+                    swa, "+callbacks.swa.swa_lrs=0.001", "+callbacks.swa.swa_epoch_start=1"],
+                   run_dir=out)  # fmt: skip
+    train(cfg)
+    estimate = rotlearn.load(out)(_points())
+    assert estimate.R.shape == (3, 3, 3)
+
+
 def test_predictor_reproduces_the_trained_model(trained_runs, make_cfg):
     run = trained_runs["a"]
     predictor = rotlearn.load(run)  # a run directory means its last.ckpt

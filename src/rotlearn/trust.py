@@ -72,6 +72,7 @@ LIBRARY_TARGETS = frozenset(
                 "RichProgressBar",
                 "ModelSummary",
                 "Timer",
+                "StochasticWeightAveraging",
             )
         ),
     }
