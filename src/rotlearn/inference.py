@@ -360,8 +360,10 @@ def load(
     )  # fmt: skip
 
 
-def ensemble_members(paths: Sequence[str | os.PathLike]) -> tuple[nn.Module, RotationHead, Any]:
-    """(EnsembleNet, EnsembleHead, the first member's `SavedRun`) of K runs, each loaded through
+def ensemble_members(
+    paths: Sequence[str | os.PathLike],
+) -> tuple[nn.Module, RotationHead, list[Any]]:
+    """(EnsembleNet, EnsembleHead, the members' `SavedRun`s) of K runs, each loaded through
     `load_run` (the same checks as `load`), weights and temperatures applied.
 
     Raises:
@@ -381,7 +383,7 @@ def ensemble_members(paths: Sequence[str | os.PathLike]) -> tuple[nn.Module, Rot
         nets.append(net.eval())
         heads.append(head)
     head = EnsembleHead(heads, [run.temperature for run in runs])
-    return EnsembleNet(nets), head, runs[0]
+    return EnsembleNet(nets), head, runs
 
 
 def _load_ensemble(
@@ -389,6 +391,6 @@ def _load_ensemble(
 ) -> Predictor:
     from omegaconf import OmegaConf
 
-    net, head, first = ensemble_members(paths)
-    config = OmegaConf.to_container(first.config)
+    net, head, runs = ensemble_members(paths)
+    config = OmegaConf.to_container(runs[0].config)
     return Predictor(net, head, config, device=device, chunk_elements=chunk_elements)

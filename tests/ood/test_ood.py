@@ -258,6 +258,28 @@ def test_the_rotlearn_eval_command_takes_a_list_of_runs_and_names_a_missing_memb
     assert not (tmp_path / "e").exists()
 
 
+def test_an_ensemble_of_runs_that_take_other_input_is_refused_before_anything_is_written(
+    trained_run, tiny_kitti, make_cfg, tmp_path, monkeypatch
+):
+    """The ensemble reads the first member's data; a member trained on frames normalised
+    otherwise (or of another size, or another dataset) would be fed inputs it never saw:
+    silently wrong, or a shape error after the evaluation's directory was made."""
+    from rotlearn.cli.evaluate import _checked
+
+    run_dir, _ = trained_run
+    other = tmp_path / "normalised"
+    train(make_cfg([*TINY_PAIRS, f"data.root={tiny_kitti}", "data.mean=0.5"], run_dir=other))
+    monkeypatch.chdir(tmp_path)
+    refusal = (
+        f"rotlearn-eval: config key ckpt: {other}/checkpoints/last.ckpt was trained with "
+        f"data.mean=0.5, {run_dir}/checkpoints/last.ckpt with 0.0; an ensemble's members must "
+        "take the same input (nothing was written)"
+    )
+    with pytest.raises(SystemExit, match=re.escape(refusal)):
+        _checked([f"ckpt=[{run_dir},{other}]", f"hydra.run.dir={tmp_path / 'e'}"])
+    assert not (tmp_path / "e").exists()
+
+
 def test_rotlearn_eval_refuses_bad_input(trained_run, tmp_path):
     from rotlearn.cli.evaluate import evaluate
 

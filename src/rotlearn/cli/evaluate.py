@@ -94,21 +94,46 @@ def _saved_run(cfg: DictConfig) -> SavedRun:
         raise ConfigError("ckpt", f"{cfg.ckpt}: {exc}") from None
 
 
+def _ensemble(paths: list[str]) -> tuple[Any, Any, SavedRun]:
+    """The ensemble of the runs `paths` (`rotlearn.inference.ensemble_members`: runs with a
+    belief) and the first member's run, whose data the evaluation reads; every member must have
+    been trained on the same kind of input: the same datamodule and the same values of what its
+    `input_keys` name (frame size, channels, normalisation).
+
+    Raises:
+        ConfigError: on `ckpt`, naming the member and what it cannot be used for.
+    """
+    from rotlearn.config.source import class_attribute
+    from rotlearn.inference import ensemble_members
+
+    try:
+        net, head, runs = ensemble_members(paths)
+    except (FileNotFoundError, ValueError) as exc:  # unsafe file, untrusted config, ...
+        raise ConfigError("ckpt", str(exc)) from None
+    first = runs[0].config.data
+    keys = ("_target_", *(class_attribute(str(first["_target_"]), "input_keys") or ()))
+    for run in runs[1:]:
+        for key in (k for k in keys if run.config.data.get(k) != first.get(k)):
+            raise ConfigError(
+                "ckpt",
+                f"{run.path} was trained with data.{key}={run.config.data.get(key)!r}, "
+                f"{runs[0].path} with {first.get(key)!r}; an ensemble's members must take the "
+                "same input",
+            )
+    return net, head, runs[0]
+
+
 def evaluate(cfg: DictConfig) -> dict[str, Any]:
     """Test the checkpoint `cfg.ckpt` (or the ensemble of a list of them) with the OOD callback;
     returns what the run's records (`rotlearn.lit.RunRecords`) wrote to metrics.json."""
     from rotlearn.cli.train import build
-    from rotlearn.inference import ensemble_members
     from rotlearn.lit import RunRecords, find_callback
 
     paths = list(cfg.ckpt) if isinstance(cfg.ckpt, ListConfig) else None
     if paths is None:
         saved = _saved_run(cfg)
     else:
-        try:
-            net, head, saved = ensemble_members(paths)
-        except (FileNotFoundError, ValueError) as exc:  # unsafe file, untrusted config, ...
-            raise ConfigError("ckpt", f"{cfg.ckpt}: {exc}") from None
+        net, head, saved = _ensemble(paths)
     ckpt = saved.path
     run = evaluation_config(cfg, saved)
     try:  # the weights against the model the config describes, built on the meta device first
@@ -241,7 +266,8 @@ def _checked(argv: list[str]) -> list[str]:
     (SystemExit naming the key; nothing is written): no ckpt, a ckpt that is not a run (a sweep
     directory: its jobs listed), an evaluation or sweep directory that exists and is not empty,
     and, for one evaluation, a run config that does not validate
-    with the evaluation's settings (e.g. OOD callbacks on data that is not image pairs).
+    with the evaluation's settings (e.g. OOD callbacks on data that is not image pairs); for an
+    ensemble, a member without a belief or trained on other input (`_ensemble`).
     Returns the arguments for Hydra (`+` before a data key that eval.yaml does not list)."""
     from rotlearn.config import command_line_config, validate
 
@@ -259,9 +285,11 @@ def _checked(argv: list[str]) -> list[str]:
     from rotlearn.cli.rundir import is_child_rank, refuse_an_existing_output_dir
 
     multirun = "-m" in argv or "--multirun" in argv  # each job is checked as it runs
-    ensemble = len(members) > 1 or values[-1].lstrip().startswith("[")  # `evaluate` checks each
+    ensemble = len(members) > 1 or values[-1].lstrip().startswith("[")
     args = argv
     try:
+        if ensemble and not multirun:
+            _ensemble(members)
         if not (multirun or ensemble):
             cfg, args = command_line_config(argv, "new-eval", config_name="eval")
         if not is_child_rank():  # the directory of the arguments Hydra runs (with their `+`)

@@ -211,6 +211,8 @@ class MAVDataModule(ImagePairDataModule):
     # What data.root holds, checked when a config is validated (rotlearn.config).
     layout = ("flea3/data.csv", "pose/data.csv", "pairs/{train_scenes}.csv",
               "pairs/{test_scenes}.csv")  # fmt: skip
+    # What one input is (`ImagePairDataModule.input_keys`), with the scale frames are resized to.
+    input_keys = ("resize", "image_size", "pair_channels", "mean", "std")
 
     def __init__(
         self,

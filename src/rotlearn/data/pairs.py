@@ -188,6 +188,10 @@ class ImagePairDataModule(pl.LightningDataModule):
             both frames (`rotlearn.data.augment`). None: off. Training only.
     """
 
+    # What one input is (its size, channels and normalisation): the members of an ensemble,
+    # evaluated on one member's data, must agree on these (rotlearn-eval).
+    input_keys = ("image_size", "pair_channels", "mean", "std")
+
     def __init__(
         self,
         batch_size: Annotated[int, Gt(0)] = 32,

@@ -182,7 +182,8 @@ class PostHocCalibration(pl.Callback):
         if not trainer.is_global_zero:
             return
         if folder is None:
-            log.info("calibration: no checkpoint to write %s beside", TEMPERATURE_FILE)
+            log.info("calibration: T = %.4g, in metrics.json (no checkpoint to write %s beside)",
+                     temperature, TEMPERATURE_FILE)  # fmt: skip
         elif not folder.resolve().is_relative_to(self.dirpath.resolve()):
             log.warning(
                 "calibration: the tested checkpoint's directory %s is outside this run's "
