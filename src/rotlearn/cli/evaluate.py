@@ -110,15 +110,16 @@ def _ensemble(paths: list[str]) -> tuple[Any, Any, SavedRun]:
         net, head, runs = ensemble_members(paths)
     except (FileNotFoundError, ValueError) as exc:  # unsafe file, untrusted config, ...
         raise ConfigError("ckpt", str(exc)) from None
-    first = runs[0].config.data
-    keys = ("_target_", *(class_attribute(str(first["_target_"]), "input_keys") or ()))
-    for run in runs[1:]:
-        for key in (k for k in keys if run.config.data.get(k) != first.get(k)):
+    data = [OmegaConf.select(run.config, "data") for run in runs]
+    data = [node if isinstance(node, DictConfig) else {} for node in data]  # none: no keys
+    wanted = class_attribute(str(data[0].get("_target_")), "input_keys")
+    keys = ("_target_", *(wanted if isinstance(wanted, list) else ()))
+    for run, node in zip(runs[1:], data[1:], strict=True):
+        for key in (k for k in keys if node.get(k) != data[0].get(k)):
             raise ConfigError(
                 "ckpt",
-                f"{run.path} was trained with data.{key}={run.config.data.get(key)!r}, "
-                f"{runs[0].path} with {first.get(key)!r}; an ensemble's members must take the "
-                "same input",
+                f"{run.path} was trained with data.{key}={node.get(key)!r}, {runs[0].path} "
+                f"with {data[0].get(key)!r}; an ensemble's members must take the same input",
             )
     return net, head, runs[0]
 
