@@ -196,6 +196,25 @@ def test_keep_earlier_records_numbers_each_attempt(tmp_path):
     assert (run / "history" / "1" / ".hydra" / "overrides.yaml").read_text() == "- rep=a\n"
 
 
+def test_the_earlier_tests_tensorboard_session_is_kept_out_of_tensorboards_view(tmp_path):
+    """TensorBoard shows a run's first HPARAMS session: a finished run trained longer showed the
+    first attempt's settings (trainer.max_epochs=2) beside the new results. The earlier test's
+    event files move to the history, renamed so TensorBoard does not read them; the training
+    and validation curves go on in the run."""
+    run = _fake_run(tmp_path, "run", ["rep=a"])
+    (run / "metrics.json").write_text("{}")
+    board = run / "tensorboard" / "rep=a"
+    for sub, content in (("train", b"curve"), ("val", b"curve"), ("test", b"session")):
+        (board / sub).mkdir(parents=True)
+        (board / sub / "events.out.tfevents.1.host.7.0").write_bytes(content)
+    kept = keep_earlier_records(run)
+    assert not list((board / "test").iterdir())
+    assert (board / "train" / "events.out.tfevents.1.host.7.0").read_bytes() == b"curve"
+    moved = kept / "tensorboard" / "rep=a" / "test" / "events.out.kept.1.host.7.0"
+    assert moved.read_bytes() == b"session"
+    assert not [p for p in kept.rglob("*") if "tfevents" in p.name]
+
+
 def test_a_resume_names_a_misspelt_key_and_takes_an_argument_its_yaml_leaves_out(tmp_path):
     """The user's new keys on a resume get what a new run's get (issue 23): a misspelt one is
     refused with rotlearn's "did you mean", not Hydra's append advice about the run's file; a

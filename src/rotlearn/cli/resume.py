@@ -44,6 +44,7 @@ from rotlearn.cli.rundir import check_placement, check_run_tree, user_keys
 from rotlearn.errors import ConfigError
 from rotlearn.io import UnreadableFileError, read_bytes, read_record, write_bytes_atomic
 from rotlearn.locks import RunLockedError, check_free
+from rotlearn.report.tensorboard import SESSION_RUN, event_runs
 from rotlearn.trust import UntrustedConfigError
 
 __all__ = [
@@ -380,11 +381,20 @@ def keep_earlier_records(run_dir: Path) -> Path | None:
     """Before a resume trains (holding the run's lock): move the run's records (metrics.json,
     status.json, timing.json, test_errors.json) and copy its `.hydra/*.yaml` into
     `<run_dir>/history/<n>/` (n = 1, 2, ... per resume), so the new attempt never overwrites
-    them. The folder is assembled under a hidden name and renamed into place, so it appears
-    whole or not at all; the records leave the run only after that (an attempt killed midway
-    leaves its hidden `.<n>.*.partial` folder, and every record in place). Returns the folder
-    (None when the run had no records)."""
-    records = [run_dir / name for name in _RECORDS if os.path.lexists(run_dir / name)]
+    them. The event files of the earlier test (its results, figures and HPARAMS session: the
+    `test` sub-run of `tensorboard/<name>/`) move there too, renamed `events.out.kept.*` so that
+    TensorBoard, which reads files named `*tfevents*`, shows one session per run: the latest
+    attempt's, with its settings (it showed the first one's beside the new results). The folder
+    is assembled under a hidden name and renamed into place, so it appears whole or not at all;
+    the records leave the run only after that (an attempt killed midway leaves its hidden
+    `.<n>.*.partial` folder, and every record in place). Returns the folder (None when the run
+    had no records)."""
+    records = [(run_dir / name, Path(name)) for name in _RECORDS if os.path.lexists(run_dir / name)]
+    for events in event_runs(run_dir):
+        for path in sorted((events / SESSION_RUN).glob("*tfevents*")):
+            if path.is_file() and not path.is_symlink():
+                kept = path.name.replace("tfevents", "kept")
+                records.append((path, path.relative_to(run_dir).with_name(kept)))
     configs = sorted(p for p in (run_dir / ".hydra").glob("*.yaml") if p.is_file())
     if not records and not configs:
         return None
@@ -396,10 +406,11 @@ def keep_earlier_records(run_dir: Path) -> Path | None:
     (staging / ".hydra").mkdir(parents=True)  # the mode the umask allows
     for path in configs:  # copied: the run keeps a config until Hydra writes the new one
         _copy_bounded(path, staging / ".hydra" / path.name)
-    for path in records:  # linked, then unlinked from the run once the folder is in place
-        os.link(path, staging / path.name, follow_symlinks=False)
+    for path, kept in records:  # linked, then unlinked from the run once the folder is in place
+        (staging / kept).parent.mkdir(parents=True, exist_ok=True)
+        os.link(path, staging / kept, follow_symlinks=False)
     os.rename(staging, target)
-    for path in records:
+    for path, _ in records:
         with contextlib.suppress(FileNotFoundError):
             path.unlink()
     return target
