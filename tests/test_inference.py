@@ -238,10 +238,13 @@ def test_thresholds_beside_the_checkpoint_give_keep_flags(trained_runs, tmp_path
     before = ckpt.read_bytes()
     write_thresholds(run / "checkpoints", {"score": "dt", "threshold": -5.0, "q": 0.75})
     assert ckpt.read_bytes() == before  # the checkpoint itself is never rewritten
-    predictor = rotlearn.load(run)
+    predictor = rotlearn.load(run)  # a file written before the reference set was recorded
     assert predictor.ood == {"score": "dt", "threshold": -5.0, "q": 0.75}
     estimate = predictor(_points())
     assert torch.equal(estimate.keep, estimate.dt < -5.0)
+    write_thresholds(run / "checkpoints", {"score": "dt", "threshold": -5.0, "q": 0.75,
+                                           "reference": "train"})  # fmt: skip
+    assert rotlearn.load(run).ood["reference"] == "train"
 
     path = run / "checkpoints" / THRESHOLDS_FILE
     for text, reason in [
@@ -253,6 +256,8 @@ def test_thresholds_beside_the_checkpoint_give_keep_flags(trained_runs, tmp_path
         ('{"score": "dt", "threshold": -1e300, "q": 0.5}', "within float32's range"),
         ('{"score": "dt", "threshold": 1.0}', r"must be \{score: str, threshold: number"),
         ('{"score": "dt", "threshold": 1.0, "q": 0.5, "x": 1}', r"got \['q', 'score'"),
+        ('{"score": "dt", "threshold": 1.0, "q": 0.5, "reference": "test"}', "reference must be"),
+        ('{"score": "dt", "threshold": 1.0, "q": 0.5, "reference": []}', "reference must be"),
         ('["dt", 1.0, 0.5]', "got list"),
     ]:
         path.write_text(text)

@@ -6,7 +6,8 @@ components (`rotlearn.trust`) before anything is built from it. `rotlearn.load`,
 `rotlearn-eval` and the OOD evaluation's auto-encoder all load through `load_run`.
 
 The OOD evaluation's calibrated threshold lives beside the checkpoints, in
-`<run>/checkpoints/ood_thresholds.json` ({"score": str, "threshold": number, "q": number});
+`<run>/checkpoints/ood_thresholds.json` ({"score": str, "threshold": number, "q": number,
+"reference": "val" or "train", the set whose scores gave it; older files lack it);
 `load_run` reads it (strictly: it is data from a run directory, not trusted) when present.
 
 The belief's post-hoc calibration (`calibrate`, `rotlearn.lit.calibration`) lives there too, in
@@ -351,10 +352,16 @@ def _read_record(path: Path, what: str) -> Any:
         raise ValueError(f"{path}: not a JSON {what} (nested too deeply)") from None
 
 
+_OOD_KEYS = {"score", "threshold", "q", "reference"}
+
+
 def _check_ood(ood: Any, path: Path, what: str) -> dict[str, Any]:
-    """`ood` if it is exactly {score: str, threshold: finite number, q: number in [0, 1]}."""
-    expected = "{score: str, threshold: number, q: number in [0, 1]}"
-    if not isinstance(ood, dict) or set(ood) != {"score", "threshold", "q"}:
+    """`ood` if it is exactly {score: str, threshold: finite number, q: number in [0, 1]}, and
+    optionally reference: "val" or "train" (the set whose scores gave the threshold; files
+    written before it was recorded have none)."""
+    expected = '{score: str, threshold: number, q: number in [0, 1][, reference: "val" | "train"]}'
+    keys = set(ood) if isinstance(ood, dict) else set()
+    if not isinstance(ood, dict) or not {"score", "threshold", "q"} <= keys <= _OOD_KEYS:
         keys = sorted(map(str, ood)) if isinstance(ood, dict) else type(ood).__name__
         raise ValueError(f"{path}: {what} must be {expected}, got {keys}")
     if not isinstance(ood["score"], str) or not ood["score"]:
@@ -370,7 +377,12 @@ def _check_ood(ood: Any, path: Path, what: str) -> dict[str, Any]:
             f"{path}: {what}'s threshold must lie within float32's range (|t| <= {largest:.3g}), "
             f"got {ood['threshold']!r}"
         )
-    return {"score": ood["score"], "threshold": float(ood["threshold"]), "q": float(ood["q"])}
+    if ood.get("reference", "val") not in ("val", "train"):
+        raise ValueError(
+            f'{path}: {what}\'s reference must be "val" or "train", got {ood["reference"]!r}'
+        )
+    checked = {"score": ood["score"], "threshold": float(ood["threshold"]), "q": float(ood["q"])}
+    return checked | ({"reference": ood["reference"]} if "reference" in ood else {})
 
 
 def read_thresholds(path: str | os.PathLike) -> dict[str, Any] | None:
@@ -378,7 +390,7 @@ def read_thresholds(path: str | os.PathLike) -> dict[str, Any] | None:
 
     Raises:
         ValueError: the file is not JSON of exactly {score: str, threshold: number, q: number in
-            [0, 1]} (the message names the file).
+            [0, 1]}, with an optional reference: "val" or "train" (the message names the file).
     """
     path = Path(path)
     if not os.path.lexists(path):

@@ -198,7 +198,7 @@ def test_headers_of_every_format_give_the_size(tmp_path):
         assert image_size(_written(tmp_path, f"f.{ext}", image))[:2] == (20, 12), ext
 
 
-def test_an_unknown_format_or_a_named_pipe_is_refused(tmp_path):
+def test_an_unknown_format_a_named_pipe_or_a_directory_is_refused(tmp_path):
     path = tmp_path / "f.gif"
     path.write_bytes(b"GIF89a" + bytes(20))
     with pytest.raises(ValueError, match=r"f\.gif: cannot be read as an image"):
@@ -209,3 +209,7 @@ def test_an_unknown_format_or_a_named_pipe_is_refused(tmp_path):
     os.mkfifo(fifo)
     with within(5), pytest.raises(ValueError, match="not a regular file"):
         read_image(fifo)
+    folder = tmp_path / "000001.png"  # named by the user (rotlearn-predict's frames): named back
+    folder.mkdir()
+    with pytest.raises(ValueError, match=r"000001\.png: not a regular file"):
+        read_image(folder)

@@ -402,12 +402,16 @@ def test_calibrated_threshold_gives_keep_flags_for_image_pairs(trained_run, tiny
     row = frame[(frame["score"] == "dt") & frame["in_table"] & (frame["set"] == "clean")]
     assert (run_dir / "checkpoints" / "ood_thresholds.json").is_file()
     predictor = load(run_dir)
-    assert predictor.ood["q"] == 0.75
+    assert predictor.ood["q"] == 0.75 and predictor.ood["reference"] == "val"
     assert predictor.ood["threshold"] == pytest.approx(float(row["threshold"].iloc[0]))
     frames = sorted((tiny_kitti / "sequences" / "00" / "image_2").glob("*.png"))
+    assert predict([str(run_dir), str(frames[0]), str(frames[1])]) == 0
+    said = capsys.readouterr().out  # where the threshold came from: validation, by default
+    assert "quantile of the validation scores; lower = more confident" in said
     assert predict([str(run_dir), str(frames[0]), str(frames[1]), "--json"]) == 0
     answer = json.loads(capsys.readouterr().out)
     assert set(answer) >= {"R", "q_xyzw", "dt_score", "dispersion", "keep"}
+    assert answer["ood"]["reference"] == "val"
     assert answer["keep"] == (answer["dt_score"] < predictor.ood["threshold"])
     assert predict([str(run_dir), str(frames[0])]) == 2  # an image model needs two frames
     assert "two image files" in capsys.readouterr().err

@@ -151,6 +151,7 @@ def describe(estimate: Any, ood: dict[str, Any] | None) -> list[dict[str, Any]]:
         if estimate.keep is not None and ood is not None:
             item["ood"] = {"score": ood["score"], "value": item.get("dt_score"),
                            "threshold": float(ood["threshold"]), "q": float(ood["q"]),
+                           "reference": ood.get("reference"),
                            "decision": "keep" if bool(estimate.keep[i]) else "reject"}  # fmt: skip
             item["keep"] = bool(estimate.keep[i])
         results.append(item)
@@ -177,10 +178,11 @@ def text_lines(item: dict[str, Any], head: str | None = None) -> str:
     if "ood" in item:
         ood = item["ood"]
         side = "<" if ood["decision"] == "keep" else ">="
+        scores = {"val": "validation", "train": "training"}.get(ood.get("reference"), "reference")
         lines.append(
             f"  OOD check    {ood['decision']}: {ood['score'].upper()} score {ood['value']:.4g} "
             f"{side} threshold {ood['threshold']:.4g} (the q = {ood['q']:g} quantile of the "
-            "training scores; lower = more confident)"
+            f"{scores} scores; lower = more confident)"
         )
     elif "dt_score" in item:
         lines.append(

@@ -136,9 +136,10 @@ def image_size(path: str | os.PathLike) -> tuple[int, int, str]:
         fd = os.open(path, flags | getattr(os, "O_BINARY", 0))
     except FileNotFoundError:
         raise FileNotFoundError(f"{path}: no such image file") from None
+    if not stat.S_ISREG(os.fstat(fd).st_mode):  # before fdopen, which refuses a directory
+        os.close(fd)  # with "[Errno 21] Is a directory: <fd>", naming no file
+        raise ValueError(f"{path}: not a regular file; not read as an image")
     with os.fdopen(fd, "rb") as f:
-        if not stat.S_ISREG(os.fstat(fd).st_mode):
-            raise ValueError(f"{path}: not a regular file; not read as an image")
         head = f.read(64)
         for name, reader in _READERS.items():
             f.seek(0)

@@ -294,10 +294,11 @@ def evaluate(
 
 
 def calibrated_threshold(frame: pd.DataFrame, score: str = "dt") -> dict[str, Any] | None:
-    """{"score", "threshold", "q"} of `score`'s Table I row on the clean test set (the threshold
-    `rotlearn.load` applies for keep flags), or None if the table has none."""
+    """{"score", "threshold", "q", "reference"} of `score`'s Table I row on the clean test set
+    (the threshold `rotlearn.load` applies for keep flags; `reference`: the set whose scores
+    gave it, "val" or "train"), or None if the table has none."""
     rows = frame[(frame["score"] == score) & frame["in_table"] & (frame["set"] == "clean")]
     if rows.empty:
         return None
     return {"score": score, "threshold": float(rows["threshold"].iloc[0]),
-            "q": float(rows["q"].iloc[0])}  # fmt: skip
+            "q": float(rows["q"].iloc[0]), "reference": reference_set(frame)}  # fmt: skip

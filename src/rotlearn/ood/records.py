@@ -73,7 +73,10 @@ def write_tables(run_dir: str | os.PathLike, rep: str, frame: pd.DataFrame) -> P
 
 
 def write_thresholds(checkpoint_dir: str | os.PathLike, ood: Mapping[str, Any]) -> Path:
-    """The calibrated threshold {"score", "threshold", "q"} beside the checkpoints it belongs to
+    """The calibrated threshold {"score", "threshold", "q"} and, where known, its "reference"
+    set ("val" or "train") beside the checkpoints it belongs to
     (`rotlearn.checkpoint.THRESHOLDS_FILE`, read by `rotlearn.load`), atomically."""
     data = {"score": str(ood["score"]), "threshold": float(ood["threshold"]), "q": float(ood["q"])}
+    if ood.get("reference") is not None:
+        data["reference"] = str(ood["reference"])
     return write_json_atomic(Path(checkpoint_dir) / THRESHOLDS_FILE, data)
