@@ -48,8 +48,10 @@ def test_eval_help_lists_what_it_takes_without_the_training_stack():
     )
     assert "lightning" not in modules and "torch" not in modules
     assert out.startswith("rotlearn-eval: ") and "usage: rotlearn-eval ckpt=" in out
-    for key in ("ckpt: ???", "expect_rep:", "quantiles:", "root:", "accelerator:", "ood_quantile"):
+    for key in ("ckpt: ???", "expect_rep:", "quantiles:", "root:", "accelerator:", "ood_quantile",
+                "'ckpt=[outputs/sweep/0,"):  # fmt: skip
         assert key in out, key
+    assert out.count("test a trained") == 1  # said once
     for option in ("svd9d", "pointnet", "experiment"):  # the train config's groups do not apply
         assert option not in out, option
 

@@ -185,8 +185,8 @@ def usage(root: Path | None = None) -> str:
     lines = [
         "rotlearn-eval: test a trained run again, with the OOD evaluation, without retraining.",
         "",
-        "usage: rotlearn-eval ckpt=<run dir or .ckpt> [key=value ...] [-m]",
-        *(line.removeprefix("# ") for line in head.strip().splitlines()),
+        "usage: rotlearn-eval ckpt=<run dir or .ckpt, or a list of them> [key=value ...] [-m]",
+        *(line.removeprefix("# ") for line in head.strip().splitlines()[1:]),
         "",
         "keys (conf/eval.yaml; null keeps the run's own value):",
         *(f"  {line}" for line in keys.rstrip().splitlines()),
