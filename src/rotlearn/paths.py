@@ -5,9 +5,12 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-__all__ = ["checkpoint_file", "config_dir"]
+__all__ = ["EVALUATED_FILE", "checkpoint_file", "config_dir"]
 
 SWEEP_FILES = ("multirun.yaml", "jobs.json", "planned_jobs.json")  # what Hydra and rotlearn write
+# In an evaluation's directory (rotlearn-eval): the run config it evaluated, which rotlearn-report
+# reads in place of the evaluation's own config.
+EVALUATED_FILE = "evaluated.yaml"
 
 
 def config_dir() -> Path:

@@ -13,6 +13,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+import yaml
 from hydra import compose, initialize_config_dir
 
 from rotlearn.cli.train import train
@@ -201,6 +202,11 @@ def test_rotlearn_eval_of_several_runs_scores_their_ensemble(trained_run, tiny_k
     # nothing is trained, so nothing is checkpointed: no stray checkpoints/ with the ensemble's
     # temperature.json and ood_thresholds.json below tensorboard/ (Lightning's default folder)
     assert not list(out.rglob("checkpoints")) and not list(out.rglob("*thresholds*"))
+    # what was evaluated, as a run config (rotlearn-report reads it; tests/report/test_runs.py)
+    evaluated = yaml.safe_load((out / "evaluated.yaml").read_text())
+    assert evaluated["evaluated"] == {"members": 2} and evaluated["rep"]["name"] == "a"
+    assert evaluated["model"]["_target_"] == "rotlearn.lit.RotationRegressor"
+    assert evaluated["callbacks"]["ood"]["quantiles"] == [0.5]  # the evaluation's own setting
 
 
 def test_the_rotlearn_eval_command_checks_the_run_then_evaluates_it(

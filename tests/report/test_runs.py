@@ -74,3 +74,40 @@ def test_a_key_swept_inside_one_config_group_is_named_by_the_key(tmp_path):
     runs = collect_runs(tmp_path / "sweep", pool=["optim.lr"])
     assert set(runs["setting"]) == {f"{rep} net.hidden={h}" for rep in ("a", "sixd")
                                     for h in (16, 32)}  # fmt: skip
+
+
+def test_an_evaluation_sits_beside_the_runs_it_evaluated(tmp_path):
+    """`rotlearn-eval` writes evaluated.yaml: the config of the run it evaluated as that run
+    keeps it, its config group choices (under `hydra`) and `evaluated.members`. The report
+    labels the evaluation by what it changed and by the run's group options, not by every key
+    of the evaluation's own config."""
+    for num, (loss, seed) in enumerate([("bingham", 0), ("bingham", 1), ("chordal", 0)]):
+        config = {
+            "rep": {"name": "a"},
+            "seed": seed,
+            "model": {"head": "${rep}"},
+            "loss": {"_target_": f"rotlearn.losses.{loss}", "rep": "${rep.name}"},
+        }
+        _run(tmp_path / "sweep" / str(num), config, {"rep": "a", "loss": loss},
+             [f"loss={loss}", f"seed={seed}"], 1.0 + num)  # fmt: skip
+    ensemble = tmp_path / "ensemble"
+    _run(ensemble, {"ckpt": ["sweep/0", "sweep/1"], "ood": {"quantiles": None}}, {"sweep": "x"},
+         ["ckpt=[sweep/0,sweep/1]"], 0.5)  # fmt: skip
+    evaluated = yaml.safe_load((tmp_path / "sweep" / "0" / ".hydra" / "config.yaml").read_text())
+    evaluated |= {"evaluated": {"members": 2},
+                  "hydra": {"runtime": {"choices": {"rep": "a", "loss": "bingham"}}}}  # fmt: skip
+    (ensemble / "evaluated.yaml").write_text(yaml.safe_dump(evaluated))
+    runs = collect_runs([tmp_path / "sweep", ensemble])
+    assert list(runs["setting"]) == [
+        "a loss=bingham", "a loss=bingham", "a loss=chordal", "a evaluated.members=2 loss=bingham"
+    ]  # fmt: skip
+
+
+def test_a_class_that_tells_runs_apart_is_named_by_its_class(tmp_path):
+    """Where no config group option says it, a differing `_target_` reads as the class name."""
+    for num, loss in enumerate(("BinghamNLLLoss", "ChordalLoss")):
+        config = {"rep": {"name": "a"}, "loss": {"_target_": f"rotlearn.losses.{loss}"}}
+        _run(tmp_path / "sweep" / str(num), config, {}, [], 1.0)
+    assert list(collect_runs(tmp_path / "sweep")["setting"]) == [
+        "a loss=BinghamNLLLoss", "a loss=ChordalLoss"
+    ]  # fmt: skip

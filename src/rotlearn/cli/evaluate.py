@@ -5,7 +5,8 @@ set first (the members' own temperatures are applied inside it).
 
 The run's own config (saved in the checkpoint) rebuilds the data, net and head; the non-null keys
 of conf/eval.yaml's `ood`, `data` and `trainer` are merged into it. Results go to a new directory
-(`outputs/eval/<time>`): metrics.json, ood.csv, ood.md and TensorBoard events. Nothing in the
+(`outputs/eval/<time>`): metrics.json, ood.csv, ood.md, TensorBoard events and evaluated.yaml (the
+run config it evaluated, by which `rotlearn-report` puts it beside the runs). Nothing in the
 trained run's directory is touched. The belief's calibration fitted for the checkpoint
 (`calibrate` in training: `checkpoints/temperature.json`, its temperature and level map) is
 applied (`temperature` in metrics.json); it is never refitted here.
@@ -13,6 +14,7 @@ applied (`temperature` in metrics.json); it is never refitted here.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import sys
@@ -23,7 +25,7 @@ import hydra
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from rotlearn.errors import ConfigError
-from rotlearn.paths import checkpoint_file, config_dir
+from rotlearn.paths import EVALUATED_FILE, checkpoint_file, config_dir
 
 if TYPE_CHECKING:
     from rotlearn.checkpoint import SavedRun
@@ -84,6 +86,41 @@ def evaluation_config(cfg: DictConfig, saved: SavedRun) -> DictConfig:
     return run
 
 
+def evaluated_config(cfg: DictConfig, saved: SavedRun, members: int) -> DictConfig:
+    """What an evaluation evaluated, as a run config (`EVALUATED_FILE`, which `rotlearn-report`
+    reads in place of the evaluation's own): the trained run's config as its run directory
+    keeps it (`.hydra/config.yaml`, read bounded, never resolved, so that it compares key by key
+    with the runs' own; the checkpoint's resolved copy where the run has none; an ensemble's:
+    its first member's), with the evaluation's data and OOD keys merged in, and
+    `evaluated.members`, the number of runs whose ensemble was tested (1: one run). So an
+    evaluation sits in a report beside the runs it evaluated, told apart by what it changed."""
+    from rotlearn.io import read_yaml
+
+    base: Any = None
+    hydra: Any = None
+    if saved.path.parent.name == "checkpoints":
+        run_dir = saved.path.parent.parent
+        with contextlib.suppress(OSError, ValueError):
+            base = read_yaml(run_dir / ".hydra" / "config.yaml", root=run_dir)
+            hydra = read_yaml(run_dir / ".hydra" / "hydra.yaml", root=run_dir)
+    if not isinstance(base, dict) or not all(isinstance(k, str) for k in base):
+        base = OmegaConf.to_container(saved.config)
+    choices = hydra
+    for key in ("hydra", "runtime", "choices"):  # the run's config group options (rep: a, ...)
+        choices = choices.get(key) if isinstance(choices, dict) else None
+    choices = {str(k): v for k, v in (choices or {}).items() if isinstance(v, str)}
+    base["hydra"] = {"runtime": {"choices": choices}}  # where Hydra keeps them; no setting
+    callbacks = base.get("callbacks") if isinstance(base.get("callbacks"), dict) else {}
+    ood = callbacks.get("ood") or OmegaConf.to_container(OmegaConf.load(DEFAULT_OOD).ood)
+    base["callbacks"] = {**callbacks, "ood": ood}
+    changed = {"data": _set(cfg.data), "callbacks": {"ood": _set(cfg.ood)}}
+    try:
+        return OmegaConf.merge(base, changed, {"evaluated": {"members": members}})
+    except Exception:  # a file OmegaConf cannot hold: the checkpoint's own copy
+        own = OmegaConf.to_container(saved.config)
+        return OmegaConf.merge(own, changed, {"evaluated": {"members": members}})
+
+
 def _saved_run(cfg: DictConfig) -> SavedRun:
     """The run `cfg.ckpt` names, read through the one loader (`rotlearn.checkpoint.load_run`)."""
     from rotlearn.checkpoint import load_run
@@ -128,6 +165,7 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     """Test the checkpoint `cfg.ckpt` (or the ensemble of a list of them) with the OOD callback;
     returns what the run's records (`rotlearn.lit.RunRecords`) wrote to metrics.json."""
     from rotlearn.cli.train import build
+    from rotlearn.io import write_text_atomic
     from rotlearn.lit import RunRecords, find_callback
 
     paths = list(cfg.ckpt) if isinstance(cfg.ckpt, ListConfig) else None
@@ -150,6 +188,10 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
         model.belief_levels = saved.level_map
     else:
         model.net, model.head = net, head
+    write_text_atomic(
+        Path(cfg.paths.output_dir) / EVALUATED_FILE,
+        OmegaConf.to_yaml(evaluated_config(cfg, saved, len(paths) if paths else 1)),
+    )
     records = find_callback(trainer, RunRecords)
     records.facts = {"ckpt": str(ckpt.resolve()), "rep": run.rep.name}
     if paths is not None:
@@ -192,7 +234,9 @@ def usage(root: Path | None = None) -> str:
         *(f"  {line}" for line in keys.rstrip().splitlines()),
         "",
         "sweep=ood_quantile (with -m): one evaluation per OOD quantile",
-        "outputs: outputs/eval/<time>/ (metrics.json, ood.csv, ood.md, tensorboard/)",
+        "outputs: outputs/eval/<time>/ (metrics.json, ood.csv, ood.md, tensorboard/,",
+        "  evaluated.yaml: the run config it evaluated)",
+        "rotlearn-report <runs> <evaluations>: evaluations beside the runs (evaluated.members=K)",
         "rotlearn-eval --hydra-help: Hydra's own flags",
     ]
     return "\n".join(lines) + "\n"

@@ -25,6 +25,7 @@ import yaml
 
 from rotlearn import io
 from rotlearn.io import read_json
+from rotlearn.paths import EVALUATED_FILE
 from rotlearn.report.identity import parse_override, short_value
 
 __all__ = [
@@ -95,10 +96,11 @@ def run_dirs(root: Path) -> list[Path]:
     )
 
 
-def _choices(run: Path, overrides: list[str]) -> dict[str, str]:
-    """{config group: chosen option} of a run: `.hydra/hydra.yaml`'s runtime choices, then the
-    group overrides (`loss=bingham`) of its command line."""
-    hydra = read_yaml(run / ".hydra" / "hydra.yaml")
+def _choices(run: Path, overrides: list[str], hydra: Any = None) -> dict[str, str]:
+    """{config group: chosen option} of a run: `.hydra/hydra.yaml`'s runtime choices (or those
+    of `hydra`, an evaluation's record of the run it evaluated), then the group overrides
+    (`loss=bingham`) of its command line."""
+    hydra = hydra if hydra is not None else read_yaml(run / ".hydra" / "hydra.yaml")
     runtime = (hydra or {}).get("hydra", {}).get("runtime", {}) if isinstance(hydra, dict) else {}
     choices = runtime.get("choices") if isinstance(runtime, dict) else None
     choices = {str(k): str(v) for k, v in choices.items()} if isinstance(choices, dict) else {}
@@ -149,7 +151,8 @@ def collect_runs(
     runs = [(r, run) for r in roots for run in run_dirs(r)]
     rows, configs, flats, choices = [], [], [], []
     for sweep, run in runs:
-        cfg = read_yaml(run / ".hydra" / "config.yaml")
+        evaluated = read_yaml(run / EVALUATED_FILE)  # an evaluation: the run it evaluated
+        cfg = evaluated if isinstance(evaluated, dict) else read_yaml(run / ".hydra/config.yaml")
         cfg = cfg if isinstance(cfg, dict) else {}
         overrides = read_yaml(run / ".hydra" / "overrides.yaml", "overrides file")
         overrides = [str(o) for o in overrides] if isinstance(overrides, list) else []
@@ -171,7 +174,10 @@ def collect_runs(
         )
         configs.append(cfg)
         flats.append({k: v for k, v in flatten(cfg).items() if k.split(".")[0] not in NOT_SETTINGS})
-        choices.append(_choices(run, overrides))
+        if isinstance(evaluated, dict):  # the evaluated run's choices; its command line's keys
+            choices.append(_choices(run, [], {"hydra": cfg.get("hydra")}))  # are in `cfg`
+        else:
+            choices.append(_choices(run, overrides))
     layout = layout_of(configs)
     grouping = _grouping_keys(flats, layout, group_by, pool)
     columns, labels, parts = _settings(flats, choices, layout, grouping, group_by is not None)
@@ -259,8 +265,10 @@ def _settings(
                 continue
             if node in varied:
                 part = f"{node}={chosen[node]}"
-            elif (value := flat.get(key, _MISSING)) is None:
-                continue  # unset: the settings that set it say so
+            elif key not in flat or (value := flat[key]) is None:
+                continue  # unset, or absent: the settings that set it say so
+            elif key.endswith("._target_"):  # the class by its name: loss=BinghamNLLLoss
+                part = f"{key.removesuffix('._target_')}={str(value).rpartition('.')[2]}"
             else:
                 part = f"{key}={short_value(value)}"
             if part not in [p for _, p in parts]:
