@@ -360,8 +360,7 @@ def _check_ood(ood: Any, path: Path, what: str) -> dict[str, Any]:
     optionally reference: "val" or "train" (the set whose scores gave the threshold; files
     written before it was recorded have none)."""
     expected = '{score: str, threshold: number, q: number in [0, 1][, reference: "val" | "train"]}'
-    keys = set(ood) if isinstance(ood, dict) else set()
-    if not isinstance(ood, dict) or not {"score", "threshold", "q"} <= keys <= _OOD_KEYS:
+    if not isinstance(ood, dict) or not {"score", "threshold", "q"} <= set(ood) <= _OOD_KEYS:
         keys = sorted(map(str, ood)) if isinstance(ood, dict) else type(ood).__name__
         raise ValueError(f"{path}: {what} must be {expected}, got {keys}")
     if not isinstance(ood["score"], str) or not ood["score"]:

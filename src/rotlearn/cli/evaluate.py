@@ -14,7 +14,6 @@ applied (`temperature` in metrics.json); it is never refitted here.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
 import sys
@@ -94,21 +93,16 @@ def evaluated_config(cfg: DictConfig, saved: SavedRun, members: int) -> DictConf
     its first member's), with the evaluation's data and OOD keys merged in, and
     `evaluated.members`, the number of runs whose ensemble was tested (1: one run). So an
     evaluation sits in a report beside the runs it evaluated, told apart by what it changed."""
-    from rotlearn.io import read_yaml
+    from rotlearn.report.runs import read_yaml, run_choices
 
     base: Any = None
-    hydra: Any = None
-    if saved.path.parent.name == "checkpoints":
+    choices: dict[str, str] = {}
+    if saved.path.parent.name == "checkpoints":  # a run directory's checkpoint: its files
         run_dir = saved.path.parent.parent
-        with contextlib.suppress(OSError, ValueError):
-            base = read_yaml(run_dir / ".hydra" / "config.yaml", root=run_dir)
-            hydra = read_yaml(run_dir / ".hydra" / "hydra.yaml", root=run_dir)
+        base = read_yaml(run_dir / ".hydra" / "config.yaml")
+        choices = run_choices(run_dir, [])  # the run's config group options (rep: a, ...)
     if not isinstance(base, dict) or not all(isinstance(k, str) for k in base):
         base = OmegaConf.to_container(saved.config)
-    choices = hydra
-    for key in ("hydra", "runtime", "choices"):  # the run's config group options (rep: a, ...)
-        choices = choices.get(key) if isinstance(choices, dict) else None
-    choices = {str(k): v for k, v in (choices or {}).items() if isinstance(v, str)}
     base["hydra"] = {"runtime": {"choices": choices}}  # where Hydra keeps them; no setting
     callbacks = base.get("callbacks") if isinstance(base.get("callbacks"), dict) else {}
     ood = callbacks.get("ood") or OmegaConf.to_container(OmegaConf.load(DEFAULT_OOD).ood)

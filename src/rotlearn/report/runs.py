@@ -47,12 +47,13 @@ NOT_SETTINGS = ("hydra", "paths", "report")  # per-run paths, and the report lay
 _MISSING = "-"
 
 
-def read_yaml(path: Path, kind: str = "YAML config") -> Any:
+def read_yaml(path: Path, kind: str = "YAML config", run: Path | None = None) -> Any:
     """Plain data of a run's YAML file (never resolved, no tags, no aliases, nesting and size
-    capped, a regular file inside the run: `rotlearn.io.read_yaml`); None if missing or refused
-    (a warning names the file and why)."""
+    capped, a regular file inside the run: `rotlearn.io.read_yaml`; `run`: the run directory,
+    default the file's grandparent, as for `.hydra/*.yaml`); None if missing or refused (a
+    warning names the file and why)."""
     try:
-        return io.read_yaml(path, kind, root=path.parent.parent)
+        return io.read_yaml(path, kind, root=run or path.parent.parent)
     except FileNotFoundError:
         return None
     except (OSError, ValueError) as exc:
@@ -96,7 +97,7 @@ def run_dirs(root: Path) -> list[Path]:
     )
 
 
-def _choices(run: Path, overrides: list[str], hydra: Any = None) -> dict[str, str]:
+def run_choices(run: Path, overrides: list[str], hydra: Any = None) -> dict[str, str]:
     """{config group: chosen option} of a run: `.hydra/hydra.yaml`'s runtime choices (or those
     of `hydra`, an evaluation's record of the run it evaluated), then the group overrides
     (`loss=bingham`) of its command line."""
@@ -151,7 +152,7 @@ def collect_runs(
     runs = [(r, run) for r in roots for run in run_dirs(r)]
     rows, configs, flats, choices = [], [], [], []
     for sweep, run in runs:
-        evaluated = read_yaml(run / EVALUATED_FILE)  # an evaluation: the run it evaluated
+        evaluated = read_yaml(run / EVALUATED_FILE, run=run)  # an evaluation: the run it evaluated
         cfg = evaluated if isinstance(evaluated, dict) else read_yaml(run / ".hydra/config.yaml")
         cfg = cfg if isinstance(cfg, dict) else {}
         overrides = read_yaml(run / ".hydra" / "overrides.yaml", "overrides file")
@@ -174,10 +175,10 @@ def collect_runs(
         )
         configs.append(cfg)
         flats.append({k: v for k, v in flatten(cfg).items() if k.split(".")[0] not in NOT_SETTINGS})
-        if isinstance(evaluated, dict):  # the evaluated run's choices; its command line's keys
-            choices.append(_choices(run, [], {"hydra": cfg.get("hydra")}))  # are in `cfg`
+        if isinstance(evaluated, dict):  # the evaluated run's choices (its `hydra` node); the
+            choices.append(run_choices(run, [], evaluated))  # command line's keys are in `cfg`
         else:
-            choices.append(_choices(run, overrides))
+            choices.append(run_choices(run, overrides))
     layout = layout_of(configs)
     grouping = _grouping_keys(flats, layout, group_by, pool)
     columns, labels, parts = _settings(flats, choices, layout, grouping, group_by is not None)
