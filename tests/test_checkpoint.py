@@ -14,7 +14,12 @@ import torch
 from omegaconf import OmegaConf
 
 import rotlearn
-from rotlearn.checkpoint import UnsafeCheckpointError, load_checkpoint, load_run
+from rotlearn.checkpoint import (
+    UnsafeCheckpointError,
+    UntrustedConfigError,
+    load_checkpoint,
+    load_run,
+)
 from rotlearn.io import MAX_BYTES
 from tests.conftest import unchanged, within
 
@@ -156,3 +161,68 @@ def test_a_run_cannot_send_the_loader_outside_it_through_a_symlink(finished_run,
     (run / "checkpoints" / TEMPERATURE_FILE).symlink_to(record)
     with pytest.raises(ValueError, match="outside"):
         rotlearn.load(run)
+
+
+def test_a_run_directory_loads_the_weights_its_test_scored(finished_run, tmp_path, caplog):
+    """A run trained with test_ckpt=best was loaded from last.ckpt: other weights than its test
+    scored, and its temperature (fitted for best.ckpt) left out with a warning."""
+    import json
+
+    from tests.conftest import copy_run
+
+    run = copy_run(finished_run, tmp_path / "run")
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["tested_checkpoint"] == "last.ckpt"
+    assert load_run(run).path == run / "checkpoints" / "last.ckpt"
+    best = load_checkpoint(run / "checkpoints" / "last.ckpt")
+    best["state_dict"] = {k: v + 1 for k, v in best["state_dict"].items()}  # told apart
+    torch.save(best, run / "checkpoints" / "best.ckpt")
+
+    def loads_with(**record):
+        (run / "metrics.json").write_text(json.dumps({**metrics, **record}))
+        with unchanged(tmp_path):  # the loader writes nothing
+            return load_run(run)
+
+    for record in (
+        {"tested_checkpoint": "best.ckpt"},  # what a test_ckpt=best run records
+        {"tested_checkpoint": None, "tested_weights": "best"},
+    ):  # runs recorded before
+        loaded = loads_with(**record)
+        assert loaded.path == run / "checkpoints" / "best.ckpt"
+        for name, value in best["state_dict"].items():
+            torch.testing.assert_close(loaded.state_dict[name], value, rtol=0, atol=0)
+    # a name that is not a file in checkpoints/: the last weights, with a warning naming it
+    for name in ("../../metrics.json", "../last.ckpt", "missing.ckpt", 3):
+        caplog.clear()
+        assert loads_with(tested_checkpoint=name).path.name == "last.ckpt"
+        assert f"tested checkpoint {name!r} is not a file in" in caplog.text
+    outside = tmp_path / "elsewhere.ckpt"
+    (run / "checkpoints" / "best.ckpt").rename(outside)
+    (run / "checkpoints" / "best.ckpt").symlink_to(outside)
+    with pytest.raises(UnsafeCheckpointError, match=r"a symlink to .*outside"):
+        loads_with(tested_checkpoint="best.ckpt")
+
+
+def test_loggers_and_training_callbacks_of_a_saved_config_are_neither_checked_nor_built(
+    finished_run, tmp_path
+):
+    """A run trained with a callback or logger of the user's own was refused as untrusted,
+    although no load builds those nodes; now they are dropped unread (the OOD evaluation's
+    `callbacks.ood`, which rotlearn-eval reuses, is kept and checked)."""
+    from tests.conftest import copy_run
+
+    run = copy_run(finished_run, tmp_path / "run")
+    path = run / "checkpoints" / "last.ckpt"
+    checkpoint = load_checkpoint(path)
+    config = checkpoint["rotlearn_config"]
+    config["callbacks"]["mine"] = {"_target_": "os.system", "command": "touch pwned"}
+    config["logger"] = {"wandb": {"_target_": "lightning.pytorch.loggers.WandbLogger"}}
+    torch.save(checkpoint, path)
+    saved = load_run(run)
+    assert "logger" not in saved.config and "mine" not in saved.config.callbacks
+    assert rotlearn.load(run)(torch.randn(2, 16, 6)).R.shape == (2, 3, 3)
+    assert not (tmp_path / "pwned").exists() and not (run / "pwned").exists()
+    config["callbacks"]["ood"] = {"_target_": "os.system", "command": "touch pwned"}
+    torch.save(checkpoint, path)
+    with pytest.raises(UntrustedConfigError, match=r"callbacks\.ood\._target_: 'os.system'"):
+        load_run(run)

@@ -64,7 +64,7 @@ def test_a_run_trained_with_a_usual_lightning_callback_loads(make_cfg, tmp_path)
 
 def test_predictor_reproduces_the_trained_model(trained_runs, make_cfg):
     run = trained_runs["a"]
-    predictor = rotlearn.load(run)  # a run directory means its last.ckpt
+    predictor = rotlearn.load(run)  # a run directory: the weights its test scored (last.ckpt)
     cfg = make_cfg(["rep=a", *FAST])
     model, _, _ = build(cfg)
     model.load_state_dict(load_checkpoint(run)["state_dict"])

@@ -3,7 +3,8 @@
 Each payload below runs code, truncates a file or writes one when Hydra instantiates it. Every
 loader that rebuilds a model or a run from a file (rotlearn.load, rotlearn-predict, rotlearn-eval,
 the OOD evaluation's auto-encoder, resume with ckpt_path) must refuse it with a message naming the
-key path, and nothing on disk may be created or changed.
+key path (or, in the loggers and training callbacks that no load builds, leave it unread), and
+nothing on disk may be created or changed.
 """
 
 from __future__ import annotations
@@ -112,7 +113,7 @@ PLACEMENTS = {
     "rep.solver": "rep.solver",
     "net._args_.0": "net._args_.0",
     "data.deep.a.b.c": "data.deep.a.b.c",
-    "logger.items.1": "logger.items.1",
+    "callbacks.ood.items.1": "callbacks.ood.items.1",  # rotlearn-eval reuses callbacks.ood
 }
 
 
@@ -266,6 +267,24 @@ def test_nested_payloads_are_found_wherever_they_sit(
     message = _loaders(world, ckpt, capsys)[loader]()
     assert _expected_key(placement, payload) in message
     assert "builtins.open" in message
+    _assert_untouched(world, before)
+
+
+@pytest.mark.parametrize("placement", ["logger.tensorboard", "callbacks.mine.items.0"])
+@pytest.mark.parametrize("payload", sorted(PAYLOADS))
+def test_loggers_and_training_callbacks_are_dropped_unread(
+    world, genuine_config, payload, placement
+):
+    """No load builds a run's loggers or training callbacks: they are left out of the loaded
+    config before the gate, so whatever they name is never imported or run, and a run trained
+    with a callback of the user's own loads."""
+    from rotlearn.checkpoint import load_run
+
+    ckpt = _checkpoint(world, _place(genuine_config, placement, PAYLOADS[payload](world)))
+    before = world.snapshot()
+    for path in (ckpt, ckpt.parent.parent):
+        saved = load_run(path)
+        assert "logger" not in saved.config and set(saved.config.callbacks) <= {"ood"}
     _assert_untouched(world, before)
 
 

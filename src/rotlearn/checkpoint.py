@@ -25,6 +25,7 @@ import logging
 import math
 import os
 import pickle
+import re
 import stat
 import zipfile
 from dataclasses import dataclass, field
@@ -52,8 +53,10 @@ __all__ = [
     "load_run",
     "read_temperature",
     "read_thresholds",
+    "rebuildable",
     "resolve_checkpoint",
     "save_checkpoint",
+    "tested_checkpoint",
 ]
 
 THRESHOLDS_FILE = "ood_thresholds.json"  # beside the checkpoints it calibrates
@@ -62,6 +65,7 @@ TEMPERATURE_FILE = "temperature.json"  # beside the checkpoint whose belief it t
 # uncompressed (ratio 1); a deflated bomb (a few MB that inflate to gigabytes) is refused unread.
 _MAX_INFLATION = 4
 
+_FILE_NAME = re.compile(r"[\w.=+-]+\.ckpt")  # a checkpoint's name, no folder
 log = logging.getLogger("rotlearn")
 
 
@@ -80,11 +84,50 @@ def resolve_checkpoint(path: str | os.PathLike) -> Path:
     """
     path = Path(path)
     if path.is_dir():
-        last = path / "checkpoints" / "last.ckpt"
-        real = Path(os.path.realpath(last))
-        if os.path.lexists(last) and not real.is_relative_to(os.path.realpath(path)):
-            raise UnsafeCheckpointError(f"{last}: a symlink to {real}, outside the run; not read")
+        _inside_run(path, path / "checkpoints" / "last.ckpt")
     return checkpoint_file(path)
+
+
+def _inside_run(run: Path, file: Path) -> None:
+    real = Path(os.path.realpath(file))
+    if os.path.lexists(file) and not real.is_relative_to(os.path.realpath(run)):
+        raise UnsafeCheckpointError(f"{file}: a symlink to {real}, outside the run; not read")
+
+
+def tested_checkpoint(path: str | os.PathLike) -> Path:
+    """The checkpoint `load_run` reads for `path`: a file as it is; for a run directory, the
+    weights its test scored, the file in its checkpoints/ that its metrics.json names
+    (`tested_checkpoint`: best.ckpt for a run trained with `test_ckpt=best`; runs recorded before
+    the name was: best.ckpt where `tested_weights` is best), else last.ckpt (a run not tested yet,
+    whose training a resume would continue). So its temperature and OOD threshold, fitted when it
+    was tested, belong to the weights loaded.
+
+    Raises:
+        FileNotFoundError, UnsafeCheckpointError: as `resolve_checkpoint`, also for the named
+            file (a symlink out of the run).
+    """
+    from rotlearn.io import read_json
+
+    last = resolve_checkpoint(path)
+    run = Path(path)
+    if not run.is_dir():
+        return last
+    metrics = read_json(run / "metrics.json", root=run)
+    metrics = metrics if isinstance(metrics, dict) else {}
+    name = metrics.get("tested_checkpoint")
+    if name is None and metrics.get("tested_weights") == "best":
+        name = "best.ckpt"  # the best checkpoint's name in conf/callbacks/default.yaml
+    if name is None or name == last.name:
+        return last
+    tested = run / "checkpoints" / str(name)
+    if not (isinstance(name, str) and _FILE_NAME.fullmatch(name) and tested.is_file()):
+        log.warning(
+            "%s: the tested checkpoint %r is not a file in %s; %s is read instead",
+            run / "metrics.json", name, run / "checkpoints", last.name,
+        )  # fmt: skip
+        return last
+    _inside_run(run, tested)
+    return tested
 
 
 def save_checkpoint(checkpoint: dict[str, Any], path: str | os.PathLike) -> Path:
@@ -504,11 +547,25 @@ def checkpoint_temperature(ckpt: Path) -> tuple[float, Any]:
     return record["temperature"], LevelMap(torch.tensor(masses, dtype=torch.float64))
 
 
+def rebuildable(saved: Any) -> Any:
+    """A saved run config without the nodes that no load builds: its loggers, and its callbacks
+    but the OOD evaluation (`callbacks.ood`, which `rotlearn-eval` reuses). A logger or callback
+    of the user's own that the run trained with then neither keeps it from loading nor is ever
+    checked, imported or built."""
+    if not isinstance(saved, dict):
+        return saved  # `trusted_config` says what it is
+    kept = {key: value for key, value in saved.items() if key != "logger"}
+    if isinstance(saved.get("callbacks"), dict):
+        kept["callbacks"] = {k: v for k, v in saved["callbacks"].items() if k == "ood"}
+    return kept
+
+
 def load_run(path: str | os.PathLike, task: str | None = None) -> SavedRun:
-    """Read a rotlearn checkpoint (or a run directory's last one) for rebuilding its model.
+    """Read a rotlearn checkpoint for rebuilding its model.
 
     Args:
-        path: a `.ckpt` file or a run directory.
+        path: a `.ckpt` file or a run directory (the weights its test scored:
+            `tested_checkpoint`).
         task: if given, the run's `task` must be this ("rotation" or "autoencoder").
 
     Raises:
@@ -519,12 +576,12 @@ def load_run(path: str | os.PathLike, task: str | None = None) -> SavedRun:
         ValueError: not a rotlearn checkpoint, or of another task.
     """
     require("train", "load_run (a checkpoint's model is rebuilt from its Hydra config)")
-    ckpt = resolve_checkpoint(path)
+    ckpt = tested_checkpoint(path)
     checkpoint = load_checkpoint(ckpt)
     saved = checkpoint.get("rotlearn_config")
     if not saved:
         raise ValueError(f"{ckpt} is not a rotlearn checkpoint (no saved config)")
-    config = trusted_config(saved, source=ckpt)
+    config = trusted_config(rebuildable(saved), source=ckpt)
     state_dict = checkpoint.get("state_dict")
     if not isinstance(state_dict, dict) or not all(
         isinstance(k, str) and isinstance(v, Tensor) for k, v in state_dict.items()

@@ -326,8 +326,8 @@ def load(
     device: str | torch.device = "cpu",
     chunk_elements: int = CHUNK_ELEMENTS,
 ) -> Predictor:
-    """Load a rotlearn checkpoint (or a run directory's last one) as a `Predictor`; a list of
-    them as the `Predictor` of their ensemble.
+    """Load a rotlearn checkpoint (or a run directory: the weights its test scored) as a
+    `Predictor`; a list of them as the `Predictor` of their ensemble.
 
     An ensemble (K runs with belief heads, trained on the same kind of input, e.g. with other
     seeds) predicts with every member and multiplies their beliefs: A = sum_k A_k / T_k, each

@@ -9,6 +9,7 @@ import lightning.pytorch as pl
 import pytest
 import torch
 
+import rotlearn
 from rotlearn.bingham import LevelMap, fit_temperature
 from rotlearn.checkpoint import TEMPERATURE_FILE, read_temperature
 from rotlearn.cli.train import ConfigError, build, train
@@ -77,7 +78,10 @@ def test_the_record_names_the_tested_checkpoint_and_reaches_metrics_json(make_cf
                            "num_val", "credible_masses"}  # fmt: skip
     on_disk = json.loads((run / "metrics.json").read_text())
     assert on_disk["calibration/temperature"] == pytest.approx(record["temperature"], rel=1e-6)
-    assert metrics["tested_weights"] == "best"
+    assert metrics["tested_weights"] == "best" and metrics["tested_checkpoint"] == "best.ckpt"
+    # the run directory loads those weights, tempered by what was fitted for them
+    loaded = rotlearn.load(run)
+    assert loaded.temperature == pytest.approx(record["temperature"], rel=1e-12)
 
 
 def test_calibration_is_refused_for_a_head_without_a_belief(make_cfg, on_disk, tmp_path):

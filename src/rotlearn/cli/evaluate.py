@@ -255,13 +255,13 @@ def _first_look(cfg: DictConfig) -> None:
     full (the allowlist by import). Anything else is left to those checks."""
     from types import SimpleNamespace
 
-    from rotlearn.checkpoint import load_checkpoint
+    from rotlearn.checkpoint import load_checkpoint, rebuildable, tested_checkpoint
     from rotlearn.config.checks import check_keys, plain
     from rotlearn.config.source import class_attribute, is_marked
     from rotlearn.trust import LIBRARY_TARGETS
 
     try:
-        saved = load_checkpoint(cfg.ckpt).get("rotlearn_config")
+        saved = rebuildable(load_checkpoint(tested_checkpoint(cfg.ckpt)).get("rotlearn_config"))
     except (OSError, ValueError):
         return  # load_run says why
     try:  # a deep, odd or foreign config is left to load_run (RecursionError, TypeError, ...)

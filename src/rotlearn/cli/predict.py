@@ -75,7 +75,9 @@ def main(argv: list[str] | None = None) -> int:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument(
-        "checkpoint", help="a run directory (its checkpoints/last.ckpt) or a .ckpt file"
+        "checkpoint",
+        help="a run directory (the checkpoint its test scored: last.ckpt, or best.ckpt after "
+        "test_ckpt=best) or a .ckpt file",
     )
     parser.add_argument(
         "input",

@@ -125,8 +125,9 @@ def load_autoencoder(
     ckpt_path: str | os.PathLike, device: str | torch.device = "cpu"
 ) -> AutoEncoderModule:
     """An `AutoEncoderModule`, in eval mode on `device`, from a checkpoint of a `model=autoencoder`
-    run (or a run directory's last one), read through `rotlearn.checkpoint.load_run` (weights
-    only; the saved config may name allowlisted components only).
+    run (or a run directory: the weights its test scored), read through
+    `rotlearn.checkpoint.load_run` (weights only; the saved config may name allowlisted components
+    only).
 
     Raises:
         FileNotFoundError: no such checkpoint.

@@ -151,7 +151,8 @@ class RunRecords(pl.Callback):
         }
         if self._fitted:
             facts |= {"epochs": trainer.current_epoch, "global_step": trainer.global_step,
-                      "tested_weights": "best" if trainer.ckpt_path else "last"}  # fmt: skip
+                      "tested_weights": "best" if trainer.ckpt_path else "last",
+                      "tested_checkpoint": self._tested_file(trainer)}  # fmt: skip
         if facts["task"] == "rotation":
             facts["rep"] = getattr(pl_module.head, "name", None)
             facts["temperature"] = float(pl_module.belief_temperature)  # the one the test used
@@ -160,6 +161,14 @@ class RunRecords(pl.Callback):
             key = f"best/{checkpoints.monitor.replace('/', '_')}"  # best/val_err_mean, ...
             facts[key] = float(checkpoints.best_model_score)
         return facts
+
+    def _tested_file(self, trainer: pl.Trainer) -> str | None:
+        """The file name, in the run's checkpoints/, of the weights the test scored (what
+        `rotlearn.checkpoint.tested_checkpoint` loads for the run directory); None where they are
+        not there (a checkpoint directory elsewhere)."""
+        tested = Path(trainer.ckpt_path or self.dirpath / "checkpoints" / "last.ckpt")
+        inside = tested.resolve().parent == (self.dirpath / "checkpoints").resolve()
+        return tested.name if inside else None
 
     def _write(self, trainer: pl.Trainer, pl_module: pl.LightningModule, metrics: dict) -> None:
         timer = find_callback(trainer, EpochTimer)
