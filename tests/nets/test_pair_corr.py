@@ -9,7 +9,7 @@ import pytest
 import torch
 from hydra.utils import instantiate
 
-from rotlearn.nets import PairCorrelationNet, correlation
+from rotlearn.nets import PairCNN, PairCorrelationNet, correlation
 from tests.conftest import DTYPES, demo_overrides, gen
 
 
@@ -138,3 +138,31 @@ def test_net_pair_corr_composes_and_runs_on_a_batch(make_cfg, demo_data, data):
     dm.setup("fit")
     batch = dm.on_after_batch_transfer(next(iter(dm.train_dataloader())), 0)
     assert net(batch["input"][:2]).shape == (2, 10)
+
+
+@pytest.mark.parametrize(
+    ("net", "sizes"),
+    [
+        (PairCorrelationNet, {"channels": (4,), "head_channels": (8,)}),
+        (PairCNN, {"channels": (4, 8)}),
+    ],
+)
+def test_output_gain_scales_a_pair_nets_output_by_exp_of_the_extra_number(net, sizes):
+    """net.output_gain=true on a pair net: the same weights without the gain give the output
+    before its scale (the gain net has one more output)."""
+    torch.manual_seed(0)
+    with_gain = net(10, image_size=16, hidden=16, output_gain=True, **sizes)
+    plain = net(10, image_size=16, hidden=16, **sizes)
+    state = with_gain.state_dict()
+    weight, bias = "regressor.2.weight", "regressor.2.bias"
+    plain.load_state_dict({**state, weight: state[weight][:-1], bias: state[bias][:-1]})
+    with torch.no_grad():
+        with_gain.regressor[2].bias[-1] = 1.5  # a known log-gain offset
+    pairs = torch.randn(3, 6, 16, 16, generator=gen(1))
+    raw = []
+    with_gain.regressor.register_forward_hook(lambda module, args, out: raw.append(out))
+    with torch.no_grad():
+        out = with_gain(pairs)
+    log_gain = raw[0][:, -1:]
+    assert out.shape == (3, 10)
+    torch.testing.assert_close(out, plain(pairs) * log_gain.exp())

@@ -55,3 +55,19 @@ def test_output_gain_is_clamped_and_differentiable():
     assert torch.isfinite(out).all()
     out.sum().backward()
     assert torch.isfinite(points.grad).all()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("shape", [(5,), (2, 3, 5), (1, 5)])
+def test_gained_takes_any_batch_shape_and_is_differentiable(dtype, shape):
+    from rotlearn.nets.pointnet import LOG_GAIN_MAX, gained
+
+    out = torch.randn(shape, dtype=dtype) * 3
+    result = gained(out)
+    assert result.shape == (*shape[:-1], shape[-1] - 1) and result.dtype == dtype
+    torch.testing.assert_close(result, out[..., :-1] * out[..., -1:].exp())
+    big = out.clone()
+    big[..., -1] = 1e4
+    torch.testing.assert_close(gained(big), big[..., :-1] * torch.tensor(LOG_GAIN_MAX).exp())
+    x = torch.randn(shape, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(gained, (x,))

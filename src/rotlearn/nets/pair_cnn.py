@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Annotated
 
 from torch import Tensor, nn
 
-from rotlearn.nets.pointnet import mlp
+from rotlearn.nets.pointnet import gained, mlp
 from rotlearn.trust import config_target
 
 if TYPE_CHECKING:  # constraints of the config values, checked by rotlearn.config (pydantic);
@@ -56,6 +56,8 @@ class PairCNN(nn.Module):
         image_size: S of the S x S input (`${data.image_size}`).
         channels: widths of the convolutions.
         hidden: width of the hidden linear layer.
+        output_gain: one more output, a log-gain g of the other out_dim numbers
+            (`rotlearn.nets.pointnet.gained`): the belief's concentration on a log scale.
 
     Input (B, in_channels, S, S); output (B, out_dim).
     """
@@ -69,12 +71,15 @@ class PairCNN(nn.Module):
         image_size: Annotated[int, Gt(0)] = 224,
         channels: Annotated[Sequence[Annotated[int, Gt(0)]], MinLen(1)] = PAPER_CHANNELS,
         hidden: Annotated[int, Gt(0)] = 512,
+        output_gain: bool = False,
     ) -> None:
         super().__init__()
         self.in_channels, self.image_size = in_channels, image_size
+        self.output_gain = output_gain
         self.encoder = conv_encoder(in_channels, channels)
         flat = channels[-1] * encoded_size(image_size, len(channels)) ** 2
-        self.regressor = mlp([flat, hidden, out_dim])
+        self.regressor = mlp([flat, hidden, out_dim + int(output_gain)])
 
     def forward(self, pairs: Tensor) -> Tensor:
-        return self.regressor(self.encoder(pairs).flatten(1))
+        out = self.regressor(self.encoder(pairs).flatten(1))
+        return gained(out) if self.output_gain else out

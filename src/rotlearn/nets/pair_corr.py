@@ -20,7 +20,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from rotlearn.nets.pair_cnn import conv_encoder, encoded_size
-from rotlearn.nets.pointnet import mlp
+from rotlearn.nets.pointnet import gained, mlp
 from rotlearn.trust import config_target
 
 if TYPE_CHECKING:  # constraints of the config values, checked by rotlearn.config (pydantic);
@@ -86,6 +86,8 @@ class PairCorrelationNet(nn.Module):
             12 degrees of yaw on the 80-degree KITTI-format demo frames).
         head_channels: widths of the stride-2 convolutions on the cost volume.
         hidden: width of the hidden linear layer.
+        output_gain: one more output, a log-gain g of the other out_dim numbers
+            (`rotlearn.nets.pointnet.gained`): the belief's concentration on a log scale.
 
     The defaults are the demo recipe (`experiment=kitti_ood_demo`, `mav_ood_demo`; measured in
     docs/results.md, issue 15): about 1.6x the step time of the demo-sized `PairCNN` on a CPU.
@@ -104,17 +106,20 @@ class PairCorrelationNet(nn.Module):
         radius: Annotated[int, Ge(0)] = 2,
         head_channels: Annotated[Sequence[Annotated[int, Gt(0)]], MinLen(1)] = (64, 128, 128),
         hidden: Annotated[int, Gt(0)] = 256,
+        output_gain: bool = False,
     ) -> None:
         super().__init__()
         self.in_channels, self.image_size, self.radius = in_channels, image_size, radius
+        self.output_gain = output_gain
         self.encoder = conv_encoder(in_channels // 2, channels, refine=True)
         self.mixer = conv_encoder((2 * radius + 1) ** 2, head_channels)
         side = encoded_size(encoded_size(image_size, len(channels)), len(head_channels))
-        self.regressor = mlp([head_channels[-1] * side**2, hidden, out_dim])
+        self.regressor = mlp([head_channels[-1] * side**2, hidden, out_dim + int(output_gain)])
 
     def forward(self, pairs: Tensor) -> Tensor:
         batch, frame = pairs.shape[0], self.in_channels // 2
         frames = pairs.reshape(batch * 2, frame, *pairs.shape[-2:])  # both frames, one pass
         features = self.encoder(frames).unflatten(0, (batch, 2))
         cost = correlation(features[:, 0], features[:, 1], self.radius)
-        return self.regressor(self.mixer(F.leaky_relu(cost, 0.1)).flatten(1))
+        out = self.regressor(self.mixer(F.leaky_relu(cost, 0.1)).flatten(1))
+        return gained(out) if self.output_gain else out

@@ -16,7 +16,18 @@ from rotlearn.trust import config_target
 if TYPE_CHECKING:  # constraints of the config values, checked by rotlearn.config (pydantic);
     from annotated_types import Gt, MinLen  # never evaluated here: torch is all a bare install has
 
-__all__ = ["PointNet", "mlp"]
+__all__ = ["LOG_GAIN_MAX", "PointNet", "gained", "mlp"]
+
+LOG_GAIN_MAX = 20.0  # the log-gain of `gained` is clamped to [-LOG_GAIN_MAX, LOG_GAIN_MAX]
+
+
+def gained(out: Tensor) -> Tensor:
+    """A net's `output_gain`: (..., k + 1) -> (..., k), the first k numbers times exp(g), g the
+    last one clamped to [-LOG_GAIN_MAX, LOG_GAIN_MAX]. Every head's rotation is invariant to a
+    positive scale of its input, so g moves only the belief's concentration (A -> e^g A, F -> e^g
+    F), on a log scale, which a heteroscedastic belief needs (its concentration spans orders of
+    magnitude across samples; a linear output compresses that range, docs/results.md, issue 17)."""
+    return out[..., :-1] * out[..., -1:].clamp(-LOG_GAIN_MAX, LOG_GAIN_MAX).exp()
 
 
 def mlp(sizes: Sequence[int]) -> nn.Sequential:
@@ -47,16 +58,10 @@ class PointNet(nn.Module):
             module calls it with the first training batch); False keeps PyTorch's initialisation,
             as in the authors' code.
         output_gain: the last layer also outputs a log-gain g and the output is the other
-            out_dim numbers times exp(g) (g clamped to [-LOG_GAIN_MAX, LOG_GAIN_MAX]). Every
-            head's rotation is invariant to a positive scale of its input, so g moves only the
-            belief's concentration (A -> e^g A, F -> e^g F): on a log scale, which a
-            heteroscedastic belief needs (its concentration spans orders of magnitude across
-            samples; a linear output compresses that range, docs/results.md, issue 17).
+            out_dim numbers times exp(g) (`gained`): the belief's concentration on a log scale.
 
     Input (..., N, in_channels) points; output (..., out_dim).
     """
-
-    LOG_GAIN_MAX = 20.0
 
     def __init__(
         self,
@@ -79,10 +84,7 @@ class PointNet(nn.Module):
     def forward(self, points: Tensor) -> Tensor:
         features = self.point_mlp(points) if self.point_mlp is not None else points
         out = self.head_mlp(self.pool(features))
-        if not self.output_gain:
-            return out
-        log_gain = out[..., -1:].clamp(-self.LOG_GAIN_MAX, self.LOG_GAIN_MAX)
-        return out[..., :-1] * log_gain.exp()
+        return gained(out) if self.output_gain else out
 
     @torch.no_grad()
     def initialize_from(self, points: Tensor) -> None:
