@@ -9,10 +9,10 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from rotlearn import fisher
+from rotlearn import bingham, fisher
 from rotlearn.cli.train import train
 from rotlearn.errors import ConfigValueError
-from rotlearn.geometry import quat_chordal_distance, rotmat_to_quat
+from rotlearn.geometry import quat_chordal_distance, quat_to_rotmat, rotmat_to_quat
 from rotlearn.heads import HEADS, make_head
 from rotlearn.losses import AngularLoss, BinghamNLLLoss, ChordalLoss, FisherNLLLoss
 from rotlearn.metrics import AngularError
@@ -195,3 +195,63 @@ def test_fisher_head_trains_end_to_end_with_fisher_nll(make_cfg):
     assert metrics["rep"] == "fisher" and math.isfinite(metrics["train/loss"])
     assert 0.0 <= metrics["test/err_median"] <= 180.0
     assert -1.0 <= metrics["test/dt_spearman"] <= 1.0
+
+
+# The likelihood losses score beliefs without host syncs (check=False): a training step never waits
+# for the device; the checks they skip are the public functions' (tests/bingham, tests/fisher).
+
+
+def _beliefs(shape: tuple[int, ...], dtype: torch.dtype, seed: int):
+    """(A, q, F, R): random symmetric A, unit quaternions, F and the rotations of q."""
+    A = torch.randn(*shape, 4, 4, generator=gen(seed), dtype=dtype)
+    q = torch.nn.functional.normalize(torch.randn(*shape, 4, generator=gen(seed + 1)), dim=-1)
+    F = torch.randn(*shape, 3, 3, generator=gen(seed + 2), dtype=dtype)
+    q = q.to(dtype)
+    return A + A.transpose(-1, -2), q, F, quat_to_rotmat(q)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+@pytest.mark.parametrize("shape", [(), (7,), (2, 3)])
+def test_unchecked_likelihoods_equal_the_checked_ones_in_range(dtype, shape):
+    A, q, F, R = _beliefs(shape, dtype, seed=30)
+    for fn, args in ((bingham.nll, (A, q)), (fisher.nll, (F, R))):
+        results = []
+        for check in (True, False):
+            inputs = [a.clone().requires_grad_() for a in args]
+            value = fn(*inputs, check=check)
+            results.append((value, *torch.autograd.grad(value.sum(), inputs)))
+        assert results[1][0].shape == shape and results[1][0].dtype == dtype
+        for checked, unchecked in zip(*results, strict=True):  # values, then each gradient
+            torch.testing.assert_close(unchecked, checked, rtol=0, atol=0)
+    A, q, F, R = _beliefs((3,), F64, seed=31)
+    symmetric = lambda a: bingham.nll(a + a.transpose(-1, -2), q, check=False)  # noqa: E731
+    assert torch.autograd.gradcheck(symmetric, (A.requires_grad_(),))
+    assert torch.autograd.gradcheck(lambda f: fisher.nll(f, R, check=False), (F.requires_grad_(),))
+
+
+def test_a_belief_sharper_than_the_supported_range_is_not_sharpened_further():
+    """A training belief that passed MAX_DISPERSION failed the run (the checked NLL refuses it);
+    unchecked, its dispersion is taken at the bound, so the loss grows with the belief's scale."""
+    A, q, F, R = _beliefs((), F64, seed=32)
+    cases = ((bingham.nll, A / A.norm(), q, 4e6), (fisher.nll, F / F.norm(), R, 2e6))
+    for fn, unit, target, scale in cases:
+        with pytest.raises(ValueError, match=r"above MAX_(DISPERSION|SINGULAR_SUM)"):
+            fn(scale * unit, target)
+        s = torch.tensor(scale, dtype=F64, requires_grad=True)
+        value = fn(s * unit, target, check=False)
+        (slope,) = torch.autograd.grad(value, s)
+        assert torch.isfinite(value) and slope > 0
+
+
+@pytest.mark.parametrize("loss", [BinghamNLLLoss(rep="fisher"), FisherNLLLoss(rep="fisher")])
+def test_the_likelihood_losses_trace_without_a_graph_break(loss):
+    """torch.compile(fullgraph=True) fails on any host sync (a bool() of a tensor); the checked
+    functions do not trace (the control shows the test can fail)."""
+    pred = make_head("fisher")(torch.randn(6, 9, generator=gen(33)))
+    batch = {"R": scipy_rotmats(34, (6,)).float()}
+    loss(pred, batch)  # caches filled eagerly (the Talbot nodes)
+    compiled = torch.compile(lambda p, b: loss(p, b), backend="eager", fullgraph=True)
+    torch.testing.assert_close(compiled(pred, batch), loss(pred, batch))
+    checked = torch.compile(lambda A, q: bingham.nll(A, q), backend="eager", fullgraph=True)
+    with pytest.raises(Exception, match=r"(?i)graph break|data-dependent|Unsupported"):
+        checked(pred.A, rotmat_to_quat(batch["R"]))

@@ -88,11 +88,13 @@ def _float_dtype(t: Tensor, name: str) -> None:
         raise TypeError(f"{name} must be a floating tensor, got {t.dtype}")
 
 
-def _check_A(A: Tensor) -> None:
+def _check_A(A: Tensor, values: bool = True) -> None:
+    """A's dtype and shape; with `values`, also its entries (finite: one host sync)."""
     _float_dtype(A, "A")
     if A.dim() < 2 or A.shape[-2:] != (4, 4):
         raise ValueError(f"A must have shape (..., 4, 4), got {tuple(A.shape)}")
-    _raise_first(~torch.isfinite(A).flatten(-2).all(-1), "A has NaN or Inf")
+    if values:
+        _raise_first(~torch.isfinite(A).flatten(-2).all(-1), "A has NaN or Inf")
 
 
 def _check_lam(lam: Tensor) -> None:

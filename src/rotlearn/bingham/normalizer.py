@@ -14,6 +14,7 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from rotlearn.bingham.descriptors import (
+    MAX_DISPERSION,
     _check_A,
     _check_lam,
     _check_spread,
@@ -152,9 +153,13 @@ def _working_dtype(dtype: torch.dtype) -> torch.dtype:
 
 
 def _log_normalizer3(lam: Tensor) -> Tensor:
-    """`log_normalizer` of validated (..., 3) coefficients (autograd-aware)."""
+    """`log_normalizer` of (..., 3) coefficients (autograd-aware), each taken within the
+    supported [-MAX_DISPERSION, 0]: the identity on checked ones (values and gradients), the
+    bound beyond it. Past the bound the normaliser no longer rewards concentration while the fit
+    term q^T A q - l1 still grows with it, so a likelihood loss of unchecked beliefs stops
+    sharpening such a belief instead of failing the run."""
     work = _working_dtype(lam.dtype)
-    flat = lam.reshape(-1, 3).to(work)
+    flat = lam.reshape(-1, 3).to(work).clamp(-MAX_DISPERSION, 0.0)
     if flat.shape[0] == 0:
         return lam.new_zeros(lam.shape[:-1])
     need_moments = torch.is_grad_enabled() and flat.requires_grad
@@ -162,7 +167,7 @@ def _log_normalizer3(lam: Tensor) -> Tensor:
     return log_n.reshape(lam.shape[:-1]).to(lam.dtype)
 
 
-def log_normalizer(lam: Tensor) -> Tensor:
+def log_normalizer(lam: Tensor, check: bool = True) -> Tensor:
     """log N(lam), N = E_mu[exp(sum_i lam_i x_i^2)] over the uniform probability measure on S^3.
 
     N is the normaliser of paper eq. (14) (Talbot inversion, see the module docstring).
@@ -172,15 +177,20 @@ def log_normalizer(lam: Tensor) -> Tensor:
             coefficient is 0), or (..., 4) any real coefficients with spread
             max - min <= MAX_DISPERSION, for which N(lam + c) = e^c N(lam).
 
+        check: validate lam first (one host sync). False, for a loss's hot path: no check
+            and no sync; NaN/Inf propagate, and a coefficient beyond the range is taken at its
+            bound (-MAX_DISPERSION, or 0 for a positive (..., 3) one).
+
     Returns:
         (...,) log N in lam's dtype; N(0) = 1. Differentiable once: the gradient is the vector
         of second moments E[x_i^2] (`moments`).
 
     Raises:
-        ValueError: NaN/Inf, a positive (..., 3) coefficient, or one out of range; the message
-            names the first offending batch index.
+        ValueError: (with `check`) NaN/Inf, a positive (..., 3) coefficient, or one out of
+            range; the message names the first offending batch index.
     """
-    _check_lam(lam)
+    if check:
+        _check_lam(lam)
     if lam.shape[-1] == 3:
         return _log_normalizer3(lam)
     # The top coefficient from the sort, not amax: at ties amax would split its gradient.
@@ -229,7 +239,7 @@ def _quad_form(A: Tensor, q: Tensor) -> Tensor:
 
 
 @float32_under_autocast
-def log_prob(A: Tensor, q: Tensor) -> Tensor:
+def log_prob(A: Tensor, q: Tensor, check: bool = True) -> Tensor:
     """log p(q; A) = -q^T A q + l1 - log N(lam) w.r.t. the uniform probability measure on S^3.
 
     Args:
@@ -237,27 +247,37 @@ def log_prob(A: Tensor, q: Tensor) -> Tensor:
             spread l4 - l1 <= MAX_DISPERSION.
         q: (..., 4) unit quaternions (x, y, z, w), batch shape broadcast against A's; not
             renormalised.
+        check: validate the values of A and q first (finite, the spread in range: host
+            syncs). False, for a training loss's hot path (`rotlearn.losses.BinghamNLLLoss`):
+            dtypes and shapes only, no sync; NaN/Inf propagate (training's finiteness guard,
+            `rotlearn.lit.finite`, names them), and a dispersion beyond MAX_DISPERSION is
+            taken at that bound (the loss then stops sharpening the belief).
 
     Returns:
         (...,) log densities; exp integrates to 1 against the uniform probability measure
         (subtract `LOG_AREA_S3` for the surface measure). Invariant to q -> -q and A -> A + cI.
         Differentiable in A (through eigenvalues only, well defined at repeated ones) and q.
         Under autocast computed in float32 and returned in float32.
+
+    Raises:
+        ValueError: (with `check`) NaN/Inf in A or q, or a spread beyond MAX_DISPERSION,
+            naming the first batch index; TypeError, ValueError: a dtype or shape (always).
     """
-    _check_A(A)
+    _check_A(A, values=check)
     _float_dtype(q, "q")
     if q.shape[-1] != 4:
         raise ValueError(f"q must have shape (..., 4), got {tuple(q.shape)}")
-    _raise_first(~torch.isfinite(q).all(-1), "q has NaN or Inf")
     ev = eigenvalues(A)
-    _check_spread(ev)
-    lam = dispersion_from_eigenvalues(ev).clamp_max(0.0)
+    if check:
+        _raise_first(~torch.isfinite(q).all(-1), "q has NaN or Inf")
+        _check_spread(ev)
+    lam = dispersion_from_eigenvalues(ev)
     return ev[..., 0] - _quad_form(_symmetric(A).to(A.dtype), q) - _log_normalizer3(lam)
 
 
-def nll(A: Tensor, q: Tensor) -> Tensor:
+def nll(A: Tensor, q: Tensor, check: bool = True) -> Tensor:
     """Negative log-likelihood q^T A q - l1 + log N(lam) (paper eq. 19 with log N and the sign).
 
     Args and returns as `log_prob` (this is its negative).
     """
-    return -log_prob(A, q)
+    return -log_prob(A, q, check=check)

@@ -24,14 +24,16 @@ from rotlearn.geometry.autocast import float32_under_autocast
 __all__ = ["log_normalizer", "log_prob", "nll", "sample"]
 
 
-def _log_normalizer(F: Tensor) -> Tensor:
-    """log c(F) of validated F (autograd-aware)."""
+def _log_normalizer(F: Tensor, check: bool = True) -> Tensor:
+    """log c(F) of finite F (autograd-aware); `check`: s1 + s2 in range (a host sync), else
+    taken at the bound (`rotlearn.bingham.log_normalizer`'s check=False)."""
     s = _proper_svd(F)[1]
-    _check_range(s)
+    if check:
+        _check_range(s)
     s1, s2, s3 = s.unbind(-1)
     # The eigenvalues of K(F) = -A, the coefficients of Z(A) = E_mu[exp(sum_i k_i y_i^2)].
     k = torch.stack((s1 + s2 + s3, s1 - s2 - s3, s2 - s1 - s3, s3 - s1 - s2), -1)
-    return bingham.log_normalizer(k)
+    return bingham.log_normalizer(k, check=check)
 
 
 @float32_under_autocast
@@ -61,7 +63,7 @@ def log_normalizer(F: Tensor) -> Tensor:
 
 
 @float32_under_autocast
-def log_prob(F: Tensor, R: Tensor) -> Tensor:
+def log_prob(F: Tensor, R: Tensor, check: bool = True) -> Tensor:
     """log p(R; F) = tr(F^T R) - log c(F) w.r.t. the Haar probability measure on SO(3).
 
     The same number as `rotlearn.bingham.log_prob(bingham_from_fisher(F), q)` for q a
@@ -71,23 +73,26 @@ def log_prob(F: Tensor, R: Tensor) -> Tensor:
         F: (..., 3, 3) matrix Fisher parameters, as in `log_normalizer`.
         R: (..., 3, 3) rotation matrices, batch shape broadcast against F's; not projected onto
             SO(3).
+        check: validate the values first (finite, s1 + s2 in range: host syncs). False, for a
+            training loss's hot path (`rotlearn.losses.FisherNLLLoss`): dtypes and shapes only,
+            no sync, as `rotlearn.bingham.log_prob`'s check=False.
 
     Returns:
         (...,) log densities; exp integrates to 1 against the Haar probability measure (for a
         Haar measure of total volume V, e.g. 8 pi^2 for sin(beta) d alpha d beta d gamma in
         Euler angles, subtract log V). Differentiable in F and R.
     """
-    _check_matrix(F, "F", 3)
-    _check_matrix(R, "R", 3)
-    return (F * R).sum((-2, -1)) - _log_normalizer(F)
+    _check_matrix(F, "F", 3, values=check)
+    _check_matrix(R, "R", 3, values=check)
+    return (F * R).sum((-2, -1)) - _log_normalizer(F, check=check)
 
 
-def nll(F: Tensor, R: Tensor) -> Tensor:
+def nll(F: Tensor, R: Tensor, check: bool = True) -> Tensor:
     """Negative log-likelihood log c(F) - tr(F^T R), the loss of Mohlin et al. (2020).
 
     Args and returns as `log_prob` (this is its negative), in nats.
     """
-    return -log_prob(F, R)
+    return -log_prob(F, R, check=check)
 
 
 @float32_under_autocast

@@ -39,13 +39,15 @@ def _raise_first(bad: Tensor, what: str) -> None:
         raise ValueError(f"{what} at batch index {batch_index(flat, tuple(bad.shape))}")
 
 
-def _check_matrix(M: Tensor, name: str, size: int) -> None:
-    """M is a floating (..., size, size) tensor without NaN or Inf."""
+def _check_matrix(M: Tensor, name: str, size: int, values: bool = True) -> None:
+    """M is a floating (..., size, size) tensor; with `values`, without NaN or Inf (one host
+    sync)."""
     if not M.is_floating_point():
         raise TypeError(f"{name} must be a floating tensor, got {M.dtype}")
     if M.dim() < 2 or M.shape[-2:] != (size, size):
         raise ValueError(f"{name} must have shape (..., {size}, {size}), got {tuple(M.shape)}")
-    _raise_first(~torch.isfinite(M).flatten(-2).all(-1), f"{name} has NaN or Inf")
+    if values:
+        _raise_first(~torch.isfinite(M).flatten(-2).all(-1), f"{name} has NaN or Inf")
 
 
 def _check_range(s: Tensor) -> None:
