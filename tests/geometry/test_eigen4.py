@@ -21,7 +21,7 @@ import warnings
 
 import pytest
 import torch
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from rotlearn.geometry import (
@@ -53,6 +53,7 @@ DTYPES = [F32, F64]
 # fails where one exists and the build does not).
 NO_CPU_KERNEL = pytest.mark.skipif(not cpu_kernel.available(), reason="no CPU kernel here")
 PATHS = [pytest.param("cpu", marks=NO_CPU_KERNEL), "eager"]
+NO_TRITON = pytest.mark.skipif(not ops.triton_available(), reason="triton is not installed")
 # (method, kernel): both forwards with every CPU backward
 SOLVERS = [
     pytest.param(m, k, marks=NO_CPU_KERNEL if k == "cpu" else (), id=f"{m}-{k}")
@@ -633,6 +634,7 @@ def test_default_round_counts():
     ),
     dtype=st.sampled_from(DTYPES),
 )
+@example(entries=[0.0] * 9 + [3.348262739711181e-43], dtype=F32)  # found by CI: a subnormal
 def test_property_eigenpair(entries, dtype):
     A = a_from_vec(torch.tensor(entries, dtype=F64)).to(dtype)
     eigenvalues, q = sym4_eigh_min(A)
@@ -644,6 +646,28 @@ def test_property_eigenpair(entries, dtype):
     resid = A.to(F64) @ q.to(F64) - eigenvalues[0].to(F64) * q.to(F64)
     assert resid.norm().item() / norm <= 30 * EPS[dtype]
     assert torch.equal(q, quat_canonical(q))
+
+
+# Below the smallest normal number of each dtype, and the smallest subnormal one.
+SUBNORMAL = {F32: (2.0**-140, 2.0**-149), F64: (2.0**-1060, 2.0**-1074)}
+
+
+@pytest.mark.parametrize("kernel", [*PATHS, pytest.param("triton", marks=NO_TRITON)])
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_a_matrix_whose_largest_entry_is_subnormal_keeps_its_eigenvalues(kernel, dtype):
+    """The kernels scale a matrix by a power of two before the rotations and back after; with a
+    subnormal largest entry the factor back was 2^-BIAS, which is no normal number, and every
+    eigenvalue came out 0 (found by the property test above). A diagonal matrix needs no
+    rotation, so its eigenvalues come back exactly."""
+    m, smallest = SUBNORMAL[dtype]
+    diagonal = torch.tensor(
+        [[3.0 * m, -m, 2.0 * m, 0.0], [0.0, 0.0, 0.0, m], [0.0, 0.0, 0.0, smallest]], dtype=F64
+    )  # exactly representable in `dtype`
+    eigenvalues, q = sym4_eigh_min(torch.diag_embed(diagonal).to(dtype), kernel=kernel)
+    expected = diagonal.sort(-1).values.to(dtype)
+    assert torch.equal(eigenvalues, expected) and bool((expected != 0).any(-1).all())
+    modes = torch.tensor([[0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [1.0, 0, 0, 0]], dtype=dtype)
+    assert torch.equal(q.abs(), modes)
 
 
 CUDA_PATHS = [

@@ -74,8 +74,8 @@ def _tiny(k, IS64: tl.constexpr):
 
 @triton.jit
 def _shift(m, IS64: tl.constexpr):
-    """The power-of-two exponents (k1, k2) with m 2^(k1 + k2) in [0.5, 1) for m > 0 (k1 alone
-    within the normal range; k2 > 0 only for a subnormal m); (0, 0) for m = 0."""
+    """The power-of-two exponents (k1, k2) with m 2^(k1 + k2) in [0.5, 1) for m > 0 (2^k1 and
+    2^-k1 both normal; k2 > 0 only for a subnormal m); (0, 0) for m = 0."""
     big = m * 18446744073709551616.0  # 2^64: a subnormal m becomes normal, exactly
     if IS64:
         bias = 1023
@@ -87,8 +87,8 @@ def _shift(m, IS64: tl.constexpr):
         e_big = (big.to(tl.int32, bitcast=True) >> 23) & 0xFF
     k = tl.where(e == 0, bias - 1 - e_big + 64, bias - 1 - e)
     k = tl.where(m == 0, 0, k)
-    k1 = tl.minimum(tl.maximum(k, 1 - bias), bias)
-    k2 = tl.where(k > bias, k - bias, 0)
+    k1 = tl.minimum(tl.maximum(k, 1 - bias), bias - 1)  # 2^-k1 normal too (2^-bias is not)
+    k2 = tl.where(k > bias - 1, k - (bias - 1), 0)
     return k1, k2
 
 
@@ -182,9 +182,11 @@ def _forward_kernel(
     m = tl.maximum(m, tl.maximum(tl.maximum(tl.abs(a22), tl.abs(a23)), tl.abs(a33)))
     k1, k2 = _shift(m, IS64)
     tiny = _tiny(k1, IS64)
-    s = _pow2(k1, IS64) * _pow2(k2, IS64)
-    a00, a01, a02, a03 = a00 * s, a01 * s, a02 * s, a03 * s
-    a11, a12, a13, a22, a23, a33 = a11 * s, a12 * s, a13 * s, a22 * s, a23 * s, a33 * s
+    # One factor after the other, as the C kernel: 2^(k1 + k2) itself overflows for a subnormal m
+    s1, s2 = _pow2(k1, IS64), _pow2(k2, IS64)
+    a00, a01, a02, a03 = a00 * s1 * s2, a01 * s1 * s2, a02 * s1 * s2, a03 * s1 * s2
+    a11, a12, a13 = a11 * s1 * s2, a12 * s1 * s2, a13 * s1 * s2
+    a22, a23, a33 = a22 * s1 * s2, a23 * s1 * s2, a33 * s1 * s2
     one = tl.full(a00.shape, 1.0, a00.dtype)
     zero = tl.full(a00.shape, 0.0, a00.dtype)
     v00, v01, v02, v03 = one, zero, zero, zero  # v_ij: component i of eigenvector j
@@ -240,12 +242,12 @@ def _forward_kernel(
     key = 8.0 * _sign(v30) + 4.0 * _sign(v00) + 2.0 * _sign(v10) + _sign(v20)
     sign = tl.where(key < 0, -1.0, 1.0).to(v00.dtype)
     v00, v10, v20, v30 = v00 * sign, v10 * sign, v20 * sign, v30 * sign
-    back = _pow2(-k2, IS64) * _pow2(-k1, IS64)
+    b2, b1 = _pow2(-k2, IS64), _pow2(-k1, IS64)  # applied in turn: 2^-(k1 + k2) may underflow
     lbase = L + offs * 4
-    tl.store(lbase, l0 * back, mask=mask)
-    tl.store(lbase + 1, l1 * back, mask=mask)
-    tl.store(lbase + 2, l2 * back, mask=mask)
-    tl.store(lbase + 3, l3 * back, mask=mask)
+    tl.store(lbase, l0 * b2 * b1, mask=mask)
+    tl.store(lbase + 1, l1 * b2 * b1, mask=mask)
+    tl.store(lbase + 2, l2 * b2 * b1, mask=mask)
+    tl.store(lbase + 3, l3 * b2 * b1, mask=mask)
     qbase = Q + offs * 4
     tl.store(qbase, v00, mask=mask)
     tl.store(qbase + 1, v10, mask=mask)

@@ -65,8 +65,10 @@ static INLINE void NAME(load)(NAME(block) *blk, const REAL *A, int64_t start, in
             }
     for (int l = 0; l < LANES; ++l) {
         INT k = NAME(frexp_shift)(m[l]);
-        INT k1 = k < 1 - BIAS ? 1 - BIAS : (k > BIAS ? BIAS : k);
-        INT k2 = k > BIAS ? k - BIAS : 0; /* > 0 only for a subnormal largest entry */
+        /* k1 within [1 - BIAS, BIAS - 1], so that 2^-k1 too is a normal number (2^-BIAS is not:
+         * pow2 would give 0 and every eigenvalue of a matrix with a subnormal largest entry 0) */
+        INT k1 = k < 1 - BIAS ? 1 - BIAS : (k > BIAS - 1 ? BIAS - 1 : k);
+        INT k2 = k > BIAS - 1 ? k - (BIAS - 1) : 0; /* > 0 only for a subnormal largest entry */
         REAL s1 = NAME(pow2)(k1), s2 = NAME(pow2)(k2);
         blk->back[0][l] = NAME(pow2)(-k1);
         blk->back[1][l] = NAME(pow2)(-k2);
