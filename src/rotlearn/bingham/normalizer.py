@@ -176,7 +176,6 @@ def log_normalizer(lam: Tensor, check: bool = True) -> Tensor:
         lam: (..., 3) dispersion coefficients in [-MAX_DISPERSION, 0] (any order; the fourth
             coefficient is 0), or (..., 4) any real coefficients with spread
             max - min <= MAX_DISPERSION, for which N(lam + c) = e^c N(lam).
-
         check: validate lam first (one host sync). False, for a loss's hot path: no check
             and no sync; NaN/Inf propagate, and a coefficient beyond the range is taken at its
             bound (-MAX_DISPERSION, or 0 for a positive (..., 3) one).
