@@ -259,8 +259,9 @@ def log_prob(A: Tensor, q: Tensor, check: bool = True) -> Tensor:
         Under autocast computed in float32 and returned in float32.
 
     Raises:
-        ValueError: (with `check`) NaN/Inf in A or q, or a spread beyond MAX_DISPERSION,
-            naming the first batch index; TypeError, ValueError: a dtype or shape (always).
+        TypeError: A or q not floating.
+        ValueError: a shape; with `check`, also NaN/Inf in A or q or a spread beyond
+            MAX_DISPERSION, naming the first batch index.
     """
     _check_A(A, values=check)
     _float_dtype(q, "q")
