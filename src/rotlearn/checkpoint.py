@@ -25,7 +25,6 @@ import logging
 import math
 import os
 import pickle
-import re
 import stat
 import zipfile
 from dataclasses import dataclass, field
@@ -36,7 +35,7 @@ import torch
 from torch import Tensor
 
 from rotlearn.extras import require
-from rotlearn.io import MAX_BYTES, read_bytes, write_bytes_atomic
+from rotlearn.io import MAX_BYTES, plain_name, read_bytes, read_json, write_bytes_atomic
 from rotlearn.paths import checkpoint_file
 from rotlearn.trust import UntrustedConfigError, trusted_config
 
@@ -65,7 +64,6 @@ TEMPERATURE_FILE = "temperature.json"  # beside the checkpoint whose belief it t
 # uncompressed (ratio 1); a deflated bomb (a few MB that inflate to gigabytes) is refused unread.
 _MAX_INFLATION = 4
 
-_FILE_NAME = re.compile(r"[\w.=+-]+\.ckpt")  # a checkpoint's name, no folder
 log = logging.getLogger("rotlearn")
 
 
@@ -106,8 +104,6 @@ def tested_checkpoint(path: str | os.PathLike) -> Path:
         FileNotFoundError, UnsafeCheckpointError: as `resolve_checkpoint`, also for the named
             file (a symlink out of the run).
     """
-    from rotlearn.io import read_json
-
     last = resolve_checkpoint(path)
     run = Path(path)
     if not run.is_dir():
@@ -119,8 +115,11 @@ def tested_checkpoint(path: str | os.PathLike) -> Path:
         name = "best.ckpt"  # the best checkpoint's name in conf/callbacks/default.yaml
     if name is None or name == last.name:
         return last
-    tested = run / "checkpoints" / str(name)
-    if not (isinstance(name, str) and _FILE_NAME.fullmatch(name) and tested.is_file()):
+    try:  # a plain file name (no folder, not . or ..): it stays in checkpoints/
+        tested = run / "checkpoints" / plain_name(name, where=str(run / "metrics.json"))
+    except ValueError:
+        tested = None
+    if tested is None or not tested.is_file():
         log.warning(
             "%s: the tested checkpoint %r is not a file in %s; %s is read instead",
             run / "metrics.json", name, run / "checkpoints", last.name,

@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 import math
 import sys
+from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -47,6 +48,13 @@ def _set(node: DictConfig | None) -> dict[str, Any]:
     }
 
 
+def _run_ood(callbacks: Any) -> Any:
+    """A run's OOD callback node (`callbacks.ood`), else conf/callbacks/ood.yaml's (a run
+    trained without it)."""
+    ood = callbacks.get("ood") if isinstance(callbacks, Mapping) else None
+    return OmegaConf.to_container(OmegaConf.load(DEFAULT_OOD).ood) if ood is None else ood
+
+
 def evaluation_config(cfg: DictConfig, saved: SavedRun) -> DictConfig:
     """The saved run config (already checked: `rotlearn.checkpoint.load_run`) with the
     evaluation's overrides, OOD callback and output paths. Of the saved trainer config only the
@@ -61,10 +69,7 @@ def evaluation_config(cfg: DictConfig, saved: SavedRun) -> DictConfig:
             f"{cfg.ckpt} was trained with rep={run.rep.name}, not expect_rep={cfg.expect_rep}",
         )
     out = cfg.paths.output_dir
-    ood = OmegaConf.select(run, "callbacks.ood")
-    if ood is None:
-        ood = OmegaConf.load(DEFAULT_OOD).ood
-    run.callbacks = {"ood": OmegaConf.merge(ood, _set(cfg.ood))}
+    run.callbacks = {"ood": OmegaConf.merge(_run_ood(run.get("callbacks")), _set(cfg.ood))}
     run.data.pop("cache_dir", None)  # caches go where this command line says, or under data.root
     run.data = OmegaConf.merge(run.data, _set(cfg.data))
     trainer = {k: v for k, v in run.trainer.items() if k in SAVED_TRAINER_KEYS}
@@ -105,8 +110,7 @@ def evaluated_config(cfg: DictConfig, saved: SavedRun, members: int) -> DictConf
         base = OmegaConf.to_container(saved.config)
     base["hydra"] = {"runtime": {"choices": choices}}  # where Hydra keeps them; no setting
     callbacks = base.get("callbacks") if isinstance(base.get("callbacks"), dict) else {}
-    ood = callbacks.get("ood") or OmegaConf.to_container(OmegaConf.load(DEFAULT_OOD).ood)
-    base["callbacks"] = {**callbacks, "ood": ood}
+    base["callbacks"] = {**callbacks, "ood": _run_ood(callbacks)}
     changed = {"data": _set(cfg.data), "callbacks": {"ood": _set(cfg.ood)}}
     try:
         return OmegaConf.merge(base, changed, {"evaluated": {"members": members}})
