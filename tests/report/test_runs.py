@@ -85,7 +85,7 @@ def test_an_evaluation_sits_beside_the_runs_it_evaluated(tmp_path):
         config = {
             "rep": {"name": "a"},
             "seed": seed,
-            "model": {"head": "${rep}"},
+            "model": {"head": "${rep}", "loss": "${loss}"},
             "loss": {"_target_": f"rotlearn.losses.{loss}", "rep": "${rep.name}"},
         }
         _run(tmp_path / "sweep" / str(num), config, {"rep": "a", "loss": loss},
@@ -111,3 +111,28 @@ def test_a_class_that_tells_runs_apart_is_named_by_its_class(tmp_path):
     assert list(collect_runs(tmp_path / "sweep")["setting"]) == [
         "a loss=BinghamNLLLoss", "a loss=ChordalLoss"
     ]  # fmt: skip
+
+
+def test_an_auto_encoder_run_is_reported_by_its_reconstruction_error(tmp_path):
+    """The auto-encoder (model=autoencoder) takes no head and no loss: its label is not the
+    unused `rep` it was composed with, its summary has no rep or loss column, and the report
+    counts it completed with a table of its test reconstruction error."""
+    choices = {"model": "autoencoder", "rep": "a", "loss": "chordal", "net": "autoencoder"}
+    for num, lr in enumerate((1e-4, 1e-3)):
+        config = {
+            "model": {"net": "${net}", "optimizer": "${optim}"},
+            "rep": {"name": "a"},
+            "loss": {"_target_": "rotlearn.losses.ChordalLoss"},
+            "optim": {"lr": lr},
+        }
+        run = tmp_path / "sweep" / str(num)
+        _run(run, config, choices, [f"optim.lr={lr}"], 0.0)
+        (run / "metrics.json").write_text(json.dumps({"test/recon_mean": 0.25 * (num + 1)}))
+    runs = collect_runs(tmp_path / "sweep")
+    assert list(runs["setting"]) == ["optim.lr=0.0001", "optim.lr=0.001"]
+    assert not [c for c in runs if c.startswith(("rep", "loss", "group:rep", "group:loss"))]
+    report = make_report(tmp_path / "sweep")["report"].read_text()
+    assert "2 jobs: 2 completed." in report
+    assert "| optim.lr=0.001 | 1 | 0.500 | 0.500 | 0.500 |" in report
+    single = collect_runs(tmp_path / "sweep" / "0")
+    assert list(single["setting"]) == ["autoencoder"]

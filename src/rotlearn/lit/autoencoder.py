@@ -33,7 +33,8 @@ class AutoEncoderModule(FiniteChecks, RunStateHooks, pl.LightningModule):
     """Reconstruct the FIRST image of each stacked pair; its mean L1 error is the OOD score.
 
     Trained with the mean L1 pixel loss (paper: Adam, lr 5e-4, batch 32, 20 epochs); a pair is
-    kept when its score lies below a quantile of the training scores.
+    kept when its score lies below a quantile of the reference scores (`rotlearn.ood`: the
+    validation pairs' by default, the training pairs' in the paper).
     Logs, once per epoch: train/loss, val/loss (mean L1 over the epoch's pixels) and, at test,
     test/recon_mean (the mean score of the test pairs).
 

@@ -73,23 +73,26 @@ def make_report(
         raise FileNotFoundError(f"no runs under {where} (no */.hydra/config.yaml)")
     out.mkdir(parents=True, exist_ok=True)
     files = {"summary": write_text_atomic(out / "summary.csv", runs.to_csv(index=False))}
-    has_error = runs["test/err_mean"].notna() if "test/err_mean" in runs else False
-    done = runs[(runs["status"] == "COMPLETED") & has_error]
+    done, recon = (_having(runs, m) for m in ("test/err_mean", "test/recon_mean"))
+    completed = runs.loc[done.index.union(recon.index)]  # with a test score
     failed = runs[runs["status"] != "COMPLETED"]
     others = ", ".join(f"{n} {s.lower()}" for s, n in failed["status"].value_counts().items())
     layout = runs.attrs["layout"]
     md = [
         f"# Report: {', '.join(str(r) for r in roots)}",
         "",
-        f"{len(runs)} jobs: {len(done)} completed" + (f", {others}" if others else "") + ".",
+        f"{len(runs)} jobs: {len(completed)} completed" + (f", {others}" if others else "") + ".",
         "",
-        _grouping_note(done, runs.attrs.get("grouping") or [], layout, group_by, pool),
+        _grouping_note(completed, runs.attrs.get("grouping") or [], layout, group_by, pool),
         "",
     ]
     if not done.empty:
         md += ["## Final test error (degrees), over trials", "", tables.percentile_table(done), ""]
         md += _plots(done, runs, layout, out, files)
         md += _beliefs(done, out, files)
+    if not recon.empty:  # auto-encoders (the OOD baseline): their test score
+        table = tables.percentile_table(recon, "test/recon_mean", None, "test L1 mean")
+        md += ["## Final test reconstruction error (mean L1 per pixel), over trials", "", table, ""]
     frames = _ood_frames(done)
     if frames:
         md += _ood_sections(frames, layout, out, files)
@@ -100,6 +103,13 @@ def make_report(
                tables.failed_table(failed), ""]  # fmt: skip
     files["report"] = write_text_atomic(out / "report.md", "\n".join(md))
     return files
+
+
+def _having(runs: pd.DataFrame, metric: str) -> pd.DataFrame:
+    """The completed runs that recorded `metric`."""
+    if metric not in runs:
+        return runs.iloc[:0]
+    return runs[(runs["status"] == "COMPLETED") & runs[metric].notna()]
 
 
 def _grouping_note(done: pd.DataFrame, grouping: list[str], layout: Mapping[str, Any], group_by,

@@ -44,6 +44,7 @@ DEFAULT_REPORT: dict[str, Any] = {
 }
 log = logging.getLogger("rotlearn")
 NOT_SETTINGS = ("hydra", "paths", "report")  # per-run paths, and the report layout itself
+MODEL_PARTS = ("rep", "loss", "scheduler")  # settings only where the model takes them (`${rep}`)
 _MISSING = "-"
 
 
@@ -112,6 +113,16 @@ def run_choices(run: Path, overrides: list[str], hydra: Any = None) -> dict[str,
     return choices
 
 
+def _unused(cfg: Mapping[str, Any]) -> set[str]:
+    """The top-level nodes that are no setting of a run: `NOT_SETTINGS`, and each of
+    `MODEL_PARTS` that its `model` node does not take (the auto-encoder has no head or loss)."""
+    model = cfg.get("model")
+    if not isinstance(model, Mapping):
+        return set(NOT_SETTINGS)
+    taken = {str(v)[2:-1] for v in model.values() if str(v).startswith("${")}
+    return {*NOT_SETTINGS, *(p for p in MODEL_PARTS if p not in taken)}
+
+
 def layout_of(configs: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """The report layout: the first run's `report` node over `DEFAULT_REPORT`."""
     node = next((c["report"] for c in configs if isinstance(c.get("report"), dict)), {})
@@ -174,11 +185,13 @@ def collect_runs(
             }
         )
         configs.append(cfg)
-        flats.append({k: v for k, v in flatten(cfg).items() if k.split(".")[0] not in NOT_SETTINGS})
+        unused = _unused(cfg)
+        flats.append({k: v for k, v in flatten(cfg).items() if k.split(".")[0] not in unused})
         if isinstance(evaluated, dict):  # the evaluated run's choices (its `hydra` node); the
-            choices.append(run_choices(run, [], evaluated))  # command line's keys are in `cfg`
+            chosen = run_choices(run, [], evaluated)  # command line's keys are in `cfg`
         else:
-            choices.append(run_choices(run, overrides))
+            chosen = run_choices(run, overrides)
+        choices.append({k: v for k, v in chosen.items() if k not in unused})
     layout = layout_of(configs)
     grouping = _grouping_keys(flats, layout, group_by, pool)
     columns, labels, parts = _settings(flats, choices, layout, grouping, group_by is not None)
@@ -276,7 +289,7 @@ def _settings(
                 parts.append((key, part))
         if not flat:  # a damaged or missing .hydra/config.yaml
             parts = [("", "(config unreadable)")]
-        labels.append(" ".join(p for _, p in parts) or "all")
+        labels.append(" ".join(p for _, p in parts) or chosen.get("model") or "all")
         all_parts.append(parts)
     return columns, labels, all_parts
 

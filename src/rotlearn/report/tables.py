@@ -144,31 +144,31 @@ def _value_text(value: Any) -> str:
 # ---------------------------------------------------------------------------- the report
 
 
-def percentile_table(done: pd.DataFrame) -> str:
-    """Per setting: its runs and the 10th, 50th, 90th percentile of their final mean test error,
-    and the median of their per-run median errors (degrees)."""
+def percentile_table(
+    done: pd.DataFrame,
+    metric: str = "test/err_mean",
+    medians: str | None = "test/err_median",
+    name: str = "test err mean",
+) -> str:
+    """Per setting: its runs and the 10th, 50th, 90th percentile of their final `metric` (the
+    mean test error; `name` in the header), and the median of their per-run `medians` (None: no
+    such column)."""
     rows = []
     for setting in setting_order(done):
         runs = done[done["setting"] == setting]
-        errs = runs["test/err_mean"].to_numpy(dtype=float)
-        p10, p50, p90 = np.percentile(errs, [10, 50, 90])
-        rows.append(
-            {
-                "setting": setting,
-                "runs": len(errs),
-                "p10": p10,
-                "p50": p50,
-                "p90": p90,
-                "medians": float(np.median(runs["test/err_median"].to_numpy(float))),
-            }
-        )
+        values = runs[metric].to_numpy(dtype=float)
+        p10, p50, p90 = np.percentile(values, [10, 50, 90])
+        row = {"setting": setting, "runs": len(values), "p10": p10, "p50": p50, "p90": p90}
+        if medians is not None:
+            row["medians"] = float(np.median(runs[medians].to_numpy(float)))
+        rows.append(row)
     columns = [
         ("setting", "setting"),
         ("runs", "runs"),
-        ("p10", "test err mean: p10"),
+        ("p10", f"{name}: p10"),
         ("p50", "median"),
         ("p90", "p90"),
-        ("medians", "median of per-run medians"),
+        *([("medians", "median of per-run medians")] if medians is not None else []),
     ]
     return markdown_table(rows, columns, digits=3)
 
