@@ -591,5 +591,7 @@ def load_run(path: str | os.PathLike, task: str | None = None) -> SavedRun:
         ood = _check_ood(checkpoint["rotlearn_ood"], ckpt, "rotlearn_ood")
     run = SavedRun(ckpt, config, state_dict, ood, *checkpoint_temperature(ckpt))
     if task is not None and run.task != task:
-        raise ValueError(f"{ckpt} is a task={run.task!r} checkpoint, not task={task!r}")
+        names = {"autoencoder": "an auto-encoder", "rotation": "a rotation model"}
+        is_, wanted = (names.get(t, f"task={t!r}") for t in (run.task, task))
+        raise ValueError(f"{ckpt} is {is_} checkpoint, not {wanted}")
     return run

@@ -10,8 +10,12 @@ import numpy as np
 import pytest
 import torch
 from hydra.utils import instantiate
+from omegaconf import OmegaConf
 from torch import nn
 
+import rotlearn
+from rotlearn.checkpoint import load_run
+from rotlearn.cli.evaluate import evaluation_config
 from rotlearn.cli.train import ConfigError, build, train
 from rotlearn.lit import AutoEncoderModule, load_autoencoder
 from rotlearn.nets import ConvAutoEncoder
@@ -156,6 +160,12 @@ def test_train_score_and_load(make_cfg, tmp_path):
     assert float(scores.mean()) == pytest.approx(metrics["test/recon_mean"], rel=1e-5)
     pairs = torch.randn(2, 6, 16, 16)
     torch.testing.assert_close(load_autoencoder(run).score(pairs), module.score(pairs))  # run dir
+    with pytest.raises(ValueError, match="is an auto-encoder checkpoint, not a rotation model"):
+        rotlearn.load(run)  # rotlearn-predict's loader
+    # rotlearn-eval on it: refused, saying where an auto-encoder run goes
+    wanted = rf"{re.escape(str(run))} is an auto-encoder, not .*ood.autoencoder_ckpt="
+    with pytest.raises(ConfigError, match=wanted):
+        evaluation_config(OmegaConf.create({"ckpt": str(run)}), load_run(run))
 
 
 def test_a_rotation_checkpoint_is_refused(make_cfg):

@@ -60,6 +60,9 @@ def evaluation_config(cfg: DictConfig, saved: SavedRun) -> DictConfig:
     evaluation's overrides, OOD callback and output paths. Of the saved trainer config only the
     keys in `SAVED_TRAINER_KEYS` are kept; the devices and the rest come from the evaluation's
     own command line (a checkpoint never chooses how many processes are launched)."""
+    if saved.task == "autoencoder":
+        use = f"it scores a head run's test pairs with ood.autoencoder_ckpt={cfg.ckpt}"
+        raise ConfigError("ckpt", f"{cfg.ckpt} is an auto-encoder, not a rotation model: {use}")
     if saved.task != "rotation":
         raise ConfigError("ckpt", f"{cfg.ckpt}: a {saved.task} checkpoint, not a rotation model")
     run = OmegaConf.create(OmegaConf.to_container(saved.config))
