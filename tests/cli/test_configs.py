@@ -165,17 +165,35 @@ def test_unknown_rep_lists_the_allowed_options(make_cfg):
 
 
 def test_plain_hydra_compose_needs_no_rotlearn_import_first(tmp_path):
-    """conf/ composes with Hydra alone (the schemas register through rotlearn's Hydra plugin),
-    in a fresh interpreter that imports nothing of rotlearn's."""
+    """conf/ composes with Hydra alone (the schemas and the configs' `${rl.*:}` resolvers
+    register through rotlearn's Hydra plugin), in a fresh interpreter that imports nothing of
+    rotlearn's."""
     code = (
         "from hydra import compose, initialize_config_dir\n"
         f"with initialize_config_dir(config_dir={str(CONFIG_DIR)!r}, version_base='1.3'):\n"
-        "    cfg = compose('train', ['rep=a', 'loss=bingham'])\n"
+        "    cfg = compose('train', ['rep=a', 'loss=bingham', 'sweep=lr', 'trainer=gpu'])\n"
         "import sys\n"
-        "print(cfg.loss._target_, cfg.data.phi_max_deg, 'torch' in sys.modules)"
+        "print(cfg.loss._target_, cfg.data.phi_max_deg, 'torch' in sys.modules)\n"
+        "print(cfg.optim.lr > 0, cfg.trainer.precision)"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert out.stdout.split() == ["rotlearn.losses.BinghamNLLLoss", "180.0", "False"]
+    assert out.stdout.split()[:3] == ["rotlearn.losses.BinghamNLLLoss", "180.0", "False"]
+    assert out.stdout.split()[3] == "True" and out.stdout.split()[4].endswith(("-true", "-mixed"))
+
+
+def test_compose_from_python_resolves_the_configs_own_resolvers():
+    """`rotlearn.config.compose` in a fresh interpreter, as a notebook calls it: sweep=lr's
+    log-uniform lr and trainer=gpu's precision resolve (they did only after a CLI import)."""
+    code = (
+        "from rotlearn.config import compose\n"
+        "cfg = compose(['sweep=lr', 'trial=3', 'trials=10', 'trainer=gpu'])\n"
+        "from rotlearn.config.resolvers import loguniform_trial\n"
+        "print(cfg.optim.lr == loguniform_trial(3, 10, cfg.sweep_seed, *cfg.lr_range))\n"
+        "print(cfg.trainer.precision)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split()[0] == "True" and out.stdout.split()[1].endswith(("-true", "-mixed"))
 
 
 def test_rep_name_typo_inside_a_config_names_the_key(make_cfg):

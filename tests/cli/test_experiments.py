@@ -13,8 +13,8 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from rotlearn.cli.report import main as report_main
-from rotlearn.cli.resolvers import loguniform_trial
 from rotlearn.config import validate
+from rotlearn.config.resolvers import loguniform_trial
 from rotlearn.paths import config_dir
 from rotlearn.report import collect_runs, make_report
 from tests.conftest import CONFIG_DIR, FAST, config_options, run_cli

@@ -151,3 +151,23 @@ def test_the_tail_split_never_shares_a_frame(lengths, deltas, fraction, test_eve
             assert np.abs(frames[:, None] - trained[cache][None, :]).min() > distance
     if fraction == 0:
         assert len(val) == 0 and len(train) == len(rest)
+
+
+def test_a_validation_sequence_missing_from_data_root_is_refused_before_anything_is_built(
+    tmp_path,
+):
+    """`data.val_sequences` is part of the KITTI layout that validation checks (as the training
+    and test sequences are): a sequence data.root lacks is named before any datamodule runs."""
+    from rotlearn.config import ConfigError, compose
+
+    still = {seq: [np.eye(3)] * 4 for seq in ("00", "01", "10")}
+    root = write_kitti(tmp_path / "kitti", still)
+    base = [
+        "data=kitti",
+        f"data.root={root}",
+        "data.train_sequences=[1]",
+        "data.test_sequences=[0]",
+    ]
+    assert compose([*base, "data.val_sequences=[10]"]).data.val_sequences == [10]
+    with pytest.raises(ConfigError, match=r"data\.val_sequences: .*sequences/07/image_2 does not"):
+        compose([*base, "data.val_sequences=[7]"])

@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from rotlearn.cli.resolvers import gpu_precision
 from rotlearn.cli.train import build
+from rotlearn.config.resolvers import gpu_precision
 from tests.conftest import FAST, config_options, write_kitti, yaw_sequence
 
 REPS = config_options("rep")

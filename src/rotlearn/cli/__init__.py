@@ -1,4 +1,4 @@
-"""Floor 5: command-line entry points (Hydra mains and argparse), resolvers, Hydra callbacks."""
+"""Floor 5: command-line entry points (Hydra mains and argparse), Hydra callbacks."""
 
 import atexit
 import contextlib
@@ -9,7 +9,7 @@ from rotlearn.extras import require
 
 require("train", "rotlearn's command line")
 
-from rotlearn.cli import resolvers  # noqa: F401  (registers the config resolvers)
+from rotlearn.config import resolvers  # noqa: F401  (registers the config resolvers)
 
 
 @contextlib.contextmanager

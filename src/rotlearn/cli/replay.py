@@ -110,7 +110,7 @@ def replayed_config(args: list[str], run_dir: str | Path, config_name: str = "tr
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
-    import rotlearn.cli.resolvers  # noqa: F401  (the configs' own resolvers)
+    import rotlearn.config.resolvers  # noqa: F401  (the configs' own resolvers)
     from rotlearn.cli.rundir import place_output_dir
 
     source = Path(run_dir) / ".hydra" / "overrides.yaml"

@@ -13,7 +13,8 @@ where its YAML does not list it. `rotlearn-train` and `rotlearn-eval` check thei
 same way (`command_line`) before Hydra starts, so a refused command writes nothing. Each YAML
 starts from its component's defaults: `schema/` + its target in Hydra's ConfigStore
 (`register_schemas`, which rotlearn's Hydra plugin runs wherever Hydra composes, so a plain
-`hydra.compose` on conf/ works).
+`hydra.compose` on conf/ works; the configs' resolvers, `${rl.loguniform:...}` and
+`${rl.gpu_precision:}`, register with this module: `rotlearn.config.resolvers`).
 
 Why pydantic (a strict `TypeAdapter` per argument) rather than hydra-zen: the constraints live on
 the constructors' own signatures as annotated-types metadata (`Annotated[int, Gt(0)]`), which
@@ -39,6 +40,7 @@ require("train", "rotlearn.config")
 from hydra.errors import ConfigCompositionException, MissingConfigException  # noqa: E402
 from omegaconf import DictConfig, OmegaConf, open_dict  # noqa: E402
 
+from rotlearn.config import resolvers  # noqa: E402, F401  (registers `${rl.*:...}`)
 from rotlearn.config.checks import check_keys, check_values, plain  # noqa: E402
 from rotlearn.config.source import NOT_LITERAL, marked, parameters  # noqa: E402
 from rotlearn.errors import ConfigError  # noqa: E402

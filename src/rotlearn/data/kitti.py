@@ -110,6 +110,8 @@ class KittiOdometryDataModule(ImagePairDataModule):
         "poses/{train_sequences:0>2}.txt",
         "sequences/{test_sequences:0>2}/{camera}",
         "poses/{test_sequences:0>2}.txt",
+        "sequences/{val_sequences:0>2}/{camera}",
+        "poses/{val_sequences:0>2}.txt",
     )
 
     def __init__(

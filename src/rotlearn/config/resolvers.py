@@ -1,4 +1,5 @@
-"""OmegaConf resolvers used by the configs (registered on import of `rotlearn.cli`)."""
+"""OmegaConf resolvers used by the configs, registered on import of `rotlearn.config` (which
+rotlearn's Hydra plugin imports wherever Hydra composes conf/, and `rotlearn.cli` too)."""
 
 from __future__ import annotations
 
