@@ -5,6 +5,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+import pytest
 import torch
 
 README = Path(__file__).resolve().parents[1] / "README.md"
@@ -42,3 +43,35 @@ def test_the_compose_example_builds_a_validated_config(tmp_path, monkeypatch):
     cfg, model = namespace["cfg"], namespace["model"]
     assert cfg.loss._target_ == "rotlearn.losses.BinghamNLLLoss" and model.head.name == "a"
     assert cfg.paths.output_dir.startswith("outputs/runs/") and not list(tmp_path.iterdir())
+
+
+GROUP_TABLES = [README, README.parent / "docs" / "guide" / "commands.md"]
+CONF = README.parent / "conf"
+
+
+def table_options(cell: str) -> set[str]:
+    """The options a cell names: each `name`; `x` (+ `_s`) also x_s, `x`, `y` (each + `_s`)
+    also x_s and y_s (the names since the last such note); other parentheses are comments."""
+    names, since = set(), []
+    for m in re.finditer(r"\((each )?\+ `(\w+)`\)|\([^)]*\)|`(\w+)`", cell):
+        if m[2]:
+            names |= {n + m[2] for n in (since if m[1] else since[-1:])}
+            since = []
+        elif m[3]:
+            names.add(m[3])
+            since.append(m[3])
+    return names
+
+
+@pytest.mark.parametrize("doc", GROUP_TABLES, ids=lambda p: p.name)
+def test_the_config_group_tables_list_every_option_and_no_other(doc):
+    """The group table (`| group | options | ...`) of the README and of the guide names exactly
+    the options in conf/<group>/ for each group, and has a row for every group of conf/."""
+    table = doc.read_text().split("\n| group ", 1)[1].split("\n\n", 1)[0]
+    listed = {}
+    for groups, cell in re.findall(r"^\| ((?:`\w+`(?: / )?)+) \| ([^|]*) \|", table, flags=re.M):
+        for group, part in zip(re.findall(r"`(\w+)`", groups), cell.split(" / "), strict=True):
+            listed[group] = table_options(part)
+    real = {p.name: {f.stem for f in p.glob("*.yaml")} for p in CONF.iterdir() if p.is_dir()}
+    del real["hydra"]  # launcher plugins' configs, not a group of train.yaml
+    assert listed == real
