@@ -3,7 +3,8 @@
 Each module `rotlearn.data.demo.<name>` that defines `write_demo(out, seed) -> list[Path]` writes
 the dataset `<name>` under `<out>/<name>` in the layout its reader (`rotlearn.data.<name>`)
 expects; see that module for the layout. The same seed writes the same files. Each dataset
-appears under its final name only when complete.
+appears under its final name only when complete, and replaces an existing `<out>/<name>` only if
+this command wrote it (it holds `.rotlearn-demo`); anything else there is refused, untouched.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import argparse
 import importlib
 import inspect
 import pkgutil
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -75,6 +77,9 @@ def main(argv: list[str] | None = None) -> int:
             roots = writers[name](args.out, seed=args.seed, **options)
         except ValueError as exc:
             parser.error(f"{name}: {exc}")
+        except OSError as exc:  # an --out that cannot be written, or holds other data
+            print(f"rotlearn-make-demo-data: {name}: {exc}", file=sys.stderr)
+            return 1
         seconds = time.perf_counter() - start
         print(f"{name}: {', '.join(map(str, roots))} ({seconds:.1f} s)")
     return 0

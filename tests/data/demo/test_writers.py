@@ -331,6 +331,24 @@ def test_an_interrupted_rewrite_keeps_the_old_dataset_and_a_finished_one_replace
     assert [p.name for p in tmp_path.iterdir()] == ["kitti"]
 
 
+def test_a_folder_the_writer_did_not_make_is_never_replaced(tmp_path, monkeypatch, capsys):
+    """`<out>/kitti` (or `<out>/mav`) that is no demo dataset (no DEMO_MARK: a user's own data,
+    or a file) is refused before anything is rendered, and left as it was."""
+    mine = tmp_path / "kitti"
+    mine.mkdir()
+    (mine / "real_data.txt").write_text("mine")
+    (tmp_path / "mav").write_text("a file")
+    monkeypatch.setattr(cv2, "imwrite", lambda *a, **k: pytest.fail("rendered"))
+    assert main(["--out", str(tmp_path), "--only", "kitti"]) == 1
+    err = capsys.readouterr().err
+    assert f"{mine} exists and is not a demo dataset rotlearn wrote" in err
+    assert err.count("\n") == 1 and "Traceback" not in err
+    with pytest.raises(FileExistsError, match="mav exists and is not a demo dataset"):
+        write_mav_demo(tmp_path, **MAV)
+    assert (mine / "real_data.txt").read_text() == "mine" and (tmp_path / "mav").is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["kitti", "mav"]
+
+
 def test_every_dataset_with_a_demo_module_is_offered():
     assert list(demo_writers()) == ["kitti", "mav", "shapenet"]
 

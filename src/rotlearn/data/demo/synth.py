@@ -28,6 +28,7 @@ from rotlearn.geometry import quat_multiply, quat_to_rotmat, so3_exp, so3_exp_qu
 cv2 = import_extra("cv2", "the demo-data renderer")
 
 __all__ = [
+    "DEMO_MARK",
     "HFOV_DEG",
     "airplane_mesh",
     "camera_matrix",
@@ -47,8 +48,12 @@ HFOV_DEG = 80.0  # horizontal field of view of every demo camera
 # ---- staging: a dataset appears under its final name only when complete -------------------------
 
 
+DEMO_MARK = ".rotlearn-demo"  # in every dataset a demo writer made: only those are rewritten
+
+
 def _replace_dir(new: Path, final: Path) -> None:
-    """Rename `new` to `final`; an existing `final` is first renamed aside, then removed."""
+    """Rename `new` to `final`; an existing `final` (a demo dataset: `_check_replaceable`) is
+    first renamed aside, then removed."""
     if not final.exists():
         os.replace(new, final)
         return
@@ -59,16 +64,32 @@ def _replace_dir(new: Path, final: Path) -> None:
     shutil.rmtree(old)
 
 
+def _check_replaceable(final: Path) -> None:
+    """Refuse to replace `final` unless it is absent or a demo dataset (it holds `DEMO_MARK`):
+    whatever else a user keeps there is never deleted."""
+    if os.path.lexists(final) and not (final.is_dir() and (final / DEMO_MARK).is_file()):
+        raise FileExistsError(
+            f"{final} exists and is not a demo dataset rotlearn wrote (no {DEMO_MARK} in it); "
+            "nothing was written: move it away or choose another --out"
+        )
+
+
 @contextmanager
 def staged(out: Path, label: str, names: Sequence[str]) -> Iterator[Path]:
-    """Yield an empty staging folder `<out>/.<label>.tmp-<pid>`; on success move each
-    `<stage>/<name>` to `<out>/<name>`. The staging folder is removed in every case."""
+    """Yield an empty staging folder `<out>/.<label>.tmp-<pid>`; on success mark each
+    `<stage>/<name>` (`DEMO_MARK`) and move it to `<out>/<name>`, which must be absent or an
+    earlier demo dataset (checked first, before anything is written). The staging folder is
+    removed in every case."""
+    for name in names:
+        _check_replaceable(out / name)
     stage = out / f".{label}.tmp-{os.getpid()}"
     shutil.rmtree(stage, ignore_errors=True)
     stage.mkdir(parents=True)
     try:
         yield stage
         for name in names:
+            (stage / name / DEMO_MARK).write_text("written by rotlearn-make-demo-data\n")
+            _check_replaceable(out / name)  # again: something may have appeared meanwhile
             _replace_dir(stage / name, out / name)
     finally:
         shutil.rmtree(stage, ignore_errors=True)
