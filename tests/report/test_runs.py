@@ -136,3 +136,16 @@ def test_an_auto_encoder_run_is_reported_by_its_reconstruction_error(tmp_path):
     assert "| optim.lr=0.001 | 1 | 0.500 | 0.500 | 0.500 |" in report
     single = collect_runs(tmp_path / "sweep" / "0")
     assert list(single["setting"]) == ["autoencoder"]
+
+
+def test_a_run_given_twice_is_reported_once_and_a_damaged_status_is_ignored(tmp_path, caplog):
+    """`rotlearn-report <sweep> <sweep>` or `<sweep> <sweep>/0` counts each run once; a
+    status.json whose status is no string (a received run) is ignored with a warning, not a
+    traceback."""
+    _grid(tmp_path / "sweep")
+    sweep = tmp_path / "sweep"
+    assert len(collect_runs([sweep, sweep])) == len(collect_runs([sweep, sweep / "0"])) == 8
+    (sweep / "0" / "status.json").write_text(json.dumps({"status": 7}))
+    report = make_report(sweep)["report"].read_text()
+    assert "8 jobs: 8 completed." in report  # its metrics.json says it finished
+    assert "status.json: status is not a string; ignored" in caplog.text

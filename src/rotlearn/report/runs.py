@@ -160,7 +160,12 @@ def collect_runs(
         pool: more trial keys (pooled within a group).
     """
     roots = _roots(root)
-    runs = [(r, run) for r in roots for run in run_dirs(r)]
+    runs, seen = [], set()
+    for sweep in roots:
+        for run in run_dirs(sweep):
+            if run.resolve() not in seen:  # a run given twice (`<sweep> <sweep>/0`): once
+                seen.add(run.resolve())
+                runs.append((sweep, run))
     rows, configs, flats, choices = [], [], [], []
     for sweep, run in runs:
         evaluated = read_yaml(run / EVALUATED_FILE, run=run)  # an evaluation: the run it evaluated
@@ -169,6 +174,9 @@ def collect_runs(
         overrides = read_yaml(run / ".hydra" / "overrides.yaml", "overrides file")
         overrides = [str(o) for o in overrides] if isinstance(overrides, list) else []
         metrics, status = _record(run, "metrics.json"), _record(run, "status.json")
+        if not isinstance(status.get("status", ""), str):
+            log.warning("%s: status is not a string; ignored", run / "status.json")
+            status = {}
         state = status.get("status") or ("COMPLETED" if metrics else "INCOMPLETE")
         rows.append(
             {
