@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -431,12 +432,20 @@ def test_predict_command_reports_the_temperature(calibrated_run, tmp_path, capsy
     assert "temperature 2.5" in capsys.readouterr().out
 
 
-def test_load_of_several_runs_is_their_ensemble_and_calibrates_on_held_out_data(trained_runs):
-    """rotlearn.load([run, run]): the product of two identical beliefs (A doubled, the same
-    rotation, no disagreement); Predictor.calibrate fits its temperature and level map."""
+def test_load_of_several_runs_is_their_ensemble_and_calibrates_on_held_out_data(
+    trained_runs, tmp_path
+):
+    """rotlearn.load([run, its copy]): the product of two identical beliefs (A doubled, the
+    same rotation, no disagreement); Predictor.calibrate fits its temperature and level map. The
+    same run listed twice is refused (its belief would count twice)."""
     x = _points(64)
     single = rotlearn.load(trained_runs["a"])(x)
-    ensemble = rotlearn.load([trained_runs["a"], trained_runs["a"]])
+    for twice in ([trained_runs["a"]] * 2, [trained_runs["a"], trained_runs["a"] / "checkpoints"
+                                              / "last.ckpt"]):  # fmt: skip
+        with pytest.raises(ValueError, match=r"is .* again \(.*last\.ckpt\): each member of an"):
+            rotlearn.load(twice)
+    copy = shutil.copytree(trained_runs["a"], tmp_path / "copy")
+    ensemble = rotlearn.load([trained_runs["a"], copy])
     estimate = ensemble(x)
     torch.testing.assert_close(estimate.A, 2 * single.A)
     torch.testing.assert_close(estimate.R, single.R)

@@ -367,7 +367,8 @@ def ensemble_members(
     `load_run` (the same checks as `load`), weights and temperatures applied.
 
     Raises:
-        ValueError: no runs, or a member whose head has no belief.
+        ValueError: no runs, a checkpoint listed twice (its belief would count twice), or a
+            member whose head has no belief.
     """
     from rotlearn.heads import EnsembleHead
     from rotlearn.nets import EnsembleNet
@@ -375,6 +376,11 @@ def ensemble_members(
     if not paths:
         raise ValueError("an ensemble needs at least one run")
     runs = [load_run(p, task="rotation") for p in paths]
+    files = [run.path.resolve() for run in runs]
+    for later, file in enumerate(files):
+        if (first := files.index(file)) < later:  # its belief would count twice
+            raise ValueError(f"{paths[later]} is {paths[first]} again ({file}): each member of "
+                             "an ensemble must be another run")  # fmt: skip
     nets, heads = [], []
     for run in runs:
         net, head = run.build("net"), run.build("rep", prefix="head")  # weights checked, loaded
