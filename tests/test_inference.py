@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import shutil
 from pathlib import Path
 
@@ -462,3 +463,28 @@ def test_load_of_several_runs_is_their_ensemble_and_calibrates_on_held_out_data(
     assert 0.0 <= float(calibrated.credible_mass(0.9)) <= 1.0
     with pytest.raises(ValueError, match="no belief"):
         rotlearn.load([trained_runs["a"], trained_runs["sixd"]])
+
+
+NO_CUDA = r"--device cuda:99: this machine has (no CUDA device|\d+ CUDA device)"
+
+
+@pytest.mark.parametrize(
+    ("device", "message"), [("bogus", r"--device bogus: not a device name"), ("cuda:99", NO_CUDA)]
+)
+def test_predict_refuses_a_device_it_cannot_use_in_one_line(
+    calibrated_run, tmp_path, capsys, device, message
+):
+    path = tmp_path / "pairs.npy"
+    np.save(path, _points(1)[0].numpy())
+    assert predict_main([str(calibrated_run), str(path), "--device", device]) == 2
+    err = capsys.readouterr().err
+    assert re.search(message, err) and err.count("\n") == 1
+
+
+def test_predict_answers_inputs_the_net_overflows_on_in_one_line(calibrated_run, tmp_path, capsys):
+    path = tmp_path / "huge.npy"
+    np.save(path, np.full((1, 8, 6), 1e300))
+    assert predict_main([str(calibrated_run), str(path)]) == 2
+    assert capsys.readouterr().err == (
+        "rotlearn-predict: the network output is not finite for these inputs\n"
+    )
