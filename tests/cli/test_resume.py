@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 import pytest
+import yaml
 
 from rotlearn.cli.resume import keep_earlier_records, resume_arguments
 from tests.conftest import (
@@ -240,3 +241,30 @@ def test_a_run_file_of_many_unknown_keys_is_refused_in_one_composition(tmp_path)
     (run / "status.json").write_text(json.dumps({"status": "INTERRUPTED"}))
     with within(20), pytest.raises(SystemExit, match=r"overrides\.yaml: the overrides do not"):
         resume_arguments([f"ckpt_path={run}", "optim.amsgrad=true"])
+
+
+def test_a_damaged_overrides_file_does_not_resume_the_run_under_other_settings(
+    tmp_path, finished_run, monkeypatch
+):
+    """A run whose .hydra/overrides.yaml lost a line (here data=tiny) composes another config
+    than the one it trained: the resume is refused, naming the key and both files, and the run
+    is left byte-identical (before, it resumed the checkpoint on the default data)."""
+    run = copy_run(finished_run, tmp_path / "outputs" / "runs" / "cut", resumable=True)
+    overrides = run / ".hydra" / "overrides.yaml"
+    kept = [o for o in yaml.safe_load(overrides.read_text()) if o != "data=tiny"]
+    overrides.write_text(yaml.safe_dump(kept))
+    before = _hashes(run)
+    monkeypatch.chdir(tmp_path)
+    refused = (
+        r"refusing to resume .*config key data\.batch_size: .*overrides\.yaml composes 100,"
+        r" but the run trained with 8 \(.*config\.yaml\): the overrides file is damaged"
+    )
+    with pytest.raises(SystemExit, match=refused):
+        resume_arguments([f"ckpt_path={run}", "trainer.max_epochs=2"], run.parent)
+    assert _hashes(run) == before
+    # the command line may change what it names: the run's own overrides then resume it
+    overrides.write_text(yaml.safe_dump([*kept, "data=tiny"]))
+    args = resume_arguments(
+        [f"ckpt_path={run}", "trainer.max_epochs=2"], tmp_path / "outputs" / "runs"
+    )
+    assert "trainer.max_epochs=2" in args

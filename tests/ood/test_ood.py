@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import re
+import shutil
 import sys
 from pathlib import Path
 
@@ -255,7 +256,8 @@ def test_the_rotlearn_eval_command_takes_a_list_of_runs_and_names_a_missing_memb
 
     run_dir, _ = trained_run
     monkeypatch.chdir(tmp_path)
-    args = [f"ckpt=[{run_dir},{run_dir}/checkpoints/last.ckpt]", f"hydra.run.dir={tmp_path / 'e'}"]
+    copy = shutil.copytree(run_dir, tmp_path / "copy")  # another run (the same one is refused)
+    args = [f"ckpt=[{run_dir},{copy}/checkpoints/last.ckpt]", f"hydra.run.dir={tmp_path / 'e'}"]
     assert _checked(args) == args
     missing = tmp_path / "nowhere"
     refusal = re.escape(f"ckpt: no checkpoint at {missing} (nothing was written)")

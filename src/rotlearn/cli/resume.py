@@ -287,6 +287,7 @@ def _check_the_config_that_runs(
         raise _refuse(f"ckpt_path: {exc}") from None
     try:
         validate(cfg)
+        _check_it_is_the_config_the_run_trained(cfg, run_dir, new)
         check_placement(cfg, run_dir, trusted=user_keys(new))
         checkpoint = load_checkpoint(ckpt)
         checked_checkpoint_states(checkpoint, _model_checkpoints(cfg), run_dir, ckpt)
@@ -299,6 +300,38 @@ def _check_the_config_that_runs(
             f"refusing to resume {run_dir}: {reason[0] if reason else type(exc).__name__}"
         ) from None
     return args
+
+
+def _check_it_is_the_config_the_run_trained(cfg: DictConfig, run_dir: Path, new: list[str]):
+    """The run's saved overrides compose to the config it trained (`.hydra/config.yaml`) in
+    every key both have, but the paths and what the new command line sets: a damaged overrides
+    file (emptied, cut short) would resume the checkpoint under other settings.
+
+    Raises:
+        ConfigError: naming the first key that differs, both values and both files.
+    """
+    from omegaconf import OmegaConf
+
+    from rotlearn.io import read_yaml
+    from rotlearn.report.runs import flatten
+
+    source = run_dir / ".hydra" / "config.yaml"
+    if not os.path.lexists(source):  # nothing to hold the overrides to (Hydra writes both)
+        return
+    saved = flatten(read_yaml(source, root=run_dir) or {})
+    composed = flatten(OmegaConf.to_container(cfg, resolve=False))
+    changed = {o.lstrip("+~").split("=", 1)[0].replace("/", ".") for o in new}
+    for key in sorted(saved.keys() & composed.keys(), key=lambda k: (k[-8:] != "_target_", k)):
+        if key.split(".")[0] in ("paths", "ckpt_path") or any(
+            key == c or key.startswith(f"{c}.") for c in changed
+        ):
+            continue
+        if saved[key] != composed[key]:
+            why = "the overrides file is damaged, or rotlearn's defaults changed since"
+            said = f"{run_dir}/.hydra/overrides.yaml composes {composed[key]!r}"
+            raise ConfigError(
+                key, f"{said}, but the run trained with {saved[key]!r} ({source}): {why}"
+            )
 
 
 @dataclass(frozen=True)
