@@ -287,8 +287,8 @@ def _check_the_config_that_runs(
         raise _refuse(f"ckpt_path: {exc}") from None
     try:
         validate(cfg)
+        check_placement(cfg, run_dir, trusted=user_keys(new))  # first: a path out is named so
         _check_it_is_the_config_the_run_trained(cfg, run_dir, new)
-        check_placement(cfg, run_dir, trusted=user_keys(new))
         checkpoint = load_checkpoint(ckpt)
         checked_checkpoint_states(checkpoint, _model_checkpoints(cfg), run_dir, ckpt)
         _check_the_weights(cfg, checkpoint, ckpt)
