@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
 import yaml
 
 from rotlearn.report import collect_runs, make_report
@@ -149,3 +150,18 @@ def test_a_run_given_twice_is_reported_once_and_a_damaged_status_is_ignored(tmp_
     report = make_report(sweep)["report"].read_text()
     assert "8 jobs: 8 completed." in report  # its metrics.json says it finished
     assert "status.json: status is not a string; ignored" in caplog.text
+
+
+def test_group_by_a_key_no_run_has_is_refused_naming_the_nearest(tmp_path, capsys):
+    """--group-by nosuch pooled every run into one row before; now it is refused in one line."""
+    from rotlearn.cli.report import main
+
+    _grid(tmp_path / "sweep")
+    with pytest.raises(ValueError, match=r"--group-by optim\.lrr: no run has this config key; "
+                       r"did you mean optim\.lr\?"):  # fmt: skip
+        collect_runs(tmp_path / "sweep", group_by=["optim.lrr"])
+    assert main([str(tmp_path / "sweep"), "--group-by", "nosuch.key"]) == 2
+    assert capsys.readouterr().err == (
+        "rotlearn-report: --group-by nosuch.key: no run has this config key\n"
+    )
+    assert not (tmp_path / "sweep" / "report.md").exists()

@@ -15,6 +15,7 @@ callbacks.ood.autoencoder_ckpt=kitti_ae`, not `quat callbacks.ood.autoencoder_ck
 
 from __future__ import annotations
 
+import difflib
 import logging
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -243,9 +244,17 @@ def _grouping_keys(
     group_by: Sequence[str] | None,
     pool: Sequence[str],
 ) -> list[str]:
-    """The config keys that make the groups (module docstring), sorted."""
+    """The config keys that make the groups (module docstring), sorted.
+
+    Raises:
+        ValueError: a `group_by` key that no run has (nor any key below it).
+    """
     keys = sorted({k for flat in flats for k in flat})
     if group_by is not None:
+        for spec in (s for s in group_by if flats and not any(_matches(k, [s]) for k in keys)):
+            near = difflib.get_close_matches(spec, keys, n=1)
+            hint = f"; did you mean {near[0]}?" if near else ""
+            raise ValueError(f"--group-by {spec}: no run has this config key{hint}")
         return [k for k in keys if _matches(k, group_by)]
     trial = [*layout["trial_keys"], *pool]
     differ = [k for k in keys if len({repr(f.get(k, _MISSING)) for f in flats}) > 1]
