@@ -313,19 +313,18 @@ def _check_it_is_the_config_the_run_trained(cfg: DictConfig, run_dir: Path, new:
     from omegaconf import OmegaConf
 
     from rotlearn.io import read_yaml
-    from rotlearn.report.runs import flatten
+    from rotlearn.report.identity import parse_override
+    from rotlearn.report.runs import flatten, matches
 
     source = run_dir / ".hydra" / "config.yaml"
     if not os.path.lexists(source):  # nothing to hold the overrides to (Hydra writes both)
         return
     saved = flatten(read_yaml(source, root=run_dir) or {})
     composed = flatten(OmegaConf.to_container(cfg, resolve=False))
-    changed = {o.lstrip("+~").split("=", 1)[0].replace("/", ".") for o in new}
-    for key in sorted(saved.keys() & composed.keys(), key=lambda k: (k[-8:] != "_target_", k)):
-        if key.split(".")[0] in ("paths", "ckpt_path") or any(
-            key == c or key.startswith(f"{c}.") for c in changed
-        ):
-            continue
+    set_now = [key.replace("/", ".") for key, _ in filter(None, map(parse_override, new))]
+    skipped = ["paths", "ckpt_path", *set_now]
+    shared = sorted(saved.keys() & composed.keys(), key=lambda k: (not k.endswith("_target_"), k))
+    for key in (k for k in shared if not matches(k, skipped)):
         if saved[key] != composed[key]:
             why = "the overrides file is damaged, or rotlearn's defaults changed since"
             said = f"{run_dir}/.hydra/overrides.yaml composes {composed[key]!r}"

@@ -35,6 +35,7 @@ __all__ = [
     "collect_runs",
     "label_without",
     "layout_of",
+    "matches",
     "run_dirs",
 ]
 
@@ -137,7 +138,7 @@ def _roots(root: str | Path | Sequence[str | Path]) -> list[Path]:
     return [Path(r) for r in root] if isinstance(root, (list, tuple)) else [Path(root)]
 
 
-def _matches(key: str, specs: Sequence[str]) -> bool:
+def matches(key: str, specs: Sequence[str]) -> bool:
     """`key` is one of `specs`, or lies below one (`rep` matches `rep.name`)."""
     return any(key == spec or key.startswith(f"{spec}.") for spec in specs)
 
@@ -164,8 +165,8 @@ def collect_runs(
     runs, seen = [], set()
     for sweep in roots:
         for run in run_dirs(sweep):
-            if run.resolve() not in seen:  # a run given twice (`<sweep> <sweep>/0`): once
-                seen.add(run.resolve())
+            if (where := run.resolve()) not in seen:  # a run given twice: reported once
+                seen.add(where)
                 runs.append((sweep, run))
     rows, configs, flats, choices = [], [], [], []
     for sweep, run in runs:
@@ -225,7 +226,7 @@ def label_without(frame: pd.DataFrame, keys: Sequence[str]) -> pd.Series:
     parts = frame.attrs.get("label_parts", {})
 
     def label(row: pd.Series) -> str:
-        kept = [p for key, p in parts.get(row["dir"], []) if not _matches(key, keys)]
+        kept = [p for key, p in parts.get(row["dir"], []) if not matches(key, keys)]
         return " ".join(kept) or "all"
 
     return frame.apply(label, axis=1) if len(frame) else pd.Series(dtype=str)
@@ -251,14 +252,14 @@ def _grouping_keys(
     """
     keys = sorted({k for flat in flats for k in flat})
     if group_by is not None:
-        for spec in (s for s in group_by if flats and not any(_matches(k, [s]) for k in keys)):
+        for spec in (s for s in group_by if flats and not any(matches(k, [s]) for k in keys)):
             near = difflib.get_close_matches(spec, keys, n=1)
             hint = f"; did you mean {near[0]}?" if near else ""
             raise ValueError(f"--group-by {spec}: no run has this config key{hint}")
-        return [k for k in keys if _matches(k, group_by)]
+        return [k for k in keys if matches(k, group_by)]
     trial = [*layout["trial_keys"], *pool]
     differ = [k for k in keys if len({repr(f.get(k, _MISSING)) for f in flats}) > 1]
-    return [k for k in differ if not _matches(k, trial)]
+    return [k for k in differ if not matches(k, trial)]
 
 
 def _settings(
@@ -275,7 +276,7 @@ def _settings(
     lead = str(layout.get("lead") or "")
     trial = layout["trial_keys"]
     keys = sorted({k for flat in flats for k in flat})
-    shown = [k for k in keys if k == lead or k in grouping or _matches(k, trial)]
+    shown = [k for k in keys if k == lead or k in grouping or matches(k, trial)]
     lead_node = lead.split(".")[0]
     grouped_nodes = {k.split(".")[0] for k in grouping}
     # a group's option names the setting only where it differs (else two settings that differ in
