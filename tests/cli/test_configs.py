@@ -164,6 +164,19 @@ def test_unknown_rep_lists_the_allowed_options(make_cfg):
         make_cfg(["rep=head_schema"])  # schemas are no options
 
 
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("optim.lr=[1", r"config key optim\.lr: cannot read 'optim\.lr=\[1' \(no viable "),
+        ("data.root=a,b]", r"config key data\.root: cannot read 'data\.root=a,b\]' \("),
+        ("lr", r"config key lr: 'lr' is no key=value; a value with brackets"),
+    ],
+)
+def test_an_override_the_grammar_cannot_read_is_named(make_cfg, override, message):
+    with pytest.raises(ConfigError, match=message):
+        make_cfg([override])
+
+
 def test_plain_hydra_compose_needs_no_rotlearn_import_first(tmp_path):
     """conf/ composes with Hydra alone (the schemas and the configs' `${rl.*:}` resolvers
     register through rotlearn's Hydra plugin), in a fresh interpreter that imports nothing of

@@ -39,6 +39,9 @@ EXPECTED = {
                      rf"{KITTI}"),
     "incomplete dataset": (1, r"^rotlearn-train: config key data\.train_sequences: .*/kitti/"
                            rf"sequences/02/image_2 does not exist; {KITTI}"),
+    "an override the grammar cannot read": (1, r"^rotlearn-train: config key optim\.lr: cannot "
+                                            r"read 'optim\.lr=\[1' \(no viable alternative at "
+                                            r"input '\[1'\); a value with brackets, .* is quoted"),
     "value out of range": (1, r"^rotlearn-train: config key data\.batch_size: should be greater "
                            r"than 0, got 0 \(nothing was written\)$"),
     "calibrate without a belief": (1, r"^rotlearn-train: config key calibrate: fits the "
@@ -47,6 +50,10 @@ EXPECTED = {
                                          r"loss=bingham needs a head that defines a belief \(rep="
                                          r"a or rep=fisher\); rep=sixd does not"),
     "eval without ckpt": (1, r"^rotlearn-eval: ckpt=<run directory or \.ckpt file> is missing"),
+    "eval with an empty ckpt": (1, r"^rotlearn-eval: ckpt is empty; pass a run directory or "
+                                r"a \.ckpt file$"),
+    "eval with an unclosed list of runs": (1, r"^rotlearn-eval: ckpt: \[.*not_a_run,.*sweep is "
+                                           r"not a list of runs \(no viable alternative"),
     "eval of a folder that is no run": (1, r"^rotlearn-eval: ckpt: .*not_a_run is not a rotlearn "
                                         r"run: it has no checkpoints/last\.ckpt"),
     "eval of a sweep directory": (1, r"^rotlearn-eval: ckpt: .*sweep is a sweep directory, not "

@@ -293,15 +293,18 @@ def _first_look(cfg: DictConfig) -> None:
 def _ckpt_values(value: str) -> list[str]:
     """The checkpoint paths of a `ckpt=` value: one path, or Hydra's list `[<run>,<run>,...]`
     (parsed by Hydra's own override grammar, so quoting works as on the command line)."""
+    if not value.strip():
+        raise SystemExit("rotlearn-eval: ckpt is empty; pass a run directory or a .ckpt file")
     if not value.lstrip().startswith("["):
         return [value]
     from hydra.core.override_parser.overrides_parser import OverridesParser
-    from hydra.errors import OverrideParseException
+    from hydra.errors import HydraException
 
     try:
         parsed = OverridesParser.create().parse_override(f"ckpt={value}").value()
-    except OverrideParseException as exc:
-        raise SystemExit(f"rotlearn-eval: ckpt: {value} is not a list of runs ({exc})") from None
+    except HydraException as exc:  # the grammar's own (no viable alternative ...), one line
+        why = str(exc).splitlines()[0].split(" expecting ")[0]
+        raise SystemExit(f"rotlearn-eval: ckpt: {value} is not a list of runs ({why})") from None
     if not isinstance(parsed, list) or not parsed:
         raise SystemExit(f"rotlearn-eval: ckpt: {value} is not a list of runs")
     return [str(v) for v in parsed]

@@ -86,9 +86,24 @@ def register_schemas() -> tuple[str, ...]:
 
 
 def _parse(overrides: Sequence[str]) -> list[Any]:
+    """Hydra's parse of each override; `ConfigError` names one its grammar cannot read."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
 
-    return OverridesParser.create().parse_overrides(list(overrides))
+    parser = OverridesParser.create()
+    try:
+        return parser.parse_overrides(list(overrides))
+    except HydraException as exc:  # OverrideParseException: which argument, and where
+        text = getattr(exc, "override", None) or str(exc)
+        key, equal, _ = text.lstrip("+~").partition("=")
+        said = str(exc).splitlines()[0].removeprefix(f"Error parsing override '{text}'")
+        why = (said or str(exc).splitlines()[1]).split(" expecting ")[0].strip()
+        what = f"cannot read {text!r} ({why})" if equal else f"{text!r} is no key=value"
+        raise ConfigError(
+            key if equal and key else text,
+            f"{what}; a value with brackets, braces, commas, spaces or '=' is quoted, e.g. "
+            "key='[a, b]' (Hydra's override grammar)",
+        ) from None
 
 
 def _compose(
