@@ -211,6 +211,23 @@ def test_predict_command_names_the_bad_line(trained_runs, tmp_path, capsys):
     assert predict_main([str(trained_runs["a"]), os.fspath(tmp_path / "absent.txt")]) == 2
 
 
+def test_predict_command_says_what_a_point_model_reads(trained_runs, tmp_path, capsys):
+    image = tmp_path / "000000.png"
+    image.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(64))
+    objects = tmp_path / "objects.npy"
+    np.save(objects, np.array([[None] * 6], dtype=object), allow_pickle=True)
+    cases = {
+        image: f"{image}:1: not UTF-8 text (byte 0); a point model reads a .npy array (N, 6) or "
+        "(B, N, 6) or text rows 'ux uy uz vx vy vz'",
+        objects: f"{objects}: holds Python objects, which rotlearn never unpickles",
+        tmp_path: f"{tmp_path}: a folder; a point model reads one point-pair file",
+    }
+    for path, message in cases.items():
+        assert predict_main([str(trained_runs["a"]), str(path)]) == 2
+        err = capsys.readouterr().err
+        assert err == f"rotlearn-predict: {message}\n" and "allow_pickle" not in err
+
+
 def test_large_batches_run_in_chunks_of_bounded_size(trained_runs):
     """Memory is bounded for any batch: the network sees chunks of at most chunk_elements input
     numbers, and the result equals one pass over the whole batch."""

@@ -20,6 +20,7 @@ from rotlearn.io import (
     atomic_write,
     read_bytes,
     read_json,
+    read_number_array,
     read_record,
     read_yaml,
     rewrite_in_place,
@@ -93,6 +94,65 @@ def test_a_malformed_record_or_config_is_named(tmp_path, name, text, reason):
     with within(10), pytest.raises(UnreadableFileError, match=reason) as info:
         read(path)
     assert str(path) in str(info.value)
+
+
+def _npy(array: np.ndarray, **kwargs) -> bytes:
+    import io as bytes_io
+
+    buffer = bytes_io.BytesIO()
+    np.save(buffer, array, **kwargs)
+    return buffer.getvalue()
+
+
+_ROWS = np.arange(30, dtype=np.float32).reshape(5, 6)
+_NAN = np.zeros((2, 3, 6))
+_NAN[1, 2, 4] = np.nan
+_GENUINE = _npy(_ROWS)
+
+
+@pytest.mark.parametrize(
+    ("data", "reason"),
+    [
+        (_npy(np.array([[object()] * 6], dtype=object), allow_pickle=True), "Python objects"),
+        (b"\x80\x04\x95" + bytes(40), r"not a \.npy array \(the magic string"),  # a pickle
+        (b"PK\x03\x04" + bytes(40), r"a \.npz archive, not one \.npy array"),
+        (_GENUINE[:-8], r"says \(5, 6\) float32 \(120 bytes\) but 112 bytes follow"),
+        (_GENUINE + bytes(8), r"but 128 bytes follow"),
+        (_GENUINE.replace(b"(5, 6)", b"(9**99,)"), "not a .npy array"),  # no literal shape
+        (
+            _GENUINE.replace(b"(5, 6), ", b"(99999999999, 6),"),
+            r"\(99999999999, 6\) float32 \(2399999999976 bytes\) but",
+        ),
+        (_GENUINE.replace(b"'<f4'", b"'<c8'"), r"holds complex64 values, not real numbers"),
+        (_npy(np.ones((2, 6), bool)), "holds bool values"),
+        (_npy(np.array([["a"] * 6])), "holds <U1 values"),
+        (_npy(np.ones((4, 5))), r"shape \(N, 6\) or \(B, N, 6\), got \(4, 5\)"),
+        (_npy(np.ones(6)), r"got \(6,\)"),
+        (_npy(_NAN), r"row \[1, 2\] is not finite \(x\): \[0\.0, 0\.0, 0\.0, 0\.0, nan, 0\.0\]"),
+        (_npy(np.full((1, 6), 1e300)), None),  # genuine: large, finite
+    ],
+)
+def test_a_number_array_file_is_read_bounded_and_never_unpickled(tmp_path, data, reason):
+    path = tmp_path / "pairs.npy"
+    path.write_bytes(data)
+    if reason is None:
+        assert read_number_array(path, 6, "x").shape == (1, 6)
+        return
+    with within(5), pytest.raises(ValueError, match=reason) as info:
+        read_number_array(path, 6, "x")
+    assert str(path) in str(info.value)
+
+
+def test_a_genuine_number_array_reads_in_either_order_as_float64(tmp_path):
+    for order in ("C", "F"):
+        path = tmp_path / f"{order}.npy"
+        path.write_bytes(_npy(np.asarray(_ROWS, order=order)))
+        read = read_number_array(path, 6, "x")
+        assert read.dtype == np.float64 and np.array_equal(read, _ROWS)
+    fifo = tmp_path / "fifo.npy"
+    os.mkfifo(fifo)
+    with within(5), pytest.raises(UnreadableFileError, match="a named pipe"):
+        read_number_array(fifo, 6, "x")
 
 
 def test_metrics_may_hold_nan(tmp_path):

@@ -43,6 +43,7 @@ __all__ = [
     "read_cached_array",
     "read_json",
     "read_manifest",
+    "read_number_array",
     "read_number_rows",
     "read_record",
     "read_table",
@@ -71,6 +72,7 @@ MAX_BYTES: dict[str, int] = {
     "overrides file": 256 * _KIB,  # .hydra/overrides.yaml: one run's command line
     "CSV table": 256 * _MIB,  # ood.csv, ood_samples.csv, csv/metrics.csv
     "text file": 256 * _MIB,  # a dataset's text files (poses, frame lists, point clouds)
+    "number array": 256 * _MIB,  # a .npy array of numbers (rotlearn-predict's point pairs)
     "checkpoint": 4 * _GIB,  # a .ckpt on disk, and its records once decompressed
     "calibration record": 4 * _KIB,  # checkpoints/temperature.json, ood_thresholds.json
     "TensorBoard events": 1 * _GIB,  # a run's tensorboard/ folder, all event files together
@@ -556,6 +558,60 @@ def read_number_rows(
         if words:
             rows.append((lineno, words))
     return parse_number_rows(rows, str(path), width, layout, extra_ok, dtype)
+
+
+def read_number_array(path: str | os.PathLike, width: int, layout: str) -> np.ndarray:
+    """A `.npy` file of rows of `width` real numbers, (N, width) or (B, N, width) float64, all
+    finite. Read bounded (`read_bytes`, "number array") and parsed from numpy's header, whose
+    shape and dtype are checked against the bytes that follow before anything is allocated;
+    never unpickled.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: naming the file: not a regular file or too large, not one `.npy` array (a
+            `.npz` archive, a pickle, a header that does not match its data), Python objects,
+            numbers that are not real (complex, bool, text), another shape, or the index of the
+            first row with a NaN or an infinity.
+    """
+    import io
+
+    from numpy.lib import format as npy
+
+    if not os.path.lexists(path):
+        raise FileNotFoundError(f"no input file at {path}")
+    data = read_bytes(path, "number array")
+    stream = io.BytesIO(data)
+    if data.startswith(b"PK"):
+        raise UnreadableFileError(f"{path}: a .npz archive, not one .npy array (numpy.save one)")
+    try:
+        version = npy.read_magic(stream)
+        header = {(1, 0): npy.read_array_header_1_0, (2, 0): npy.read_array_header_2_0}[version]
+        shape, fortran, dtype = header(stream)
+    except (ValueError, KeyError, EOFError) as exc:
+        why = f"version {exc}" if isinstance(exc, KeyError) else str(exc).splitlines()[0]
+        raise UnreadableFileError(f"{path}: not a .npy array ({why})") from None
+    if dtype.hasobject:
+        raise UnreadableFileError(f"{path}: holds Python objects, which rotlearn never unpickles")
+    if dtype.kind not in "iuf" or dtype.names is not None:
+        raise ValueError(f"{path}: holds {dtype} values, not real numbers ({layout})")
+    body, size = memoryview(data)[stream.tell() :], int(np.prod(shape)) * dtype.itemsize
+    if len(body) != size:
+        raise UnreadableFileError(
+            f"{path}: its header says {shape} {dtype} ({size} bytes) but {len(body)} bytes follow"
+        )
+    if len(shape) not in (2, 3) or shape[-1] != width:
+        expected = f"(N, {width}) or (B, N, {width})"
+        raise ValueError(f"{path}: expected an array of shape {expected}, got {shape}")
+    array = np.frombuffer(body, dtype).reshape(shape, order="F" if fortran else "C")
+    values = array.astype(np.float64)
+    rows = ~np.isfinite(values).all(axis=-1)
+    if rows.any():
+        at = tuple(int(i) for i in np.argwhere(rows)[0])
+        raise ValueError(
+            f"{path}: row {list(at)} is not finite ({layout}): {values[at].tolist()}; "
+            f"{int(rows.sum())} such row(s) in all"
+        )
+    return values
 
 
 def read_text_lines(path: Path) -> list[str]:

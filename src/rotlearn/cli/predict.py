@@ -30,28 +30,32 @@ from typing import Any
 
 import numpy as np
 
-from rotlearn.io import read_number_rows
+from rotlearn.io import UnreadableFileError, read_number_array, read_number_rows
 from rotlearn.paths import checkpoint_file
 
 __all__ = ["describe", "main", "read_point_pairs", "text_lines"]
 
 
 def read_point_pairs(path: str | Path, width: int = 6) -> np.ndarray:
-    """Read a point-cloud pair file: (N, width) or (B, N, width) float64.
+    """Read a point-cloud pair file: (N, width) or (B, N, width) float64, all finite: a `.npy`
+    array (`rotlearn.io.read_number_array`) or text rows (`rotlearn.io.read_number_rows`).
 
     Raises:
-        ValueError: naming the file and line of the first malformed row.
+        FileNotFoundError: no such file; ValueError: naming the file and the line or row at fault.
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"no input file at {path}")
-    if path.suffix == ".npy":
-        array = np.load(path, allow_pickle=False)
-        if array.ndim not in (2, 3) or array.shape[-1] != width:
-            expected = f"(N, {width}) or (B, N, {width})"
-            raise ValueError(f"{path}: expected an array of shape {expected}, got {array.shape}")
-        return array.astype(np.float64)
-    return read_number_rows(path, width, "ux uy uz vx vy vz", commas=True)
+    layout = "ux uy uz vx vy vz" if width == 6 else f"{width} numbers a row"
+    if path.suffix in (".npy", ".npz"):
+        return read_number_array(path, width, layout)
+    if path.is_dir():
+        raise ValueError(f"{path}: a folder; a point model reads one point-pair file")
+    try:
+        return read_number_rows(path, width, layout, commas=True)
+    except UnreadableFileError as exc:  # not text: say what a point model reads
+        raise UnreadableFileError(
+            f"{exc}; a point model reads a .npy array (N, {width}) or (B, N, {width}) or text "
+            f"rows '{layout}'"
+        ) from None
 
 
 def _read_input(predictor, paths: list[str]):
