@@ -165,3 +165,44 @@ def test_group_by_a_key_no_run_has_is_refused_naming_the_nearest(tmp_path, capsy
         "rotlearn-report: --group-by nosuch.key: no run has this config key\n"
     )
     assert not (tmp_path / "sweep" / "report.md").exists()
+
+
+@pytest.mark.parametrize("damage", ["deleted", "emptied"])
+def test_a_run_whose_config_is_lost_is_reported_apart_and_named(tmp_path, caplog, damage):
+    """A run whose .hydra/config.yaml was deleted was left out of the report without a word; an
+    emptied one made every key of the others' configs 'differ', so each label listed them all.
+    Now either is one '(config unreadable)' row, with a warning naming the file, and the other
+    runs keep their labels."""
+    _grid(tmp_path / "sweep")
+    config = tmp_path / "sweep" / "3" / ".hydra" / "config.yaml"
+    config.unlink() if damage == "deleted" else config.write_text("")
+    runs = collect_runs(tmp_path / "sweep")
+    assert len(runs) == 8 and runs.loc[runs["job"] == "3", "setting"].item() == (
+        "(config unreadable)"
+    )
+    others = {
+        "a optim.lr=0.0001",
+        "a optim.lr=0.001",
+        "sixd optim.lr=0.0001",
+        "sixd optim.lr=0.001",
+    }
+    assert set(runs.loc[runs["job"] != "3", "setting"]) == others
+    assert f"{config}: missing, empty, refused or not a mapping" in caplog.text
+
+
+def test_report_refuses_a_root_or_out_that_is_no_folder_in_one_line(tmp_path, capsys):
+    from rotlearn.cli.report import main
+
+    _grid(tmp_path / "sweep")
+    file = tmp_path / "notes.txt"
+    file.write_text("x\n")
+    cases = {
+        (str(file),): f"{file}: not a folder; pass a sweep or run directory",
+        (str(tmp_path / "nosuch"),): f"{tmp_path / 'nosuch'}: no such folder; pass a sweep or run",
+        (str(tmp_path / "sweep"), "--out", str(file)): f"--out {file}: a file is there; pass a",
+    }
+    for args, message in cases.items():
+        assert main(list(args)) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"rotlearn-report: {message}") and err.count("\n") == 1
+    assert file.read_text() == "x\n" and not (tmp_path / "sweep" / "report.md").exists()

@@ -43,7 +43,7 @@ import pandas as pd
 
 from rotlearn.io import read_json, read_table, write_text_atomic
 from rotlearn.report import figures, tables
-from rotlearn.report.runs import collect_runs, label_without
+from rotlearn.report.runs import RUN_MARKS, collect_runs, label_without
 from rotlearn.report.tensorboard import read_curve
 
 __all__ = ["CURVE_METRICS", "make_report"]
@@ -66,11 +66,17 @@ def make_report(
         FileNotFoundError: `root` holds no run directories.
     """
     roots = [Path(r) for r in root] if isinstance(root, (list, tuple)) else [Path(root)]
+    for folder in (r for r in roots if not r.is_dir()):
+        what = "no such folder" if not folder.exists() else "not a folder"
+        raise FileNotFoundError(f"{folder}: {what}; pass a sweep or run directory")
     out = Path(out) if out is not None else roots[0]
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"--out {out}: a file is there; pass a folder (new or existing)")
     runs = collect_runs(roots, group_by=group_by, pool=pool)
     if runs.empty:
         where = ", ".join(str(r) for r in roots)
-        raise FileNotFoundError(f"no runs under {where} (no */.hydra/config.yaml)")
+        marks = ", ".join(f"*/{m}" for m in RUN_MARKS)
+        raise FileNotFoundError(f"no runs under {where} (no run directory: {marks})")
     out.mkdir(parents=True, exist_ok=True)
     files = {"summary": write_text_atomic(out / "summary.csv", runs.to_csv(index=False))}
     done, recon = (_having(runs, m) for m in ("test/err_mean", "test/recon_mean"))

@@ -32,7 +32,9 @@ from rotlearn.report.identity import parse_override, short_value
 __all__ = [
     "DEFAULT_REPORT",
     "NOT_SETTINGS",
+    "RUN_MARKS",
     "collect_runs",
+    "is_run",
     "label_without",
     "layout_of",
     "matches",
@@ -48,6 +50,7 @@ log = logging.getLogger("rotlearn")
 NOT_SETTINGS = ("hydra", "paths", "report")  # per-run paths, and the report layout itself
 MODEL_PARTS = ("rep", "loss", "scheduler")  # settings only where the model takes them (`${rep}`)
 _MISSING = "-"
+RUN_MARKS = (".hydra/config.yaml", "status.json", "metrics.json")  # what makes a run directory
 
 
 def read_yaml(path: Path, kind: str = "YAML config", run: Path | None = None) -> Any:
@@ -90,12 +93,19 @@ def cell(value: Any) -> Any:
     return yaml.safe_dump(value, default_flow_style=True).strip()
 
 
+def is_run(folder: Path) -> bool:
+    """Whether `folder` is a run (or evaluation) directory: it holds a file one writes
+    (`RUN_MARKS`), its config or only its records (a config lost or deleted)."""
+    return any((folder / mark).is_file() for mark in RUN_MARKS)
+
+
 def run_dirs(root: Path) -> list[Path]:
     """The run directories of a sweep directory (by job number), or `root` if it is a run."""
-    if (root / ".hydra" / "config.yaml").is_file():
+    if is_run(root):
         return [root]
+    folders = root.iterdir() if root.is_dir() else ()
     return sorted(
-        (p.parent.parent for p in root.glob("*/.hydra/config.yaml")),
+        (p for p in folders if not p.name.startswith(".") and p.is_dir() and is_run(p)),
         key=lambda p: (not p.name.isdigit(), int(p.name) if p.name.isdigit() else 0, p.name),
     )
 
@@ -172,7 +182,10 @@ def collect_runs(
     for sweep, run in runs:
         evaluated = read_yaml(run / EVALUATED_FILE, run=run)  # an evaluation: the run it evaluated
         cfg = evaluated if isinstance(evaluated, dict) else read_yaml(run / ".hydra/config.yaml")
-        cfg = cfg if isinstance(cfg, dict) else {}
+        if not isinstance(cfg, dict) or not cfg:  # missing, empty, refused or not a mapping
+            log.warning("%s: missing, empty, refused or not a mapping; the run is reported as "
+                        "'(config unreadable)'", run / ".hydra" / "config.yaml")  # fmt: skip
+            cfg = {}
         overrides = read_yaml(run / ".hydra" / "overrides.yaml", "overrides file")
         overrides = [str(o) for o in overrides] if isinstance(overrides, list) else []
         metrics, status = _record(run, "metrics.json"), _record(run, "status.json")
@@ -250,6 +263,7 @@ def _grouping_keys(
     Raises:
         ValueError: a `group_by` key that no run has (nor any key below it).
     """
+    flats = [flat for flat in flats if flat]  # a run without a readable config sets no key
     keys = sorted({k for flat in flats for k in flat})
     if group_by is not None:
         for spec in (s for s in group_by if flats and not any(matches(k, [s]) for k in keys)):
