@@ -44,13 +44,27 @@ def main(argv: list[str] | None = None) -> int:
             raise argparse.ArgumentTypeError(f"choose from {', '.join(writers)}; got {text!r}")
         return names
 
+    def integer(low: int, high: int):
+        def parse(text: str) -> int:
+            try:
+                value = int(text)
+            except ValueError:
+                raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+            if not low <= value <= high:
+                raise argparse.ArgumentTypeError(f"must be in [{low}, {high}], got {value}")
+            return value
+
+        return parse
+
     parser = argparse.ArgumentParser(
         prog="rotlearn-make-demo-data",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--out", default="data/demo", help="where to write (default data/demo)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--seed", type=integer(0, 2**32 - 1), default=0, help="the worlds' seed (default 0)"
+    )
     parser.add_argument(
         "--scale",
         default="demo",
@@ -58,7 +72,10 @@ def main(argv: list[str] | None = None) -> int:
         "experiment=kitti_ood_paper_scale: ~16k training pairs); default demo",
     )
     parser.add_argument(
-        "--workers", type=int, default=1, help="processes per writer that takes them (kitti)"
+        "--workers",
+        type=integer(1, 256),
+        default=1,
+        help="processes per writer that takes them (kitti; default 1)",
     )
     parser.add_argument(
         "--only",

@@ -3,6 +3,7 @@ rotlearn-make-demo-data."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import cv2
@@ -361,6 +362,24 @@ def test_main_writes_the_chosen_datasets(tmp_path, monkeypatch, capsys):
     assert written == [3] and "kitti" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         main(["--out", str(tmp_path), "--only", "kitti,lidar"])
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--seed", "-1"], r"argument --seed: must be in \[0, 4294967295\], got -1"),
+        (["--seed", "2**32"], r"argument --seed: not an integer: '2\*\*32'"),
+        (["--workers", "0"], r"argument --workers: must be in \[1, 256\], got 0"),
+    ],
+)
+def test_a_seed_or_worker_count_out_of_range_is_named_before_writing(
+    tmp_path, capsys, args, message
+):
+    """--seed -1 reached the mav writer, whose numpy error did not name --seed; --workers 0 was
+    taken."""
+    with pytest.raises(SystemExit):
+        main(["--out", str(tmp_path / "out"), *args])
+    assert re.search(message, capsys.readouterr().err) and not (tmp_path / "out").exists()
 
 
 def test_the_smallest_mav_has_a_pair_in_every_scene(tmp_path):
