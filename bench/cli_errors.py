@@ -37,6 +37,8 @@ CASES: dict[str, tuple[str, list[str]]] = {
     "no data root": ("rotlearn-train", ["data=kitti", "data.root=/nonexistent"]),
     "incomplete dataset": ("rotlearn-train", ["data=kitti", "data.root={kitti}"]),
     "an override the grammar cannot read": ("rotlearn-train", ["optim.lr=[1"]),
+    "a run folder for a sweep": ("rotlearn-train", ["-m", "rep=a,sixd", "hydra.run.dir=new"]),
+    "a sweep folder for one run": ("rotlearn-train", ["hydra.sweep.dir=new"]),
     "value out of range": ("rotlearn-train", ["data.batch_size=0"]),
     "calibrate without a belief": ("rotlearn-train", ["rep=sixd", "calibrate=true"]),
     "likelihood loss without a belief": ("rotlearn-train", ["rep=sixd", "loss=bingham"]),

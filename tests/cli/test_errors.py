@@ -42,6 +42,12 @@ EXPECTED = {
     "an override the grammar cannot read": (1, r"^rotlearn-train: config key optim\.lr: cannot "
                                             r"read 'optim\.lr=\[1' \(no viable alternative at "
                                             r"input '\[1'\); a value with brackets, .* is quoted"),
+    "a run folder for a sweep": (1, r"^rotlearn-train: hydra\.run\.dir is not used: this "
+                                 r"command runs a sweep, whose folder is hydra\.sweep\.dir; "
+                                 r"nothing was written$"),
+    "a sweep folder for one run": (1, r"^rotlearn-train: hydra\.sweep\.dir is not used: this "
+                                   r"command runs one run, whose folder is hydra\.run\.dir; "
+                                   r"nothing was written$"),
     "value out of range": (1, r"^rotlearn-train: config key data\.batch_size: should be greater "
                            r"than 0, got 0 \(nothing was written\)$"),
     "calibrate without a belief": (1, r"^rotlearn-train: config key calibrate: fits the "

@@ -217,3 +217,26 @@ def test_a_head_learns_the_wahba_problem(make_cfg):
     )
     metrics = train(cfg)
     assert metrics["test/err_median"] < 5.0, metrics
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["experiment=beliefs_cpu", "hydra.run.dir={new}"],  # the experiment sets MULTIRUN
+         "hydra.run.dir is not used: this command runs a sweep, whose folder is hydra.sweep.dir; "
+         "for one run: hydra.mode=RUN; nothing was written"),
+        (["experiment=beliefs_cpu", "hydra.mode=RUN", "hydra.sweep.dir={new}"],
+         "hydra.sweep.dir is not used: this command runs one run, whose folder is hydra.run.dir"),
+    ],
+)  # fmt: skip
+def test_a_folder_hydra_would_not_use_is_refused_before_anything_is_written(
+    tmp_path, args, message
+):
+    """`experiment=kitti_ood_demo hydra.run.dir=x` ran the experiment's sweep in
+    outputs/multirun/<time> and left x unmade, without a word."""
+    from rotlearn.cli.rundir import refuse_an_existing_output_dir
+
+    new = tmp_path / "new"
+    with pytest.raises(SystemExit, match=f"^rotlearn-train: {message}"):
+        refuse_an_existing_output_dir([a.format(new=new) for a in args], "train", "rotlearn-train")
+    assert list(tmp_path.iterdir()) == []

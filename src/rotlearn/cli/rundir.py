@@ -241,6 +241,16 @@ def refuse_an_existing_output_dir(
     if cfg is None:
         return None
     multirun = "-m" in argv or "--multirun" in argv or cfg.hydra.mode == RunMode.MULTIRUN
+    for key in (k for k in ("hydra.run.dir", "hydra.sweep.dir") if k in _set_keys(argv)):
+        if (key == "hydra.run.dir") == multirun:  # Hydra would write elsewhere, silently
+            other, mode = (
+                ("hydra.sweep.dir", "a sweep") if multirun else ("hydra.run.dir", "one run")
+            )
+            how = "; for one run: hydra.mode=RUN" if multirun and "-m" not in argv else ""
+            raise SystemExit(
+                f"{prog}: {key} is not used: this command runs {mode}, whose folder is {other}"
+                f"{how}; nothing was written"
+            )
     with _hydra_config(cfg):
         folder = Path(cfg.hydra.sweep.dir if multirun else cfg.hydra.run.dir)
     if _non_empty(folder) and not allow:
@@ -253,6 +263,11 @@ def refuse_an_existing_output_dir(
     if not multirun:
         place_output_dir(cfg, folder.absolute())
     return cfg
+
+
+def _set_keys(argv: list[str]) -> set[str]:
+    """The keys a command line sets (`key=value`, `+key=value`, `++key=value`)."""
+    return {a.lstrip("+").split("=", 1)[0] for a in argv if "=" in a and not a.startswith("-")}
 
 
 def place_output_dir(cfg: DictConfig, run_dir: str | os.PathLike) -> DictConfig:
