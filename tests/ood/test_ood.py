@@ -288,6 +288,25 @@ def test_an_ensemble_of_runs_that_take_other_input_is_refused_before_anything_is
     assert not (tmp_path / "e").exists()
 
 
+def test_an_ensemble_without_its_data_is_refused_before_anything_is_written(
+    trained_run, tmp_path, monkeypatch
+):
+    """A single run's evaluation checked its data folder first; an ensemble's built the Trainer,
+    failed in the datamodule and left a FAILED evaluation directory."""
+    from rotlearn.cli.evaluate import _checked
+
+    run_dir, _ = trained_run
+    monkeypatch.chdir(tmp_path)
+    copy = shutil.copytree(run_dir, tmp_path / "copy")
+    gone = tmp_path / "gone"
+    refusal = f"rotlearn-eval: config key data.root: no directory {gone}; it must hold "
+    with pytest.raises(SystemExit, match=re.escape(refusal)):
+        _checked(
+            [f"ckpt=[{run_dir},{copy}]", f"data.root={gone}", f"hydra.run.dir={tmp_path / 'e'}"]
+        )
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["copy", "kitti", "run"]  # no "e"
+
+
 def test_rotlearn_eval_refuses_bad_input(trained_run, tmp_path):
     from rotlearn.cli.evaluate import evaluate
 

@@ -314,9 +314,10 @@ def _checked(argv: list[str]) -> list[str]:
     """Refuse, before Hydra makes the evaluation's directory, a command line that cannot work
     (SystemExit naming the key; nothing is written): no ckpt, a ckpt that is not a run (a sweep
     directory: its jobs listed), an evaluation or sweep directory that exists and is not empty,
-    and, for one evaluation, a run config that does not validate
-    with the evaluation's settings (e.g. OOD callbacks on data that is not image pairs); for an
-    ensemble, a member without a belief or trained on other input (`_ensemble`).
+    and a run config that does not validate with the evaluation's settings (e.g. OOD callbacks
+    on data that is not image pairs, a data folder that is not there; an ensemble's: its first
+    member's); for an ensemble, a member without a belief or trained on other input
+    (`_ensemble`).
     Returns the arguments for Hydra (`+` before a data key that eval.yaml does not list)."""
     from rotlearn.config import command_line_config, validate
 
@@ -337,15 +338,15 @@ def _checked(argv: list[str]) -> list[str]:
     ensemble = len(members) > 1 or values[-1].lstrip().startswith("[")
     args = argv
     try:
-        if ensemble and not multirun:
-            _ensemble(members)
-        if not (multirun or ensemble):
+        first = _ensemble(members)[2] if ensemble and not multirun else None
+        if not multirun:
             cfg, args = command_line_config(argv, "new-eval", config_name="eval")
         if not is_child_rank():  # the directory of the arguments Hydra runs (with their `+`)
             refuse_an_existing_output_dir(args, "eval", "rotlearn-eval")
-        if not (multirun or ensemble):
-            _first_look(cfg)
-            validate(evaluation_config(cfg, _saved_run(cfg)))
+        if not multirun:  # an ensemble reads its first member's data (`_ensemble`)
+            if first is None:
+                _first_look(cfg)
+            validate(evaluation_config(cfg, first or _saved_run(cfg)))
     except ConfigError as exc:
         raise SystemExit(f"rotlearn-eval: {exc} (nothing was written)") from None
     return args
