@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import re
 import signal
 import time
 from pathlib import Path
@@ -268,3 +270,30 @@ def test_a_damaged_overrides_file_does_not_resume_the_run_under_other_settings(
         [f"ckpt_path={run}", "trainer.max_epochs=2"], tmp_path / "outputs" / "runs"
     )
     assert "trainer.max_epochs=2" in args
+
+
+@pytest.mark.parametrize(
+    ("saved", "message"),
+    [
+        (["rep=nosuch"], r"config key rep: no option 'nosuch'; options: a, fisher, quat, sixd, "
+         r"svd9d \(from .*run/\.hydra/overrides\.yaml: 'rep=nosuch'\)$"),
+        (["rep=quat", "data.batch_size=0"], r"config key data\.batch_size: should be greater "
+         r"than 0, got 0 \(from .*overrides\.yaml: 'data\.batch_size=0'\)$"),
+        (["rep=quat", "nosuch.key=1"], r"overrides\.yaml: the overrides do not compose: Could "
+         r"not override 'nosuch\.key'\.$"),  # one line: no append advice for a saved file
+        (["rep=quat", "data.sigma=${oc.env:HOME}"], r"overrides\.yaml: override 'data\.sigma="
+         r"\$\{oc\.env:HOME\}' reads \$\{oc\.env:\.\.\.\}: a saved override may use only the "
+         r"resolvers that read the config"),
+    ],
+)  # fmt: skip
+def test_a_refusal_names_the_saved_override_the_user_did_not_type(tmp_path, saved, message):
+    """A resume replays the run's saved overrides: a refusal for one of them names the file and
+    the override (the user never typed it), in one line; an environment variable a received
+    run's file names is never read into its config (it was, and printed: 'got /root')."""
+    run = _fake_run(tmp_path, "run", ["rep=quat"])
+    (run / ".hydra" / "overrides.yaml").write_text("".join(f"- {o}\n" for o in saved))
+    (run / "status.json").write_text(json.dumps({"status": "INTERRUPTED"}))
+    with pytest.raises(SystemExit) as refused:
+        resume_arguments([f"ckpt_path={run}", "trainer.max_epochs=3"])
+    said = str(refused.value)
+    assert re.search(message, said) and "\n" not in said and os.environ["HOME"] not in said

@@ -25,6 +25,12 @@ __all__ = ["quoted", "replayed_config", "saved_overrides"]
 
 MAX_OVERRIDES = 1000  # one run's command line; a file with more is not a run's
 MAX_OVERRIDE_CHARS = 8192  # one override's text
+# The resolvers a saved override may name: those that read the config alone (and rotlearn's own,
+# `rl.*`); `${oc.env:...}` would read the environment of whoever resumes a received run into
+# its config, its folders and files.
+CONFIG_RESOLVERS = ("hydra", "now", "oc.select", "oc.decode", "oc.create", "oc.deprecated",
+                    "oc.dict.keys", "oc.dict.values")  # fmt: skip
+_RESOLVER = re.compile(r"(\\*)\$\{\s*([A-Za-z_][\w.-]*)\s*:")  # an unescaped ${name:
 
 
 def quoted(value: str) -> str:
@@ -58,6 +64,15 @@ def _parse(overrides: list[str], source: Path) -> None:
         if override.is_sweep_override():
             raise UntrustedConfigError(
                 f"{source}: override {override.input_line!r} is a sweep, not one run's value"
+            )
+        for found in _RESOLVER.finditer(override.input_line):
+            name = found[2]
+            if len(found[1]) % 2 or name in CONFIG_RESOLVERS or name.startswith("rl."):
+                continue
+            raise UntrustedConfigError(
+                f"{source}: override {override.input_line!r} reads ${{{name}:...}}: a saved "
+                "override may use only the resolvers that read the config (a received run "
+                "could read your environment this way); set that value on the command line"
             )
 
 
@@ -119,7 +134,8 @@ def replayed_config(args: list[str], run_dir: str | Path, config_name: str = "tr
         with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
             cfg = compose(config_name=config_name, overrides=overrides)
     except (HydraException, OmegaConfBaseException) as exc:
-        raise UntrustedConfigError(f"{source}: the overrides do not compose: {exc}") from None
+        said = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise UntrustedConfigError(f"{source}: the overrides do not compose: {said}") from None
     place_output_dir(cfg, run_dir)
     trusted_config(cfg, source)  # resolved and walked; nothing is built from a refused config
     return cfg

@@ -261,6 +261,25 @@ def _check_the_weights(cfg: DictConfig, checkpoint: dict, ckpt: Path) -> None:
         raise UnsafeCheckpointError(str(exc)) from None
 
 
+def _origin(error: Exception, args: list[str], new: list[str], run_dir: Path) -> str:
+    """ " (from <run>/.hydra/overrides.yaml: '<override>')" where a `ConfigError`'s key was set by
+    one of the run's saved overrides and not by the new command line (the user did not type
+    it), else ""."""
+    from rotlearn.report.identity import parse_override
+    from rotlearn.report.runs import matches
+
+    key = getattr(error, "key", None)
+    if key is None or "overrides.yaml" in str(error):
+        return ""
+    set_now = [k for k, _ in filter(None, map(parse_override, new))]
+    for text in (a for a in args if a not in new):
+        parsed = parse_override(text.lstrip("+"))
+        saved = parsed[0].replace("/", ".") if parsed else None
+        if saved and (matches(key, [saved]) or matches(saved, [key])) and not matches(key, set_now):
+            return f" (from {run_dir / '.hydra' / 'overrides.yaml'}: {text!r})"
+    return ""
+
+
 def _check_the_config_that_runs(
     run_dir: Path, args: list[str], new: list[str], ckpt: Path
 ) -> list[str]:
@@ -278,7 +297,9 @@ def _check_the_config_that_runs(
     try:
         _, args = command_line_config(args, str(run_dir), appendable=new)
     except ConfigError as exc:  # e.g. an option that does not exist: named, with the nearest
-        raise _refuse(f"refusing to resume {run_dir}: {exc}") from None
+        raise _refuse(
+            f"refusing to resume {run_dir}: {exc}{_origin(exc, args, new, run_dir)}"
+        ) from None
     except (HydraException, OmegaConfBaseException):
         pass  # replayed_config names the file whose overrides do not compose
     try:
@@ -293,7 +314,9 @@ def _check_the_config_that_runs(
         checked_checkpoint_states(checkpoint, _model_checkpoints(cfg), run_dir, ckpt)
         _check_the_weights(cfg, checkpoint, ckpt)
     except (ConfigError, UnsafeCheckpointError, UnreadableFileError) as exc:
-        raise _refuse(f"refusing to resume {run_dir}: {exc}") from None
+        raise _refuse(
+            f"refusing to resume {run_dir}: {exc}{_origin(exc, args, new, run_dir)}"
+        ) from None
     except Exception as exc:  # a config that does not compose or build: nothing was written
         reason = str(exc).strip().splitlines()
         raise _refuse(
