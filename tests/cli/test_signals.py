@@ -192,3 +192,20 @@ def test_a_requeued_slurm_job_continues_its_own_run(make_cfg, monkeypatch):
                         "SLURM_JOB_NAME": "rotlearn", "SLURM_JOB_ID": "7"}.items():  # fmt: skip
         monkeypatch.setenv(name, value)
     assert train(again)["epochs"] == 2  # the requeued job picks up from last.ckpt
+
+
+def test_a_requeued_slurm_job_may_start_again_in_its_own_directory(tmp_path, monkeypatch):
+    """The command line refuses a taken run directory, but for a requeued SLURM job (asked only
+    once the directory is found taken: the SLURM check loads Lightning)."""
+    from rotlearn.cli.train import _refuse_an_invalid_new_run
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "train.log").write_text("epoch 0\n")
+    args = ["data=tiny", "trainer.max_epochs=2", f"hydra.run.dir={run}"]
+    with pytest.raises(SystemExit, match="already exists and is not empty"):
+        _refuse_an_invalid_new_run(args)
+    for name, value in {"SLURM_RESTART_COUNT": "1", "SLURM_NTASKS": "1",
+                        "SLURM_JOB_NAME": "rotlearn", "SLURM_JOB_ID": "7"}.items():  # fmt: skip
+        monkeypatch.setenv(name, value)
+    assert _refuse_an_invalid_new_run(args) == args

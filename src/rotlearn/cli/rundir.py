@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import os
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -222,7 +222,7 @@ def _non_empty(path: Path) -> bool:
 
 
 def refuse_an_existing_output_dir(
-    argv: list[str], config_name: str, prog: str, allow: bool = False
+    argv: list[str], config_name: str, prog: str, allow: bool | Callable[[], bool] = False
 ) -> DictConfig | None:
     """Refuse (SystemExit, one line) a command line whose run or sweep directory already exists
     and is not empty: a new run never writes into another's directory. Returns the composed
@@ -233,7 +233,8 @@ def refuse_an_existing_output_dir(
         argv: the command line (no `ckpt_path`: resumes are `rotlearn.cli.resume`'s).
         config_name: the primary config ("train", "eval").
         prog: the command's name, for the message.
-        allow: skip the refusal (a SLURM job requeued into its own directory).
+        allow: skip the refusal (a SLURM job requeued into its own directory); a callable is
+            asked only when the directory is taken.
     """
     from hydra.types import RunMode
 
@@ -253,7 +254,7 @@ def refuse_an_existing_output_dir(
             )
     with _hydra_config(cfg):
         folder = Path(cfg.hydra.sweep.dir if multirun else cfg.hydra.run.dir)
-    if _non_empty(folder) and not allow:
+    if _non_empty(folder) and not (allow() if callable(allow) else allow):
         what = "sweep" if multirun else "run" if config_name == "train" else "evaluation"
         hint = f" (to continue the run in it: {prog} ckpt_path={folder})" if what == "run" else ""
         raise SystemExit(

@@ -90,12 +90,21 @@ def _hydra_main(cfg: DictConfig) -> float:
     return metrics.get("val/err_median", metrics.get("val/loss", math.nan))
 
 
+def _requeued() -> bool:
+    """`rotlearn.cli.resume.requeued_on_slurm`, imported (with Lightning) only when asked."""
+    from rotlearn.cli.resume import requeued_on_slurm
+
+    return requeued_on_slurm()
+
+
 def _refuse_an_invalid_new_run(argv: list[str]) -> list[str]:
-    """Before Hydra creates anything for a new run (or sweep): validate the command line
-    (`rotlearn.config.command_line`: a bad option, key or value exits naming it; a sweep with
-    the first value of each swept key), refuse a run or sweep directory that already exists and
-    is not empty, then build a single run's datamodule and (on the meta device: nothing
-    allocated) its model, so that a bad value leaves nothing behind (SystemExit naming the key).
+    """Before Hydra creates anything for a new run (or sweep): compose the command line
+    (`rotlearn.config.command_line_config`: a bad option or key exits naming it; a sweep with
+    the first value of each swept key), refuse a folder Hydra would not use or a run or sweep
+    directory that already exists and is not empty (from the composition alone, fast), check
+    every value (`rotlearn.config.validate`'s two passes around it), then build
+    a single run's datamodule and (on the meta device: nothing allocated) its model, so that a
+    bad value leaves nothing behind (SystemExit naming the key).
     Returns the arguments for Hydra, with `+` before each component argument that its YAML does
     not list. A config that does not compose is left for Hydra to report (before it writes
     anything); flags such as --cfg or --info are Hydra's."""
@@ -103,20 +112,22 @@ def _refuse_an_invalid_new_run(argv: list[str]) -> list[str]:
     from hydra.types import RunMode
     from omegaconf.errors import OmegaConfBaseException
 
-    from rotlearn.config import ConfigError, command_line
+    from rotlearn.cli.rundir import refuse_an_existing_output_dir
+    from rotlearn.config import ConfigError, command_line_config
+    from rotlearn.config.checks import check_keys, check_values, plain
 
     if any(a.startswith("-") and a not in ("-m", "--multirun") for a in argv):
         return argv
-    try:
-        argv = command_line(argv, "new-run")
+    try:  # `rotlearn.config.validate` in its two passes, the folders checked between them:
+        composed, argv = command_line_config(argv, "new-run")
+        values = plain(composed)
+        check_keys(values)  # from files alone, fast
+        cfg = refuse_an_existing_output_dir(argv, "train", "rotlearn-train", _requeued)
+        check_values(values)  # imports the components (torch, Lightning): seconds
     except (HydraException, OmegaConfBaseException):
         return argv
     except ConfigError as exc:
         raise SystemExit(f"rotlearn-train: {exc} (nothing was written)") from None
-    from rotlearn.cli.resume import requeued_on_slurm  # loads Lightning: after the fast checks
-    from rotlearn.cli.rundir import refuse_an_existing_output_dir
-
-    cfg = refuse_an_existing_output_dir(argv, "train", "rotlearn-train", requeued_on_slurm())
     if cfg is None or "-m" in argv or "--multirun" in argv or cfg.hydra.mode == RunMode.MULTIRUN:
         return argv
     from rotlearn.cli.training import check_buildable
