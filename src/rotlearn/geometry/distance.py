@@ -8,6 +8,7 @@ import torch
 from torch import Tensor
 
 from rotlearn.geometry.autocast import float32_under_autocast
+from rotlearn.geometry.shapes import require_shape
 
 __all__ = ["angle", "angle_deg", "chordal_distance", "chordal_distance_sq", "quat_chordal_distance"]
 
@@ -32,6 +33,8 @@ def angle(R1: Tensor, R2: Tensor) -> Tensor:
         (...) angles in radians, in the inputs' dtype and on their device; float32 under
         autocast (a bfloat16 R1^T R2 would put ~0.5 degree of rounding into small angles).
     """
+    require_shape(R1, (3, 3), "R1")
+    require_shape(R2, (3, 3), "R2")
     sin_half = torch.linalg.matrix_norm(R1 - R2) / _TWO_SQRT2
     rel = R1.transpose(-1, -2) @ R2
     trace = torch.diagonal(rel, dim1=-2, dim2=-1).sum(-1)
@@ -63,11 +66,15 @@ def chordal_distance_sq(R1: Tensor, R2: Tensor) -> Tensor:
     Returns:
         (...) squared distances, in [0, 8].
     """
+    require_shape(R1, (3, 3), "R1")
+    require_shape(R2, (3, 3), "R2")
     return (R1 - R2).square().sum((-1, -2))
 
 
 def chordal_distance(R1: Tensor, R2: Tensor) -> Tensor:
     """Chordal distance |R1 - R2|_F (paper eq. 21): (..., 3, 3), (..., 3, 3) -> (...)."""
+    require_shape(R1, (3, 3), "R1")
+    require_shape(R2, (3, 3), "R2")
     return torch.linalg.matrix_norm(R1 - R2)
 
 
@@ -81,6 +88,8 @@ def quat_chordal_distance(q1: Tensor, q2: Tensor) -> Tensor:
     Returns:
         (...) distances d in [0, sqrt 2]; |R(q1) - R(q2)|_F^2 = 2 d^2 (4 - d^2).
     """
+    require_shape(q1, (4,), "q1")
+    require_shape(q2, (4,), "q2")
     minus = torch.linalg.vector_norm(q1 - q2, dim=-1)
     plus = torch.linalg.vector_norm(q1 + q2, dim=-1)
     return torch.minimum(minus, plus)

@@ -8,6 +8,7 @@ import torch
 from torch import Tensor
 
 from rotlearn.geometry.autocast import float32_under_autocast
+from rotlearn.geometry.shapes import require_shape
 
 __all__ = ["special_orthogonalize"]
 
@@ -70,6 +71,5 @@ def special_orthogonalize(M: Tensor, gap_eps: float = 1e-8) -> Tensor:
         backward is finite for repeated singular values. Works under torch.func.vmap/grad and
         torch.compile.
     """
-    if M.dim() < 2 or M.shape[-2:] != (3, 3):
-        raise ValueError(f"expected a tensor of shape (..., 3, 3), got {tuple(M.shape)}")
+    require_shape(M, (3, 3), "M")
     return _SpecialOrthogonalize.apply(M, gap_eps)[0]

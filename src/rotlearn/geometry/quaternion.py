@@ -9,6 +9,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from rotlearn.geometry.shapes import require_shape
+
 __all__ = [
     "quat_canonical",
     "quat_inverse",
@@ -29,6 +31,7 @@ def quat_normalize(q: Tensor, eps: float = 1e-12) -> Tensor:
     Returns:
         (..., 4) unit quaternions.
     """
+    require_shape(q, (4,), "q")
     return q / torch.linalg.vector_norm(q, dim=-1, keepdim=True).clamp_min(eps)
 
 
@@ -44,6 +47,7 @@ def quat_canonical(q: Tensor) -> Tensor:
     Returns:
         (..., 4) the same rotations with the canonical sign.
     """
+    require_shape(q, (4,), "q")
     x, y, z, w = q.unbind(-1)
     sign = torch.sign(w)
     for part in (x, y, z):
@@ -62,6 +66,8 @@ def quat_multiply(p: Tensor, q: Tensor) -> Tensor:
     Returns:
         (..., 4) the product, with R(p * q) = R(p) @ R(q).
     """
+    require_shape(p, (4,), "p")
+    require_shape(q, (4,), "q")
     px, py, pz, pw = p.unbind(-1)
     qx, qy, qz, qw = q.unbind(-1)
     return torch.stack(
@@ -84,6 +90,7 @@ def quat_inverse(q: Tensor) -> Tensor:
     Returns:
         (..., 4) quaternions with q * q^-1 = (0, 0, 0, 1).
     """
+    require_shape(q, (4,), "q")
     conj = q * q.new_tensor([-1.0, -1.0, -1.0, 1.0])
     return conj / (q * q).sum(-1, keepdim=True)
 
@@ -98,6 +105,7 @@ def quat_to_rotmat(q: Tensor) -> Tensor:
     Returns:
         (..., 3, 3) rotation matrices R with R v = q * v * q^-1 (active rotation).
     """
+    require_shape(q, (4,), "q")
     x, y, z, w = q.unbind(-1)
     s = 2.0 / (q * q).sum(-1)
     xx, yy, zz = s * x * x, s * y * y, s * z * z
@@ -124,6 +132,7 @@ def rotmat_to_quat(R: Tensor) -> Tensor:
     Returns:
         (..., 4) unit quaternions (x, y, z, w) with R = quat_to_rotmat(q).
     """
+    require_shape(R, (3, 3), "R")
     r = R.flatten(-2)
     r00, r01, r02, r10, r11, r12, r20, r21, r22 = r.unbind(-1)
     k = torch.stack(

@@ -6,6 +6,7 @@ import torch
 from torch import Tensor
 
 from rotlearn.geometry.autocast import float32_under_autocast
+from rotlearn.geometry.shapes import require_shape
 
 __all__ = ["sixd_to_rotmat"]
 
@@ -28,6 +29,7 @@ def sixd_to_rotmat(v: Tensor) -> Tensor:
         (..., 3, 3) rotation matrices in v's dtype; under autocast (CPU or CUDA) float32 (a
         rotation in bfloat16 is orthogonal only to ~4e-3).
     """
+    require_shape(v, (6,), "v")
     x = _normalize(v[..., 0:3])
     z = _normalize(torch.linalg.cross(x, v[..., 3:6]))
     y = torch.linalg.cross(z, x)

@@ -13,6 +13,7 @@ from torch import Tensor
 
 from rotlearn.geometry.autocast import float32_under_autocast
 from rotlearn.geometry.quaternion import quat_canonical, quat_to_rotmat, rotmat_to_quat
+from rotlearn.geometry.shapes import require_shape
 
 __all__ = [
     "hat",
@@ -34,6 +35,7 @@ def hat(phi: Tensor) -> Tensor:
     Returns:
         (..., 3, 3) skew-symmetric matrices.
     """
+    require_shape(phi, (3,), "phi")
     x, y, z = phi.unbind(-1)
     zero = torch.zeros_like(x)
     rows = (zero, -z, y, z, zero, -x, -y, x, zero)
@@ -42,6 +44,7 @@ def hat(phi: Tensor) -> Tensor:
 
 def vee(S: Tensor) -> Tensor:
     """Inverse of `hat` on the skew-symmetric part: (..., 3, 3) -> (..., 3)."""
+    require_shape(S, (3, 3), "S")
     return 0.5 * torch.stack(
         (S[..., 2, 1] - S[..., 1, 2], S[..., 0, 2] - S[..., 2, 0], S[..., 1, 0] - S[..., 0, 1]),
         dim=-1,
@@ -59,6 +62,7 @@ def so3_exp_quat(phi: Tensor) -> Tensor:
     Returns:
         (..., 4) unit quaternions (x, y, z, w). w >= 0 for |phi| <= pi.
     """
+    require_shape(phi, (3,), "phi")
     angle = torch.linalg.vector_norm(phi, dim=-1, keepdim=True)
     half = 0.5 * angle
     xyz = 0.5 * torch.sinc(half / math.pi) * phi
@@ -74,6 +78,7 @@ def so3_exp(phi: Tensor) -> Tensor:
     Returns:
         (..., 3, 3) rotation matrices.
     """
+    require_shape(phi, (3,), "phi")
     return quat_to_rotmat(so3_exp_quat(phi))
 
 
@@ -86,6 +91,7 @@ def so3_log_quat(q: Tensor) -> Tensor:
     Returns:
         (..., 3) rotation vectors phi with |phi| <= pi and Exp(phi) = R(q).
     """
+    require_shape(q, (4,), "q")
     q = quat_canonical(q)
     xyz, w = q[..., :3], q[..., 3:]
     n = torch.linalg.vector_norm(xyz, dim=-1, keepdim=True)
@@ -111,6 +117,7 @@ def so3_log(R: Tensor) -> Tensor:
         (..., 3) rotation vectors phi with |phi| in [0, pi] and so3_exp(phi) = R. At exactly pi
         the axis sign is the one `quat_canonical` picks.
     """
+    require_shape(R, (3, 3), "R")
     return so3_log_quat(rotmat_to_quat(R))
 
 
@@ -128,4 +135,6 @@ def relative_rotation(R_w1: Tensor, R_w2: Tensor) -> Tensor:
     Returns:
         (..., 3, 3) C_21, in the inputs' dtype (float32 under autocast).
     """
+    require_shape(R_w1, (3, 3), "R_w1")
+    require_shape(R_w2, (3, 3), "R_w2")
     return R_w2.transpose(-1, -2) @ R_w1

@@ -12,6 +12,7 @@ import torch
 from torch import Tensor
 
 from rotlearn.geometry.eigen4 import METHODS, sym4_eigh_min
+from rotlearn.geometry.shapes import require_shape
 
 __all__ = ["a_from_quat", "a_from_vec", "symmatrixvec_to_quat", "vec_from_a"]
 
@@ -33,6 +34,7 @@ def a_from_vec(theta: Tensor) -> Tensor:
         (..., 4, 4) symmetric matrices A, rows and columns in quaternion order (x, y, z, w), in
         theta's dtype and on its device.
     """
+    require_shape(theta, (10,), "theta")
     return theta.index_select(-1, _full_from_triu(theta.device)).unflatten(-1, (4, 4))
 
 
@@ -54,6 +56,7 @@ def _full_from_triu(device: torch.device) -> Tensor:
 
 def vec_from_a(A: Tensor) -> Tensor:
     """Inverse of `a_from_vec`: (..., 4, 4) symmetric -> (..., 10) upper triangle (eq. 8)."""
+    require_shape(A, (4, 4), "A")
     return A[..., _TRIU_ROWS.to(A.device), _TRIU_COLS.to(A.device)]
 
 
@@ -66,6 +69,7 @@ def a_from_quat(q: Tensor) -> Tensor:
     Returns:
         (..., 4, 4) symmetric matrices with eigenvalues (0, 1, 1, 1), q spanning the 0-eigenspace.
     """
+    require_shape(q, (4,), "q")
     eye = torch.eye(4, dtype=q.dtype, device=q.device)
     return eye - q.unsqueeze(-1) * q.unsqueeze(-2)
 
@@ -100,8 +104,7 @@ def symmatrixvec_to_quat(
         ValueError: theta's last dimension is not 10, an unknown solver, or a dtype other than
             float32/float64 outside autocast.
     """
-    if theta.dim() < 1 or theta.shape[-1] != 10:
-        raise ValueError(f"expected a tensor of shape (..., 10), got {tuple(theta.shape)}")
+    require_shape(theta, (10,), "theta")
     if solver not in METHODS:
         raise ValueError(f"solver must be one of {', '.join(METHODS)}, got {solver!r}")
     eigenvalues, q = sym4_eigh_min(a_from_vec(theta), check=False, method=solver)

@@ -61,6 +61,7 @@ from rotlearn.geometry.eigen4.ops import (
     METHODS,
     apply,
 )
+from rotlearn.geometry.shapes import require_shape
 
 __all__ = [
     "DEFAULT_GAP_EPS",
@@ -145,8 +146,7 @@ def sym4_eigh_min(
         RuntimeError: kernel="cpu" where the C kernel cannot run (the message says why).
         rotlearn.extras.MissingExtraError: kernel="triton" without triton (`[gpu]` extra).
     """
-    if A.dim() < 2 or A.shape[-2:] != (4, 4):
-        raise ValueError(f"expected a tensor of shape (..., 4, 4), got {tuple(A.shape)}")
+    require_shape(A, (4, 4), "A")
     if A.dtype not in DEFAULT_ROUNDS:
         raise ValueError(f"expected float32 or float64, got {A.dtype}")
     if check:

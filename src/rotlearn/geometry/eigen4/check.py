@@ -9,6 +9,7 @@ from torch import Tensor
 
 from rotlearn.errors import batch_index
 from rotlearn.geometry.eigen4.eager import UPPER
+from rotlearn.geometry.shapes import require_shape
 
 __all__ = ["validate_sym4"]
 
@@ -34,8 +35,7 @@ def validate_sym4(A: Tensor, rtol: float = 1e-6) -> None:
     Raises:
         ValueError: as above.
     """
-    if A.dim() < 2 or A.shape[-2:] != (4, 4):
-        raise ValueError(f"expected a tensor of shape (..., 4, 4), got {tuple(A.shape)}")
+    require_shape(A, (4, 4), "A")
     if A.dtype not in (torch.float32, torch.float64):
         raise ValueError(f"expected float32 or float64, got {A.dtype}")
     batch = A.shape[:-2]
