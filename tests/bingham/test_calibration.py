@@ -129,7 +129,7 @@ def test_bad_input_is_named():
     A, q = beliefs(11, 2), torch.tensor([[0.0, 0.0, 0.0, 1.0]] * 2, dtype=F64)
     with pytest.raises(ValueError, match="num_samples"):
         bh.hpd_level(A, q, 0)
-    with pytest.raises(ValueError, match=r"q must have shape"):
+    with pytest.raises(ValueError, match=r"q: expected a tensor of shape \(\.\.\., 4\)"):
         bh.hpd_level(A, q[:, :3], 8)
     with pytest.raises(ValueError, match=r"q has NaN or Inf at batch index \(1,\)"):
         bh.hpd_level(A, torch.stack([q[0], torch.full((4,), math.nan, dtype=F64)]), 8)

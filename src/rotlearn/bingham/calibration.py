@@ -68,6 +68,7 @@ from torch import Tensor
 
 from rotlearn.bingham.descriptors import _check_A, _float_dtype, _raise_first, _symmetric, mode
 from rotlearn.bingham.sampling import sample
+from rotlearn.geometry.shapes import require_shape
 
 __all__ = [
     "CREDIBLE_LEVELS",
@@ -108,8 +109,7 @@ def hpd_level(
     """
     _check_A(A)
     _float_dtype(q, "q")
-    if q.shape[-1] != 4:
-        raise ValueError(f"q must have shape (..., 4), got {tuple(q.shape)}")
+    require_shape(q, (4,), "q")
     _raise_first(~torch.isfinite(q).all(-1), "q has NaN or Inf")
     if num_samples < 1:
         raise ValueError(f"num_samples must be >= 1, got {num_samples}")

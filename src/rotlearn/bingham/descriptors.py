@@ -15,6 +15,7 @@ from torch import Tensor
 
 from rotlearn.errors import batch_index
 from rotlearn.geometry import sym4_eigh_min
+from rotlearn.geometry.shapes import require_shape
 
 __all__ = [
     "LOG_AREA_S3",
@@ -91,8 +92,7 @@ def _float_dtype(t: Tensor, name: str) -> None:
 def _check_A(A: Tensor, values: bool = True) -> None:
     """A's dtype and shape; with `values`, also its entries (finite: one host sync)."""
     _float_dtype(A, "A")
-    if A.dim() < 2 or A.shape[-2:] != (4, 4):
-        raise ValueError(f"A must have shape (..., 4, 4), got {tuple(A.shape)}")
+    require_shape(A, (4, 4), "A")
     if values:
         _raise_first(~torch.isfinite(A).flatten(-2).all(-1), "A has NaN or Inf")
 

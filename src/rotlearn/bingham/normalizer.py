@@ -25,6 +25,7 @@ from rotlearn.bingham.descriptors import (
     eigenvalues,
 )
 from rotlearn.geometry.autocast import float32_under_autocast
+from rotlearn.geometry.shapes import require_shape
 
 __all__ = ["log_normalizer", "log_prob", "moments", "nll", "normalizer"]
 
@@ -265,8 +266,7 @@ def log_prob(A: Tensor, q: Tensor, check: bool = True) -> Tensor:
     """
     _check_A(A, values=check)
     _float_dtype(q, "q")
-    if q.shape[-1] != 4:
-        raise ValueError(f"q must have shape (..., 4), got {tuple(q.shape)}")
+    require_shape(q, (4,), "q")
     ev = eigenvalues(A)
     if check:
         _raise_first(~torch.isfinite(q).all(-1), "q has NaN or Inf")

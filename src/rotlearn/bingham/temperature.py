@@ -40,6 +40,7 @@ from rotlearn.bingham.descriptors import (
     eigenvalues,
 )
 from rotlearn.bingham.normalizer import _log_normalizer3, moments
+from rotlearn.geometry.shapes import require_shape
 
 __all__ = ["MIN_SPREAD_RATIO", "TemperatureFit", "fit_temperature"]
 
@@ -75,8 +76,7 @@ def _flatten(A: Tensor, q: Tensor) -> tuple[Tensor, Tensor]:
     """A (N, 4, 4) and q (N, 4), float64, after validation and broadcasting."""
     _check_A(A)
     _float_dtype(q, "q")
-    if q.dim() < 1 or q.shape[-1] != 4:
-        raise ValueError(f"q must have shape (..., 4), got {tuple(q.shape)}")
+    require_shape(q, (4,), "q")
     _raise_first(~torch.isfinite(q).all(-1), "q has NaN or Inf")
     try:
         shape = torch.broadcast_shapes(A.shape[:-2], q.shape[:-1])

@@ -14,6 +14,7 @@ from rotlearn.bingham import MAX_DISPERSION
 from rotlearn.errors import batch_index
 from rotlearn.geometry import special_orthogonalize
 from rotlearn.geometry.autocast import float32_under_autocast
+from rotlearn.geometry.shapes import require_shape
 
 __all__ = [
     "MAX_SINGULAR_SUM",
@@ -44,8 +45,7 @@ def _check_matrix(M: Tensor, name: str, size: int, values: bool = True) -> None:
     sync)."""
     if not M.is_floating_point():
         raise TypeError(f"{name} must be a floating tensor, got {M.dtype}")
-    if M.dim() < 2 or M.shape[-2:] != (size, size):
-        raise ValueError(f"{name} must have shape (..., {size}, {size}), got {tuple(M.shape)}")
+    require_shape(M, (size, size), name)
     if values:
         _raise_first(~torch.isfinite(M).flatten(-2).all(-1), f"{name} has NaN or Inf")
 
