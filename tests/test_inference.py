@@ -482,11 +482,11 @@ def test_load_of_several_runs_is_their_ensemble_and_calibrates_on_held_out_data(
         rotlearn.load([trained_runs["a"], trained_runs["sixd"]])
 
 
-NO_CUDA = r"--device cuda:99: this machine has (no CUDA device|\d+ CUDA device)"
+NO_CUDA = r"device cuda:99: this machine has (no CUDA device|\d+ CUDA device)"
 
 
 @pytest.mark.parametrize(
-    ("device", "message"), [("bogus", r"--device bogus: not a device name"), ("cuda:99", NO_CUDA)]
+    ("device", "message"), [("bogus", r"device bogus: not a device name"), ("cuda:99", NO_CUDA)]
 )
 def test_predict_refuses_a_device_it_cannot_use_in_one_line(
     calibrated_run, tmp_path, capsys, device, message
@@ -496,6 +496,24 @@ def test_predict_refuses_a_device_it_cannot_use_in_one_line(
     assert predict_main([str(calibrated_run), str(path), "--device", device]) == 2
     err = capsys.readouterr().err
     assert re.search(message, err) and err.count("\n") == 1
+
+
+@pytest.mark.parametrize(
+    ("args", "error", "message"),
+    [
+        (("cuda:99",), ValueError, NO_CUDA),  # was torch's AssertionError on a CPU-only torch
+        (("bogus",), ValueError, r"device bogus: not a device name"),
+    ],
+)
+def test_load_names_a_device_it_cannot_use(trained_runs, args, error, message):
+    with pytest.raises(error, match=message):
+        rotlearn.load(trained_runs["a"], *args)
+
+
+@pytest.mark.parametrize("what", [123, None, [Path("run"), 3]])
+def test_load_names_what_it_takes(what):
+    with pytest.raises(TypeError, match=r"expected a run directory or \.ckpt path, or a list"):
+        rotlearn.load(what)
 
 
 def test_predict_answers_inputs_the_net_overflows_on_in_one_line(calibrated_run, tmp_path, capsys):

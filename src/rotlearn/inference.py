@@ -62,7 +62,14 @@ from rotlearn.extras import require
 from rotlearn.geometry import rotmat_to_quat
 from rotlearn.heads import RotationHead, RotationPrediction
 
-__all__ = ["CHUNK_ELEMENTS", "Predictor", "RotationEstimate", "ensemble_members", "load"]
+__all__ = [
+    "CHUNK_ELEMENTS",
+    "Predictor",
+    "RotationEstimate",
+    "ensemble_members",
+    "load",
+    "usable_device",
+]
 
 # Input numbers sent through the network at once: the Predictor splits larger batches into
 # chunks of about this many (at least one sample), so its memory stays bounded for any batch.
@@ -198,7 +205,7 @@ class Predictor:
             raise ValueError(f"temperature must be a finite number > 0, got {temperature}")
         self.temperature, self.level_map = temperature, level_map
         self.chunk_elements = int(chunk_elements)
-        self.device = torch.device(device)
+        self.device = usable_device(device)
         self.net = net.to(self.device).eval()
         self.head = head.to(self.device).eval()
         self.config = config or {}
@@ -321,6 +328,23 @@ class Predictor:
                 "nll_after": fit.nll_after, "num": fit.num}  # fmt: skip
 
 
+def usable_device(device: str | torch.device) -> torch.device:
+    """The torch device `device` names, checked to exist on this machine.
+
+    Raises:
+        ValueError: not a device name, or a CUDA device this machine (or this torch) lacks.
+    """
+    try:
+        found = torch.device(device)
+    except (RuntimeError, ValueError, TypeError) as exc:
+        raise ValueError(f"device {device}: not a device name ({exc})") from None
+    if found.type == "cuda" and (found.index or 0) >= torch.cuda.device_count():
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        have = f"{count} CUDA device(s)" if count else "no CUDA device (or a torch without CUDA)"
+        raise ValueError(f"device {device}: this machine has {have}; try cpu")
+    return found
+
+
 def load(
     ckpt_path: str | os.PathLike | Sequence[str | os.PathLike],
     device: str | torch.device = "cpu",
@@ -349,7 +373,15 @@ def load(
     require("train", "rotlearn.load (it rebuilds the model from the checkpoint's Hydra config)")
     from omegaconf import OmegaConf
 
+    device = usable_device(device)  # before anything is read
     if not isinstance(ckpt_path, str | os.PathLike):
+        if not isinstance(ckpt_path, Sequence) or not all(
+            isinstance(p, str | os.PathLike) for p in ckpt_path
+        ):
+            raise TypeError(
+                "expected a run directory or .ckpt path, or a list of them; got "
+                f"{type(ckpt_path).__name__}"
+            )
         return _load_ensemble(list(ckpt_path), device, chunk_elements)
     run = load_run(ckpt_path, task="rotation")
     net, head = run.build("net"), run.build("rep", prefix="head")  # weights checked, then loaded

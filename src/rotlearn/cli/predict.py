@@ -102,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
     from rotlearn.inference import load
 
     try:
-        predictor = load(args.checkpoint, device=_device(args.device))
+        predictor = load(args.checkpoint, device=args.device)
         estimate = predictor(_read_input(predictor, args.input))
     except (OSError, ValueError, TypeError, FloatingPointError) as exc:  # FP: a non-finite output
         print(f"rotlearn-predict: {exc}", file=sys.stderr)
@@ -117,21 +117,6 @@ def main(argv: list[str] | None = None) -> int:
             print(f"pair {i}:")
         print(text_lines(item, head))
     return 0
-
-
-def _device(text: str) -> Any:
-    """The torch device `--device` names, checked to exist here (ValueError saying why not)."""
-    import torch
-
-    try:
-        device = torch.device(text)
-    except (RuntimeError, ValueError) as exc:
-        raise ValueError(f"--device {text}: not a device name ({exc})") from None
-    if device.type == "cuda" and (device.index or 0) >= torch.cuda.device_count():
-        found = f"{torch.cuda.device_count()} CUDA device(s)" if torch.cuda.is_available() else (
-            "no CUDA device (or a torch without CUDA)")  # fmt: skip
-        raise ValueError(f"--device {text}: this machine has {found}; try --device cpu")
-    return device
 
 
 UNCERTAINTY_LEVEL = 0.9  # the mass of the credible ball whose radius rotlearn-predict prints
