@@ -17,6 +17,7 @@ from torch import Tensor, nn
 
 from rotlearn.geometry import sixd_to_rotmat, special_orthogonalize, symmatrixvec_to_quat
 from rotlearn.geometry.eigen4 import METHODS
+from rotlearn.geometry.shapes import require_shape
 
 __all__ = ["ALayer", "SVDToRotmat", "SixDToRotmat", "SymmetricMatrixToQuat"]
 
@@ -77,6 +78,5 @@ class SVDToRotmat(nn.Module):
     """
 
     def forward(self, m: Tensor) -> Tensor:
-        if m.dim() < 1 or m.shape[-1] != 9:
-            raise ValueError(f"expected a tensor of shape (..., 9), got {tuple(m.shape)}")
+        require_shape(m, (9,), "m")
         return special_orthogonalize(m.unflatten(-1, (3, 3)))
