@@ -93,3 +93,12 @@ def test_compiled_model_ending_in_a_layer_trains(backend):
         losses.append(float(loss.detach()))
     torch.testing.assert_close(compiled(x), model(x), atol=1e-6, rtol=0)  # same function
     assert losses[-1] < losses[0] - 0.05
+
+
+@pytest.mark.parametrize(
+    ("layer", "size"),
+    [(ALayer, 10), (SymmetricMatrixToQuat, 10), (SixDToRotmat, 6), (SVDToRotmat, 9)],
+)
+def test_each_layer_names_an_input_of_the_wrong_size(layer, size):
+    with pytest.raises(ValueError, match=rf"expected a tensor of shape \(\.\.\., {size}\), got"):
+        layer()(torch.randn(2, size + 1))
