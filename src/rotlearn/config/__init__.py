@@ -96,8 +96,9 @@ def _parse(overrides: Sequence[str]) -> list[Any]:
     except HydraException as exc:  # OverrideParseException: which argument, and where
         text = getattr(exc, "override", None) or str(exc)
         key, equal, _ = text.lstrip("+~").partition("=")
-        said = str(exc).splitlines()[0].removeprefix(f"Error parsing override '{text}'")
-        why = (said or str(exc).splitlines()[1]).split(" expecting ")[0].strip()
+        said = str(exc).removeprefix(f"Error parsing override '{text}'")
+        lines = [line.strip() for line in said.splitlines() if line.strip()]
+        why = lines[0].split(" expecting ")[0] if lines else "not Hydra's override grammar"
         what = f"cannot read {text!r} ({why})" if equal else f"{text!r} is no key=value"
         raise ConfigError(
             key if equal and key else text,
