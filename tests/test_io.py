@@ -123,6 +123,11 @@ _GENUINE = _npy(_ROWS)
             _GENUINE.replace(b"(5, 6), ", b"(99999999999, 6),"),
             r"\(99999999999, 6\) float32 \(2399999999976 bytes\) but",
         ),
+        (_GENUINE.replace(b"(5, 6), ", b"(2**62+2, 6),"), "not a .npy array"),
+        (
+            _GENUINE.replace(b"(5, 6), ", b"(4611686018427387906, 6),"),  # int64 would wrap
+            r"\(110680464442257309744 bytes\) but",
+        ),
         (_GENUINE.replace(b"'<f4'", b"'<c8'"), r"holds complex64 values, not real numbers"),
         (_npy(np.ones((2, 6), bool)), "holds bool values"),
         (_npy(np.array([["a"] * 6])), "holds <U1 values"),

@@ -17,6 +17,7 @@ import contextlib
 import errno
 import json
 import logging
+import math
 import os
 import re
 import secrets
@@ -594,7 +595,7 @@ def read_number_array(path: str | os.PathLike, width: int, layout: str) -> np.nd
         raise UnreadableFileError(f"{path}: holds Python objects, which rotlearn never unpickles")
     if dtype.kind not in "iuf" or dtype.names is not None:
         raise ValueError(f"{path}: holds {dtype} values, not real numbers ({layout})")
-    body, size = memoryview(data)[stream.tell() :], int(np.prod(shape)) * dtype.itemsize
+    body, size = memoryview(data)[stream.tell() :], math.prod(shape) * dtype.itemsize  # exact
     if len(body) != size:
         raise UnreadableFileError(
             f"{path}: its header says {shape} {dtype} ({size} bytes) but {len(body)} bytes follow"
