@@ -288,6 +288,26 @@ def test_an_ensemble_of_runs_that_take_other_input_is_refused_before_anything_is
     assert not (tmp_path / "e").exists()
 
 
+def test_rotlearn_eval_sweeps_over_runs_with_m(trained_run, tmp_path, monkeypatch):
+    """`rotlearn-eval -m ckpt=<run>,<run>` is one evaluation per run (Hydra's sweep); it was
+    refused as "no checkpoint at <run>,<run>". Each run is checked to exist and the first job's
+    config validated before anything is written; without -m the sweep is named for what it is."""
+    from rotlearn.cli.evaluate import _checked
+
+    run_dir, _ = trained_run
+    monkeypatch.chdir(tmp_path)
+    copy = shutil.copytree(run_dir, tmp_path / "copy")
+    out = f"hydra.sweep.dir={tmp_path / 'e'}"
+    assert _checked(["-m", f"ckpt={run_dir},{copy}", out]) == ["-m", f"ckpt={run_dir},{copy}", out]
+    with pytest.raises(SystemExit, match=re.escape(f"ckpt: no checkpoint at {tmp_path / 'gone'}")):
+        _checked(["-m", f"ckpt={run_dir},{tmp_path / 'gone'}", out])
+    with pytest.raises(SystemExit, match=r"config key data\.root: no directory .*nowhere"):
+        _checked(["-m", f"ckpt={run_dir},{copy}", f"data.root={tmp_path / 'nowhere'}", out])
+    with pytest.raises(SystemExit, match=r"is a sweep: add -m for one evaluation per run, or "):
+        _checked([f"ckpt={run_dir},{copy}", f"hydra.run.dir={tmp_path / 'e'}"])
+    assert not (tmp_path / "e").exists()
+
+
 def test_an_ensemble_without_its_data_is_refused_before_anything_is_written(
     trained_run, tmp_path, monkeypatch
 ):

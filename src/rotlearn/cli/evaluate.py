@@ -290,24 +290,38 @@ def _first_look(cfg: DictConfig) -> None:
     check_keys(values)
 
 
-def _ckpt_values(value: str) -> list[str]:
-    """The checkpoint paths of a `ckpt=` value: one path, or Hydra's list `[<run>,<run>,...]`
-    (parsed by Hydra's own override grammar, so quoting works as on the command line)."""
+def _ckpt_values(value: str, multirun: bool) -> tuple[list[str], bool]:
+    """The checkpoint paths a `ckpt=` value names and whether they make one ensemble: one path,
+    Hydra's list `[<run>,<run>,...]` (an ensemble) or, with -m, a sweep `<run>,<run>` (one
+    evaluation each), parsed by Hydra's own override grammar, so quoting works as on the
+    command line."""
     if not value.strip():
         raise SystemExit("rotlearn-eval: ckpt is empty; pass a run directory or a .ckpt file")
-    if not value.lstrip().startswith("["):
-        return [value]
+    if not value.lstrip().startswith("[") and "," not in value:
+        return [value], False
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
 
+    what = "a list of runs" if value.lstrip().startswith("[") else "a run or a sweep of runs"
     try:
-        parsed = OverridesParser.create().parse_override(f"ckpt={value}").value()
+        override = OverridesParser.create().parse_override(f"ckpt={value}")
     except HydraException as exc:  # the grammar's own (no viable alternative ...), one line
         why = str(exc).splitlines()[0].split(" expecting ")[0]
-        raise SystemExit(f"rotlearn-eval: ckpt: {value} is not a list of runs ({why})") from None
-    if not isinstance(parsed, list) or not parsed:
-        raise SystemExit(f"rotlearn-eval: ckpt: {value} is not a list of runs")
-    return [str(v) for v in parsed]
+        raise SystemExit(f"rotlearn-eval: ckpt: {value} is not {what} ({why})") from None
+    if override.is_sweep_override():
+        if not multirun:
+            raise SystemExit(
+                f"rotlearn-eval: ckpt: {value} is a sweep: add -m for one evaluation per run, "
+                f"or write ckpt=[{value}] for their ensemble"
+            )
+        swept = [v if isinstance(v, list) else [v] for v in override.sweep_iterator()]
+        return [str(path) for paths in swept for path in paths], False  # each job its own
+    parsed = override.value()
+    if isinstance(parsed, list):
+        if not parsed:
+            raise SystemExit(f"rotlearn-eval: ckpt: {value} is not a list of runs")
+        return [str(v) for v in parsed], True
+    return [str(parsed)], False
 
 
 def _checked(argv: list[str]) -> list[str]:
@@ -316,8 +330,8 @@ def _checked(argv: list[str]) -> list[str]:
     directory: its jobs listed), an evaluation or sweep directory that exists and is not empty,
     and a run config that does not validate with the evaluation's settings (e.g. OOD callbacks
     on data that is not image pairs, a data folder that is not there; an ensemble's: its first
-    member's); for an ensemble, a member without a belief or trained on other input
-    (`_ensemble`).
+    member's; with -m, the first job's); for an ensemble, a member without a belief or trained
+    on other input (`_ensemble`).
     Returns the arguments for Hydra (`+` before a data key that eval.yaml does not list)."""
     from rotlearn.config import command_line_config, validate
 
@@ -326,7 +340,8 @@ def _checked(argv: list[str]) -> list[str]:
     values = [a.split("=", 1)[1] for a in argv if a.startswith("ckpt=")]
     if not values:
         raise SystemExit("rotlearn-eval: ckpt=<run directory or .ckpt file> is missing (--help)")
-    members = _ckpt_values(values[-1])
+    multirun = "-m" in argv or "--multirun" in argv  # each job is checked as it runs
+    members, ensemble = _ckpt_values(values[-1], multirun)
     try:
         for member in members:
             checkpoint_file(member)
@@ -334,19 +349,16 @@ def _checked(argv: list[str]) -> list[str]:
         raise SystemExit(f"rotlearn-eval: ckpt: {exc} (nothing was written)") from None
     from rotlearn.cli.rundir import is_child_rank, refuse_an_existing_output_dir
 
-    multirun = "-m" in argv or "--multirun" in argv  # each job is checked as it runs
-    ensemble = len(members) > 1 or values[-1].lstrip().startswith("[")
-    args = argv
     try:
         first = _ensemble(members)[2] if ensemble and not multirun else None
-        if not multirun:
-            cfg, args = command_line_config(argv, "new-eval", config_name="eval")
+        cfg, args = command_line_config(argv, "new-eval", config_name="eval")  # -m: first job's
         if not is_child_rank():  # the directory of the arguments Hydra runs (with their `+`)
             refuse_an_existing_output_dir(args, "eval", "rotlearn-eval")
-        if not multirun:  # an ensemble reads its first member's data (`_ensemble`)
-            if first is None:
-                _first_look(cfg)
-            validate(evaluation_config(cfg, first or _saved_run(cfg)))
+        if first is not None:  # an ensemble reads its first member's data (`_ensemble`)
+            validate(evaluation_config(cfg, first))
+        elif isinstance(cfg.ckpt, str):  # one run (with -m, the first job's; an ensemble
+            _first_look(cfg)  # among swept values is checked by its own job)
+            validate(evaluation_config(cfg, _saved_run(cfg)))
     except ConfigError as exc:
         raise SystemExit(f"rotlearn-eval: {exc} (nothing was written)") from None
     return args
