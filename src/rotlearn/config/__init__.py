@@ -10,7 +10,8 @@ test::
 options and the nearest) and key (`optim.lrr=1e-3`, with or without `+`: the nearest key and the
 allowed ones, `rotlearn.config.checks`); an argument a component takes is set without `+` even
 where its YAML does not list it. `rotlearn-train` and `rotlearn-eval` check their command line the
-same way (`command_line`) before Hydra starts, so a refused command writes nothing. Each YAML
+same way before Hydra starts (`command_line_config`, then `validate`; `command_line` does both),
+so a refused command writes nothing. Each YAML
 starts from its component's defaults: `schema/` + its target in Hydra's ConfigStore
 (`register_schemas`, which rotlearn's Hydra plugin runs wherever Hydra composes, so a plain
 `hydra.compose` on conf/ works; the configs' resolvers, `${rl.loguniform:...}` and
