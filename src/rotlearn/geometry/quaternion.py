@@ -99,8 +99,10 @@ def quat_to_rotmat(q: Tensor) -> Tensor:
     """Rotation matrices of quaternions (paper section IV-A, R(q)).
 
     Args:
-        q: (..., 4) quaternions, scalar last (x, y, z, w). q and -q give the same matrix. Non-unit
-            quaternions are treated as their normalisation (the formula divides by |q|^2).
+        q: (..., 4) nonzero quaternions, scalar last (x, y, z, w). q and -q give the same
+            matrix. Non-unit quaternions are treated as their normalisation (the formula divides
+            by |q|^2, so a zero quaternion gives NaN; it is not checked: that would need the
+            values on the host).
 
     Returns:
         (..., 3, 3) rotation matrices R with R v = q * v * q^-1 (active rotation).
