@@ -578,8 +578,7 @@ def read_number_array(path: str | os.PathLike, width: int, layout: str) -> np.nd
 
     from numpy.lib import format as npy
 
-    if not os.path.lexists(path):
-        raise FileNotFoundError(f"no input file at {path}")
+    _require_input(path)
     data = read_bytes(path, "number array")
     stream = io.BytesIO(data)
     if data.startswith(b"PK"):
@@ -623,9 +622,15 @@ def read_text_lines(path: Path) -> list[str]:
         ValueError: naming the file (and the line) when it is not UTF-8 text, not a regular
             file or too large.
     """
+    _require_input(path)
+    return read_text(path, "text file").splitlines()
+
+
+def _require_input(path: str | os.PathLike) -> None:
+    """FileNotFoundError naming an input file that is not there (a dangling symlink is there:
+    `read_bytes` refuses it, saying why)."""
     if not os.path.lexists(path):
         raise FileNotFoundError(f"no input file at {path}")
-    return read_text(path, "text file").splitlines()
 
 
 # ---- names and paths ----------------------------------------------------------------------------

@@ -265,18 +265,16 @@ def _origin(error: Exception, args: list[str], new: list[str], run_dir: Path) ->
     """ " (from <run>/.hydra/overrides.yaml: '<override>')" where a `ConfigError`'s key was set by
     one of the run's saved overrides and not by the new command line (the user did not type
     it), else ""."""
-    from rotlearn.report.identity import parse_override
+    from rotlearn.report.identity import set_keys
     from rotlearn.report.runs import matches
 
     key = getattr(error, "key", None)
-    if key is None or "overrides.yaml" in str(error):
+    if key is None or "overrides.yaml" in str(error) or matches(key, set_keys(new)):
         return ""
-    set_now = [k for k, _ in filter(None, map(parse_override, new))]
     for text in (a for a in args if a not in new):
-        parsed = parse_override(text.lstrip("+"))
-        saved = parsed[0].replace("/", ".") if parsed else None
-        if saved and (matches(key, [saved]) or matches(saved, [key])) and not matches(key, set_now):
-            return f" (from {run_dir / '.hydra' / 'overrides.yaml'}: {text!r})"
+        for saved in set_keys([text]):
+            if matches(key, [saved]) or matches(saved, [key]):
+                return f" (from {run_dir / '.hydra' / 'overrides.yaml'}: {text!r})"
     return ""
 
 
@@ -336,7 +334,7 @@ def _check_it_is_the_config_the_run_trained(cfg: DictConfig, run_dir: Path, new:
     from omegaconf import OmegaConf
 
     from rotlearn.io import read_yaml
-    from rotlearn.report.identity import parse_override
+    from rotlearn.report.identity import set_keys
     from rotlearn.report.runs import flatten, matches
 
     source = run_dir / ".hydra" / "config.yaml"
@@ -344,8 +342,7 @@ def _check_it_is_the_config_the_run_trained(cfg: DictConfig, run_dir: Path, new:
         return
     saved = flatten(read_yaml(source, root=run_dir) or {})
     composed = flatten(OmegaConf.to_container(cfg, resolve=False))
-    set_now = [key.replace("/", ".") for key, _ in filter(None, map(parse_override, new))]
-    skipped = ["paths", "ckpt_path", *set_now]
+    skipped = ["paths", "ckpt_path", *set_keys(new)]
     shared = sorted(saved.keys() & composed.keys(), key=lambda k: (not k.endswith("_target_"), k))
     for key in (k for k in shared if not matches(k, skipped)):
         if saved[key] != composed[key]:

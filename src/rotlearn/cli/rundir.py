@@ -242,7 +242,9 @@ def refuse_an_existing_output_dir(
     if cfg is None:
         return None
     multirun = "-m" in argv or "--multirun" in argv or cfg.hydra.mode == RunMode.MULTIRUN
-    for key in (k for k in ("hydra.run.dir", "hydra.sweep.dir") if k in _set_keys(argv)):
+    from rotlearn.report.identity import set_keys
+
+    for key in (k for k in ("hydra.run.dir", "hydra.sweep.dir") if k in set_keys(argv)):
         if (key == "hydra.run.dir") == multirun:  # Hydra would write elsewhere, silently
             other, mode = (
                 ("hydra.sweep.dir", "a sweep") if multirun else ("hydra.run.dir", "one run")
@@ -264,11 +266,6 @@ def refuse_an_existing_output_dir(
     if not multirun:
         place_output_dir(cfg, folder.absolute())
     return cfg
-
-
-def _set_keys(argv: list[str]) -> set[str]:
-    """The keys a command line sets (`key=value`, `+key=value`, `++key=value`)."""
-    return {a.lstrip("+").split("=", 1)[0] for a in argv if "=" in a and not a.startswith("-")}
 
 
 def place_output_dir(cfg: DictConfig, run_dir: str | os.PathLike) -> DictConfig:

@@ -18,8 +18,11 @@ def require_shape(x: Tensor, trailing: tuple[int, ...], name: str = "the input")
         trailing: its last dimensions, e.g. (4,) for quaternions, (3, 3) for rotation matrices.
         name: the argument, for the message.
     """
-    shape = getattr(x, "shape", None)
-    if shape is None or tuple(shape[-len(trailing) :]) != trailing:
-        wanted = ", ".join(["...", *map(str, trailing)])
-        got = tuple(shape) if shape is not None else type(x).__name__
-        raise ValueError(f"{name}: expected a tensor of shape ({wanted}), got {got}")
+    try:  # the common case in one comparison (torch.Size and numpy shapes compare to tuples)
+        if x.shape[-len(trailing) :] == trailing:
+            return
+    except AttributeError:
+        pass
+    wanted = ", ".join(["...", *map(str, trailing)])
+    got = tuple(x.shape) if hasattr(x, "shape") else type(x).__name__
+    raise ValueError(f"{name}: expected a tensor of shape ({wanted}), got {got}")

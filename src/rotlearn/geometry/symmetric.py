@@ -104,7 +104,6 @@ def symmatrixvec_to_quat(
         ValueError: theta's last dimension is not 10, an unknown solver, or a dtype other than
             float32/float64 outside autocast.
     """
-    require_shape(theta, (10,), "theta")
     if solver not in METHODS:
         raise ValueError(f"solver must be one of {', '.join(METHODS)}, got {solver!r}")
     eigenvalues, q = sym4_eigh_min(a_from_vec(theta), check=False, method=solver)

@@ -25,6 +25,7 @@ __all__ = [
     "parse_override",
     "run_name",
     "select",
+    "set_keys",
     "short_value",
     "swept_keys",
 ]
@@ -45,6 +46,14 @@ def parse_override(text: str) -> tuple[str, str] | None:
         return None
     key, sep, value = text.lstrip("+").partition("=")
     return (key, value) if sep and key else None
+
+
+def set_keys(overrides: Iterable[str]) -> list[str]:
+    """The dotted keys a command line sets, in its order (`a/b=x`, a config group, as `a.b`);
+    deletions and flags left out."""
+    return [
+        key.replace("/", ".") for key, _ in filter(None, map(parse_override, map(str, overrides)))
+    ]
 
 
 def is_plumbing(key: str) -> bool:
