@@ -39,6 +39,10 @@ CASES: dict[str, tuple[str, list[str]]] = {
     "an override the grammar cannot read": ("rotlearn-train", ["optim.lr=[1"]),
     "a run folder for a sweep": ("rotlearn-train", ["-m", "rep=a,sixd", "hydra.run.dir=new"]),
     "a sweep folder for one run": ("rotlearn-train", ["hydra.sweep.dir=new"]),
+    "a sweep of Hydra's own settings": (
+        "rotlearn-train",
+        ["-m", "sweep=seeds", "hydra.sweeper.params.trial=range(0,5)"],
+    ),
     "value out of range": ("rotlearn-train", ["data.batch_size=0"]),
     "calibrate without a belief": ("rotlearn-train", ["rep=sixd", "calibrate=true"]),
     "likelihood loss without a belief": ("rotlearn-train", ["rep=sixd", "loss=bingham"]),

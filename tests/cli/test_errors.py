@@ -48,6 +48,9 @@ EXPECTED = {
     "a sweep folder for one run": (1, r"^rotlearn-train: hydra\.sweep\.dir is not used: this "
                                    r"command runs one run, whose folder is hydra\.run\.dir; "
                                    r"nothing was written$"),
+    "a sweep of Hydra's own settings": (1, r"^rotlearn-train: config key hydra\.sweeper\.params"
+                                        r"\.trial: Hydra's own settings take one value, not a "
+                                        r"sweep; to sweep trial: trial='range\(0,5\)'; a value"),
     "value out of range": (1, r"^rotlearn-train: config key data\.batch_size: should be greater "
                            r"than 0, got 0 \(nothing was written\)$"),
     "calibrate without a belief": (1, r"^rotlearn-train: config key calibrate: fits the "

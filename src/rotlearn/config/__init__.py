@@ -214,6 +214,12 @@ def command_line_config(
     for override in _parse([a for a in args if not a.startswith("-")]):
         if not override.is_sweep_override():
             first.append(override.input_line)
+        elif (key := override.key_or_group).startswith(("hydra.", "hydra/")):
+            value, swept = override.input_line.partition("=")[2], key.split("sweeper.params.")[-1]
+            how = f"to sweep {swept}: {swept}='{value}'; " if swept != key else ""
+            raise ConfigError(key, f"Hydra's own settings take one value, not a sweep; {how}a "
+                              f"value for {key} is quoted for Hydra inside the shell's quotes: "
+                              f"\"{key}='{value}'\"")  # fmt: skip
         elif values := list(override.sweep_string_iterator()):
             first.append(f"{override.get_key_element()}={values[0]}")
     cfg, taken = _composed(first, output_dir, config_name, None, appendable)
