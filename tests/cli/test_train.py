@@ -235,8 +235,10 @@ def test_a_folder_hydra_would_not_use_is_refused_before_anything_is_written(
     """`experiment=kitti_ood_demo hydra.run.dir=x` ran the experiment's sweep in
     outputs/multirun/<time> and left x unmade, without a word."""
     from rotlearn.cli.rundir import refuse_an_existing_output_dir
+    from rotlearn.config import command_line_config
 
     new = tmp_path / "new"
+    cfg, argv = command_line_config([a.format(new=new) for a in args])
     with pytest.raises(SystemExit, match=f"^rotlearn-train: {message}"):
-        refuse_an_existing_output_dir([a.format(new=new) for a in args], "train", "rotlearn-train")
+        refuse_an_existing_output_dir(cfg, argv, "train", "rotlearn-train")
     assert list(tmp_path.iterdir()) == []

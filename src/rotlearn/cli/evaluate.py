@@ -353,7 +353,7 @@ def _checked(argv: list[str]) -> list[str]:
         first = _ensemble(members)[2] if ensemble and not multirun else None
         cfg, args = command_line_config(argv, "new-eval", config_name="eval")  # -m: first job's
         if not is_child_rank():  # the directory of the arguments Hydra runs (with their `+`)
-            refuse_an_existing_output_dir(args, "eval", "rotlearn-eval")
+            refuse_an_existing_output_dir(cfg, args, "eval", "rotlearn-eval")
         if first is not None:  # an ensemble reads its first member's data (`_ensemble`)
             validate(evaluation_config(cfg, first))
         elif isinstance(cfg.ckpt, str):  # one run (with -m, the first job's; an ensemble

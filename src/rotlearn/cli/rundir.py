@@ -6,8 +6,9 @@
   `trainer.default_root_dir`, each logger's folder, each checkpoint callback's folder and file
   name, `data.cache_dir`) lies inside the run; a resume refuses a config that would write
   elsewhere, unless the user's own command line set that key.
-- `compose_command_line` / `refuse_an_existing_output_dir`: a new run or sweep never writes into
-  an existing, non-empty directory (refused before Hydra creates or writes anything).
+- `refuse_an_existing_output_dir`: a new run or sweep never writes into an existing, non-empty
+  directory, nor names a folder Hydra would not use (refused before Hydra creates or writes
+  anything).
 - `is_child_rank`: a process started by Lightning or SLURM for another rank of a distributed run,
   which repeats its rank 0's command line and must not repeat its checks.
 """
@@ -28,7 +29,6 @@ from rotlearn.io import UnreadableFileError
 __all__ = [
     "check_placement",
     "check_run_tree",
-    "compose_command_line",
     "is_child_rank",
     "output_paths",
     "place_output_dir",
@@ -174,30 +174,6 @@ def check_placement(
         )
 
 
-def compose_command_line(argv: list[str], config_name: str) -> DictConfig | None:
-    """The config of a command line with its Hydra node (`return_hydra_config`), sweeps left
-    out, as Hydra would compose it; None where it does not compose (Hydra reports that itself,
-    before writing anything)."""
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-    from hydra.errors import HydraException
-    from omegaconf.errors import OmegaConfBaseException
-
-    from rotlearn.paths import config_dir
-
-    if GlobalHydra.instance().is_initialized():
-        return None
-    try:
-        parsed = OverridesParser.create().parse_overrides([a for a in argv if a[:1] != "-"])
-        overrides = [o.input_line for o in parsed if not o.is_sweep_override()]
-        with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
-            cfg = compose(config_name, overrides, return_hydra_config=True)
-    except (HydraException, OmegaConfBaseException):
-        return None
-    return cfg
-
-
 @contextlib.contextmanager
 def _hydra_config(cfg: DictConfig) -> Iterator[None]:
     """`hydra:` interpolations resolve against `cfg` inside the block (Hydra's own global is
@@ -222,14 +198,19 @@ def _non_empty(path: Path) -> bool:
 
 
 def refuse_an_existing_output_dir(
-    argv: list[str], config_name: str, prog: str, allow: bool | Callable[[], bool] = False
-) -> DictConfig | None:
+    cfg: DictConfig,
+    argv: list[str],
+    config_name: str,
+    prog: str,
+    allow: bool | Callable[[], bool] = False,
+) -> None:
     """Refuse (SystemExit, one line) a command line whose run or sweep directory already exists
-    and is not empty: a new run never writes into another's directory. Returns the composed
-    config (None where it does not compose), `paths.output_dir` set to the run directory for a
-    single run.
+    and is not empty (a new run never writes into another's directory), or that sets the folder
+    of the mode it does not run.
 
     Args:
+        cfg: the command line's config with its `hydra` node
+            (`rotlearn.config.command_line_config`).
         argv: the command line (no `ckpt_path`: resumes are `rotlearn.cli.resume`'s).
         config_name: the primary config ("train", "eval").
         prog: the command's name, for the message.
@@ -238,12 +219,9 @@ def refuse_an_existing_output_dir(
     """
     from hydra.types import RunMode
 
-    cfg = compose_command_line(argv, config_name)
-    if cfg is None:
-        return None
-    multirun = "-m" in argv or "--multirun" in argv or cfg.hydra.mode == RunMode.MULTIRUN
     from rotlearn.report.identity import set_keys
 
+    multirun = "-m" in argv or "--multirun" in argv or cfg.hydra.mode == RunMode.MULTIRUN
     for key in (k for k in ("hydra.run.dir", "hydra.sweep.dir") if k in set_keys(argv)):
         if (key == "hydra.run.dir") == multirun:  # Hydra would write elsewhere, silently
             other, mode = (
@@ -263,9 +241,6 @@ def refuse_an_existing_output_dir(
             f"{prog}: {folder} already exists and is not empty; a new {what} never writes into "
             f"an existing directory{hint}; nothing was written"
         )
-    if not multirun:
-        place_output_dir(cfg, folder.absolute())
-    return cfg
 
 
 def place_output_dir(cfg: DictConfig, run_dir: str | os.PathLike) -> DictConfig:

@@ -98,13 +98,13 @@ def _requeued() -> bool:
 
 
 def _refuse_an_invalid_new_run(argv: list[str]) -> list[str]:
-    """Before Hydra creates anything for a new run (or sweep): compose the command line
+    """Before Hydra creates anything for a new run (or sweep): compose the command line once
     (`rotlearn.config.command_line_config`: a bad option or key exits naming it; a sweep with
-    the first value of each swept key), refuse a folder Hydra would not use or a run or sweep
-    directory that already exists and is not empty (from the composition alone, fast), check
-    every value (`rotlearn.config.validate`'s two passes around it), then build
-    a single run's datamodule and (on the meta device: nothing allocated) its model, so that a
-    bad value leaves nothing behind (SystemExit naming the key).
+    the first value of each swept key), check what files alone tell, refuse a folder Hydra
+    would not use or a run or sweep directory that already exists and is not empty, check
+    every value (`rotlearn.config.validate`'s two passes, the folders checked between them),
+    then build a single run's datamodule and (on the meta device: nothing allocated) its model,
+    so that a bad value leaves nothing behind (SystemExit naming the key).
     Returns the arguments for Hydra, with `+` before each component argument that its YAML does
     not list. A config that does not compose is left for Hydra to report (before it writes
     anything); flags such as --cfg or --info are Hydra's."""
@@ -118,17 +118,17 @@ def _refuse_an_invalid_new_run(argv: list[str]) -> list[str]:
 
     if any(a.startswith("-") and a not in ("-m", "--multirun") for a in argv):
         return argv
-    try:  # `rotlearn.config.validate` in its two passes, the folders checked between them:
-        composed, argv = command_line_config(argv, "new-run")
-        values = plain(composed)
+    try:
+        cfg, argv = command_line_config(argv, "new-run")
+        values = plain(cfg)
         check_keys(values)  # from files alone, fast
-        cfg = refuse_an_existing_output_dir(argv, "train", "rotlearn-train", _requeued)
+        refuse_an_existing_output_dir(cfg, argv, "train", "rotlearn-train", _requeued)
         check_values(values)  # imports the components (torch, Lightning): seconds
     except (HydraException, OmegaConfBaseException):
         return argv
     except ConfigError as exc:
         raise SystemExit(f"rotlearn-train: {exc} (nothing was written)") from None
-    if cfg is None or "-m" in argv or "--multirun" in argv or cfg.hydra.mode == RunMode.MULTIRUN:
+    if "-m" in argv or "--multirun" in argv or cfg.hydra.mode == RunMode.MULTIRUN:
         return argv
     from rotlearn.cli.training import check_buildable
 

@@ -158,15 +158,14 @@ def _loggers(cfg: DictConfig, config: dict[str, Any], runtime: _Runtime) -> list
 
 
 def check_buildable(cfg: DictConfig) -> None:
-    """Validate a composed config and build what checks its values in its constructor (the
-    datamodule, and the model on the meta device: no memory is allocated for its weights)
-    without writing anything, so that `rotlearn-train` refuses a bad value before Hydra creates
-    the run directory. Only a `ConfigError` counts: anything else the real build reports.
+    """Build what checks its values in its constructor, of a validated config (the datamodule,
+    and the model on the meta device: no memory is allocated for its weights) without writing
+    anything, so that `rotlearn-train` refuses a bad value before Hydra creates the run
+    directory. Only a `ConfigError` counts: anything else the real build reports.
 
     Raises:
         ConfigError: naming the full key.
     """
-    config.validate(cfg)
     _instantiate(cfg, "data")
     with torch.device("meta"):
         try:

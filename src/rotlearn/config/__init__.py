@@ -147,13 +147,14 @@ def _compose(
 def _composed(
     overrides, output_dir, config_name, root, appendable=None
 ) -> tuple[DictConfig, list[str]]:
-    kept = [o for o in overrides if not o.lstrip("+~").startswith(("hydra.", "hydra/"))]
-    cfg, taken = _compose(config_name, kept, Path(root or config_dir()), appendable)
-    run_dir = OmegaConf.select(cfg, "hydra.run.dir")
-    with open_dict(cfg):
-        del cfg["hydra"]
-        if output_dir is not None or OmegaConf.is_interpolation(cfg.paths, "output_dir"):
-            cfg.paths.output_dir = str(output_dir if output_dir is not None else run_dir)
+    """`_compose` (Hydra's own keys set too, never given a `+`) with `paths.output_dir` placed:
+    `output_dir`, else the run directory Hydra would make."""
+    own = [o for o in overrides if o.lstrip("+~").startswith(("hydra.", "hydra/"))]
+    appendable = [o for o in (overrides if appendable is None else appendable) if o not in own]
+    cfg, taken = _compose(config_name, list(overrides), Path(root or config_dir()), appendable)
+    if output_dir is not None or OmegaConf.is_interpolation(cfg.paths, "output_dir"):
+        run_dir = OmegaConf.select(cfg, "hydra.run.dir")
+        cfg.paths.output_dir = str(output_dir if output_dir is not None else run_dir)
     return cfg, taken
 
 
@@ -168,9 +169,11 @@ def compose(
     """The config of conf/<config_name>.yaml with `overrides`, as `rotlearn-train` composes it.
 
     Args:
-        overrides: e.g. ["rep=a", "optim.lr=1e-3"] (Hydra's own `hydra.*` keys are left out).
+        overrides: e.g. ["rep=a", "optim.lr=1e-3"] (Hydra's own `hydra.*` keys count only
+            for where a run would write: the config returned has no `hydra` node).
         output_dir: `paths.output_dir`, where a run of it would write (default: the directory
-            `rotlearn-train` would make, outputs/runs/<time>; nothing is written here).
+            `rotlearn-train` would make, hydra.run.dir: outputs/runs/<time>; nothing is written
+            here).
         config_name: the primary config; root: the config directory (default: rotlearn's conf/).
         check: validate it (`validate`); False returns it as composed.
 
@@ -178,6 +181,8 @@ def compose(
         ConfigError: an unknown option or key, or a value its component refuses (naming it).
     """
     cfg, _ = _composed(list(overrides), output_dir, config_name, root)
+    with open_dict(cfg):
+        del cfg["hydra"]
     if check:
         validate(cfg)
     return cfg
@@ -206,8 +211,9 @@ def command_line_config(
     config_name: str = "train",
     appendable: Sequence[str] | None = None,
 ) -> tuple[DictConfig, list[str]]:
-    """`command_line` without the validation: the composed config (the first value of each
-    swept key) and the arguments for Hydra, from one composition. `appendable`: only these
+    """`command_line` without the validation: the composed config with its `hydra` node (the
+    first value of each swept key), and the arguments for Hydra, from one composition (Hydra's
+    own keys never get a `+`; a sweep of them is refused). `appendable`: only these
     arguments may get a `+` (a resume's saved overrides never get one, so a file's unknown keys
     cost one composition, not one each)."""
     first = []
