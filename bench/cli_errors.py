@@ -39,6 +39,7 @@ CASES: dict[str, tuple[str, list[str]]] = {
     "an override the grammar cannot read": ("rotlearn-train", ["optim.lr=[1"]),
     "a run folder for a sweep": ("rotlearn-train", ["-m", "rep=a,sixd", "hydra.run.dir=new"]),
     "a sweep folder for one run": ("rotlearn-train", ["hydra.sweep.dir=new"]),
+    "a misspelt key of Hydra's": ("rotlearn-train", ["hydra.run.dirr=new"]),
     "a sweep of Hydra's own settings": (
         "rotlearn-train",
         ["-m", "sweep=seeds", "hydra.sweeper.params.trial=range(0,5)"],

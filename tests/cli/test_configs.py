@@ -177,6 +177,14 @@ def test_an_override_the_grammar_cannot_read_is_named(make_cfg, override, messag
         make_cfg([override])
 
 
+def test_a_misspelt_key_of_hydras_gets_the_nearest_not_hydras_advice_to_append_it(make_cfg):
+    """Hydra answered `hydra.run.dirr=x` with "To append to your config use +hydra.run.dirr=x"."""
+    with pytest.raises(ConfigError, match=r"^config key hydra\.sweeper\.paramz: unknown key; did "
+                       r"you mean hydra\.sweeper\.params\?; allowed: _target_, max_batch_size, "
+                       r"params$"):  # fmt: skip
+        make_cfg(["hydra.sweeper.paramz.rep=a"])
+
+
 def test_plain_hydra_compose_needs_no_rotlearn_import_first(tmp_path):
     """conf/ composes with Hydra alone (the schemas and the configs' `${rl.*:}` resolvers
     register through rotlearn's Hydra plugin), in a fresh interpreter that imports nothing of

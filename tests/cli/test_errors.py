@@ -48,6 +48,8 @@ EXPECTED = {
     "a sweep folder for one run": (1, r"^rotlearn-train: hydra\.sweep\.dir is not used: this "
                                    r"command runs one run, whose folder is hydra\.run\.dir; "
                                    r"nothing was written$"),
+    "a misspelt key of Hydra's": (1, r"^rotlearn-train: config key hydra\.run\.dirr: unknown "
+                                  r"key; did you mean hydra\.run\.dir\?; allowed: dir \(nothing"),
     "a sweep of Hydra's own settings": (1, r"^rotlearn-train: config key hydra\.sweeper\.params"
                                         r"\.trial: Hydra's own settings take one value, not a "
                                         r"sweep; to sweep trial: trial='range\(0,5\)'; a value"),

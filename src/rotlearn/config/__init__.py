@@ -42,7 +42,7 @@ from hydra.errors import ConfigCompositionException, MissingConfigException  # n
 from omegaconf import DictConfig, OmegaConf, open_dict  # noqa: E402
 
 from rotlearn.config import resolvers  # noqa: E402, F401  (registers `${rl.*:...}`)
-from rotlearn.config.checks import check_keys, check_values, plain  # noqa: E402
+from rotlearn.config.checks import check_keys, check_values, plain, refuse_unknown  # noqa: E402
 from rotlearn.config.source import NOT_LITERAL, marked, parameters  # noqa: E402
 from rotlearn.errors import ConfigError  # noqa: E402
 from rotlearn.paths import config_dir  # noqa: E402
@@ -131,6 +131,10 @@ def _compose(
                               and (appendable is None or overrides[i] in appendable)
                               and (o.key_or_group + ".").startswith(f"{key}.")]  # fmt: skip
                     if isinstance(exc, MissingConfigException) or not absent:
+                        parent = getattr(exc.__cause__, "parent_node", None)
+                        if str(key).startswith("hydra.") and isinstance(parent, DictConfig):
+                            node, _, name = key.rpartition(".")  # Hydra's advice: append it
+                            refuse_unknown(node, [name], sorted(map(str, parent)))
                         raise
                     taken[absent[0]] = f"+{taken[absent[0]]}"
         except MissingConfigException as exc:
