@@ -89,18 +89,24 @@ def test_every_block_of_the_guide_is_run_or_says_why_not():
 
 
 def _expand(args: list[str]) -> list[list[str]]:
-    """The jobs of a `-m` command line (comma-separated values outside brackets)."""
+    """The jobs of a `-m` command line, each swept key's values as Hydra's parser reads them
+    (`a,b`, `range(3,5)`, ...)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
     options = []
     for arg in (a for a in args if a != "-m"):
-        key, sep, value = arg.partition("=")
-        values = re.split(r",(?![^\[]*\])", value) if sep and "[" not in value else [value]
-        options.append([f"{key}={v}" if sep else key for v in values])
+        override = OverridesParser.create().parse_override(arg)
+        if override.is_sweep_override():
+            key = override.get_key_element()
+            options.append([f"{key}={v}" for v in override.sweep_string_iterator()])
+        else:
+            options.append([arg])
     return [list(job) for job in itertools.product(*options)]
 
 
 @pytest.mark.parametrize("page", pages(), ids=lambda p: p.stem)
 def test_each_page_composes_its_commands_and_runs_its_standalone_code(page, tmp_path, monkeypatch):
-    from rotlearn.config import command_line, compose
+    from rotlearn.config import command_line, command_line_config, compose
 
     monkeypatch.chdir(tmp_path)  # where the commands' data folders are laid out (empty)
 
@@ -113,6 +119,8 @@ def test_each_page_composes_its_commands_and_runs_its_standalone_code(page, tmp_
             continue
         for line in commands(code):
             if line[0] == "rotlearn-train" and not any(a.startswith("ckpt_path=") for a in line):
+                if "-m" in line:  # the sweep as written (a sweep of a `hydra.*` key is refused)
+                    command_line_config(line[1:], str(tmp_path / "run"))
                 for job in _expand(line[1:]):
                     args = [a for a in sized(job) if not a.startswith("-")]
                     make_data_layout(compose(args, output_dir=tmp_path / "run", check=False))
@@ -177,3 +185,7 @@ def test_the_guide_runs_from_its_first_page_to_its_last(tmp_path):
     assert "| a |" in (tmp_path / "outputs" / "grid-by-rep" / "report.md").read_text()
     assert (tmp_path / "outputs" / "ood" / "ood.md").is_file()
     assert (tmp_path / "outputs" / "belief" / "checkpoints" / "temperature.json").is_file()
+    seeds = tmp_path / "outputs" / "seeds-3-4"  # trial='range(3,5)': two jobs, trials 3 and 4
+    for job, trial in (("0", 3), ("1", 4)):
+        assert f"- trial={trial}\n" in (seeds / job / ".hydra" / "overrides.yaml").read_text()
+    assert not (seeds / "2").exists()
