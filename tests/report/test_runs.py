@@ -104,6 +104,26 @@ def test_an_evaluation_sits_beside_the_runs_it_evaluated(tmp_path):
     ]  # fmt: skip
 
 
+def test_values_that_read_alike_keep_their_settings_apart(tmp_path):
+    """A label wrote a path by its last part, so data/demo/kitti and data/paper_scale/kitti both
+    read `data.root=kitti` and their runs were pooled as one setting; such values are now
+    written by as many of their last parts as tell them apart (numbers alike to 6 digits:
+    in full)."""
+    roots = ["/x/data/demo/kitti", "data/paper_scale/kitti"]
+    lrs = [0.0010000001, 0.0010000002]
+    for num, (root, lr, seed) in enumerate((r, lr, s) for r in roots for lr in lrs for s in (0, 1)):
+        config = {"rep": {"name": "a"}, "data": {"root": root, "seed": seed}, "seed": seed,
+                  "optim": {"lr": lr}}  # fmt: skip
+        _run(tmp_path / "sweep" / str(num), config, {"rep": "a"}, [f"seed={seed}"], 1.0 + num)
+    runs = collect_runs(tmp_path / "sweep")
+    assert list(dict.fromkeys(runs["setting"])) == [
+        f"a data.root={root} optim.lr={lr}"
+        for root in ("demo/kitti", "paper_scale/kitti")
+        for lr in ("0.0010000001", "0.0010000002")
+    ]
+    assert runs.groupby("setting").size().tolist() == [2, 2, 2, 2]
+
+
 def test_a_class_that_tells_runs_apart_is_named_by_its_class(tmp_path):
     """Where no config group option says it, a differing `_target_` reads as the class name."""
     for num, loss in enumerate(("BinghamNLLLoss", "ChordalLoss")):

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import difflib
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -300,6 +300,8 @@ def _settings(
         for node in grouped_nodes
         if len({c.get(node) for c in choices}) > 1 and all(node in c for c in choices)
     }
+    text = {key: _distinct_text([f[key] for f in flats if f.get(key) is not None])
+            for key in grouping}  # fmt: skip
     columns, labels, all_parts = [], [], []
     for flat, chosen in zip(flats, choices, strict=True):
         columns.append({k: cell(flat.get(k)) for k in shown})
@@ -316,7 +318,7 @@ def _settings(
             elif key.endswith("._target_"):  # the class by its name: loss=BinghamNLLLoss
                 part = f"{key.removesuffix('._target_')}={str(value).rpartition('.')[2]}"
             else:
-                part = f"{key}={short_value(value)}"
+                part = f"{key}={text[key](value)}"
             if part not in [p for _, p in parts]:
                 parts.append((key, part))
         if not flat:  # a damaged or missing .hydra/config.yaml
@@ -324,6 +326,23 @@ def _settings(
         labels.append(" ".join(p for _, p in parts) or chosen.get("model") or "all")
         all_parts.append(parts)
     return columns, labels, all_parts
+
+
+def _distinct_text(values: Sequence[Any]) -> Callable[[Any], str]:
+    """How a label writes one key's values: `short_value`, unless that gives two different values
+    the same text (data roots that end in the same folder, numbers alike to 6 digits); then
+    each by as many of its last `/`-parts as tell them apart, in full at most."""
+    distinct = list({repr(v): v for v in values}.values())
+    if len({short_value(v) for v in distinct}) == len(distinct):
+        return short_value
+    for n in range(1, max(len(_path_parts(v)) for v in distinct) + 1):
+        if len({"/".join(_path_parts(v)[-n:]) for v in distinct}) == len(distinct):
+            return lambda value: "/".join(_path_parts(value)[-n:])
+    return str
+
+
+def _path_parts(value: Any) -> list[str]:
+    return str(value).rstrip("/").split("/")
 
 
 def _unstarted_jobs(root: Path, seen: set[str]) -> list[dict[str, Any]]:
