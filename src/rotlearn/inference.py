@@ -338,8 +338,7 @@ def usable_device(device: str | torch.device) -> torch.device:
         found = torch.device(device)
     except (RuntimeError, ValueError, TypeError) as exc:
         raise ValueError(f"device {device}: not a device name ({exc})") from None
-    if found.type == "cuda" and (found.index or 0) >= torch.cuda.device_count():
-        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    if found.type == "cuda" and (found.index or 0) >= (count := torch.cuda.device_count()):
         have = f"{count} CUDA device(s)" if count else "no CUDA device (or a torch without CUDA)"
         raise ValueError(f"device {device}: this machine has {have}; try cpu")
     return found

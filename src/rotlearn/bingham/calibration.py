@@ -66,9 +66,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from rotlearn.bingham.descriptors import _check_A, _float_dtype, _raise_first, _symmetric, mode
+from rotlearn.bingham.descriptors import _check_A, _check_q, _symmetric, mode
 from rotlearn.bingham.sampling import sample
-from rotlearn.geometry.shapes import require_shape
 
 __all__ = [
     "CREDIBLE_LEVELS",
@@ -108,9 +107,7 @@ def hpd_level(
         Not differentiable.
     """
     _check_A(A)
-    _float_dtype(q, "q")
-    require_shape(q, (4,), "q")
-    _raise_first(~torch.isfinite(q).all(-1), "q has NaN or Inf")
+    _check_q(q)
     if num_samples < 1:
         raise ValueError(f"num_samples must be >= 1, got {num_samples}")
     dtype = torch.promote_types(A.dtype, q.dtype)

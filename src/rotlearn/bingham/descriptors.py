@@ -97,6 +97,14 @@ def _check_A(A: Tensor, values: bool = True) -> None:
         _raise_first(~torch.isfinite(A).flatten(-2).all(-1), "A has NaN or Inf")
 
 
+def _check_q(q: Tensor, values: bool = True) -> None:
+    """q's dtype and shape (..., 4); with `values`, also its entries (finite: one host sync)."""
+    _float_dtype(q, "q")
+    require_shape(q, (4,), "q")
+    if values:
+        _raise_first(~torch.isfinite(q).all(-1), "q has NaN or Inf")
+
+
 def _check_lam(lam: Tensor) -> None:
     _float_dtype(lam, "lam")
     if lam.dim() < 1 or lam.shape[-1] not in (3, 4):

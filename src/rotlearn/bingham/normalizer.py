@@ -17,15 +17,13 @@ from rotlearn.bingham.descriptors import (
     MAX_DISPERSION,
     _check_A,
     _check_lam,
+    _check_q,
     _check_spread,
-    _float_dtype,
-    _raise_first,
     _symmetric,
     dispersion_from_eigenvalues,
     eigenvalues,
 )
 from rotlearn.geometry.autocast import float32_under_autocast
-from rotlearn.geometry.shapes import require_shape
 
 __all__ = ["log_normalizer", "log_prob", "moments", "nll", "normalizer"]
 
@@ -265,11 +263,9 @@ def log_prob(A: Tensor, q: Tensor, check: bool = True) -> Tensor:
             MAX_DISPERSION, naming the first batch index.
     """
     _check_A(A, values=check)
-    _float_dtype(q, "q")
-    require_shape(q, (4,), "q")
+    _check_q(q, values=check)
     ev = eigenvalues(A)
     if check:
-        _raise_first(~torch.isfinite(q).all(-1), "q has NaN or Inf")
         _check_spread(ev)
     lam = dispersion_from_eigenvalues(ev)
     return ev[..., 0] - _quad_form(_symmetric(A).to(A.dtype), q) - _log_normalizer3(lam)

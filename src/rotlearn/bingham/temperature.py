@@ -33,14 +33,12 @@ from torch import Tensor
 from rotlearn.bingham.descriptors import (
     MAX_DISPERSION,
     _check_A,
-    _float_dtype,
-    _raise_first,
+    _check_q,
     _symmetric,
     dispersion_from_eigenvalues,
     eigenvalues,
 )
 from rotlearn.bingham.normalizer import _log_normalizer3, moments
-from rotlearn.geometry.shapes import require_shape
 
 __all__ = ["MIN_SPREAD_RATIO", "TemperatureFit", "fit_temperature"]
 
@@ -75,9 +73,7 @@ class TemperatureFit:
 def _flatten(A: Tensor, q: Tensor) -> tuple[Tensor, Tensor]:
     """A (N, 4, 4) and q (N, 4), float64, after validation and broadcasting."""
     _check_A(A)
-    _float_dtype(q, "q")
-    require_shape(q, (4,), "q")
-    _raise_first(~torch.isfinite(q).all(-1), "q has NaN or Inf")
+    _check_q(q)
     try:
         shape = torch.broadcast_shapes(A.shape[:-2], q.shape[:-1])
     except RuntimeError:

@@ -306,7 +306,9 @@ def _ckpt_values(value: str, multirun: bool) -> tuple[list[str], bool]:
     try:
         override = OverridesParser.create().parse_override(f"ckpt={value}")
     except HydraException as exc:  # the grammar's own (no viable alternative ...), one line
-        why = str(exc).splitlines()[0].split(" expecting ")[0]
+        from rotlearn.config import grammar_reason
+
+        why = grammar_reason(exc, f"ckpt={value}")
         raise SystemExit(f"rotlearn-eval: ckpt: {value} is not {what} ({why})") from None
     if override.is_sweep_override():
         if not multirun:
@@ -340,15 +342,15 @@ def _checked(argv: list[str]) -> list[str]:
     values = [a.split("=", 1)[1] for a in argv if a.startswith("ckpt=")]
     if not values:
         raise SystemExit("rotlearn-eval: ckpt=<run directory or .ckpt file> is missing (--help)")
-    multirun = "-m" in argv or "--multirun" in argv  # each job is checked as it runs
+    from rotlearn.cli.rundir import is_child_rank, refuse_an_existing_output_dir, runs_a_sweep
+
+    multirun = runs_a_sweep(argv)  # each job is checked as it runs
     members, ensemble = _ckpt_values(values[-1], multirun)
     try:
         for member in members:
             checkpoint_file(member)
     except FileNotFoundError as exc:
         raise SystemExit(f"rotlearn-eval: ckpt: {exc} (nothing was written)") from None
-    from rotlearn.cli.rundir import is_child_rank, refuse_an_existing_output_dir
-
     try:
         first = _ensemble(members)[2] if ensemble and not multirun else None
         cfg, args = command_line_config(argv, "new-eval", config_name="eval")  # -m: first job's

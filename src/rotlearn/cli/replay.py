@@ -19,6 +19,7 @@ from pathlib import Path
 
 from rotlearn.io import UnreadableFileError, read_yaml
 from rotlearn.paths import config_dir
+from rotlearn.report.identity import is_hydra_key
 from rotlearn.trust import UntrustedConfigError, trusted_config
 
 __all__ = ["quoted", "replayed_config", "saved_overrides"]
@@ -56,7 +57,7 @@ def _parse(overrides: list[str], source: Path) -> None:
         raise UntrustedConfigError(f"{source}: not a list of Hydra overrides: {exc}") from None
     for override in parsed:
         key = override.key_or_group
-        if key == "hydra" or key.startswith(("hydra.", "hydra/")):
+        if is_hydra_key(key):
             raise UntrustedConfigError(
                 f"{source}: override {override.input_line!r} sets Hydra's own config key {key}; "
                 "a run's saved overrides never do"
@@ -129,7 +130,7 @@ def replayed_config(args: list[str], run_dir: str | Path, config_name: str = "tr
     from rotlearn.cli.rundir import place_output_dir
 
     source = Path(run_dir) / ".hydra" / "overrides.yaml"
-    overrides = [a for a in args if not a.lstrip("+~").startswith(("hydra.", "hydra/"))]
+    overrides = [a for a in args if not is_hydra_key(a)]
     try:
         with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
             cfg = compose(config_name=config_name, overrides=overrides)

@@ -40,7 +40,7 @@ from rotlearn.checkpoint import (
     resolve_checkpoint,
 )
 from rotlearn.cli.replay import quoted, replayed_config, saved_overrides
-from rotlearn.cli.rundir import check_placement, check_run_tree, user_keys
+from rotlearn.cli.rundir import check_placement, check_run_tree, runs_a_sweep, user_keys
 from rotlearn.errors import ConfigError
 from rotlearn.io import UnreadableFileError, read_bytes, read_record, write_bytes_atomic
 from rotlearn.locks import RunLockedError, check_free
@@ -377,7 +377,7 @@ def plan_resume(argv: list[str], runs_root: Path = Path("outputs/runs")) -> Resu
     values = [a.split("=", 1)[1] for a in argv if a.startswith("ckpt_path=")]
     if not values or values[-1] in ("", "null", "None"):
         return None
-    if "-m" in argv or "--multirun" in argv:
+    if runs_a_sweep(argv):
         raise _refuse("ckpt_path resumes one run; it cannot be used with -m")
     ckpt = _checkpoint_of(values[-1], runs_root)
     run_dir = run_of(ckpt).resolve()

@@ -33,6 +33,7 @@ __all__ = [
     "output_paths",
     "place_output_dir",
     "refuse_an_existing_output_dir",
+    "runs_a_sweep",
     "user_keys",
 ]
 
@@ -46,6 +47,16 @@ def is_child_rank() -> bool:
     """Whether this process is a rank other than 0 of a distributed run (its launcher set one of
     LOCAL_RANK, RANK, SLURM_PROCID, JSM_NAMESPACE_RANK to a value other than 0)."""
     return any(os.environ.get(name, "0") not in ("", "0") for name in _RANK_VARIABLES)
+
+
+def runs_a_sweep(argv: list[str], cfg: DictConfig | None = None) -> bool:
+    """Whether a command line runs a sweep: `-m`, or (given its composed config with the `hydra`
+    node) an experiment that sets `hydra.mode: MULTIRUN`."""
+    if "-m" in argv or "--multirun" in argv:
+        return True
+    from hydra.types import RunMode
+
+    return cfg is not None and cfg.hydra.mode == RunMode.MULTIRUN
 
 
 def check_run_tree(run_dir: str | os.PathLike) -> None:
@@ -217,11 +228,9 @@ def refuse_an_existing_output_dir(
         allow: skip the refusal (a SLURM job requeued into its own directory); a callable is
             asked only when the directory is taken.
     """
-    from hydra.types import RunMode
-
     from rotlearn.report.identity import set_keys
 
-    multirun = "-m" in argv or "--multirun" in argv or cfg.hydra.mode == RunMode.MULTIRUN
+    multirun = runs_a_sweep(argv, cfg)
     for key in (k for k in ("hydra.run.dir", "hydra.sweep.dir") if k in set_keys(argv)):
         if (key == "hydra.run.dir") == multirun:  # Hydra would write elsewhere, silently
             other, mode = (

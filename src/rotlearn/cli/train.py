@@ -109,10 +109,9 @@ def _refuse_an_invalid_new_run(argv: list[str]) -> list[str]:
     not list. A config that does not compose is left for Hydra to report (before it writes
     anything); flags such as --cfg or --info are Hydra's."""
     from hydra.errors import HydraException
-    from hydra.types import RunMode
     from omegaconf.errors import OmegaConfBaseException
 
-    from rotlearn.cli.rundir import refuse_an_existing_output_dir
+    from rotlearn.cli.rundir import refuse_an_existing_output_dir, runs_a_sweep
     from rotlearn.config import ConfigError, command_line_config
     from rotlearn.config.checks import check_keys, check_values, plain
 
@@ -128,7 +127,7 @@ def _refuse_an_invalid_new_run(argv: list[str]) -> list[str]:
         return argv
     except ConfigError as exc:
         raise SystemExit(f"rotlearn-train: {exc} (nothing was written)") from None
-    if "-m" in argv or "--multirun" in argv or cfg.hydra.mode == RunMode.MULTIRUN:
+    if runs_a_sweep(argv, cfg):
         return argv
     from rotlearn.cli.training import check_buildable
 

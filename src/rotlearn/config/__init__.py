@@ -46,6 +46,7 @@ from rotlearn.config.checks import check_keys, check_values, plain, refuse_unkno
 from rotlearn.config.source import NOT_LITERAL, marked, parameters  # noqa: E402
 from rotlearn.errors import ConfigError  # noqa: E402
 from rotlearn.paths import config_dir  # noqa: E402
+from rotlearn.report.identity import is_hydra_key  # noqa: E402
 
 if TYPE_CHECKING:
     import lightning.pytorch as pl
@@ -56,6 +57,7 @@ __all__ = [
     "command_line",
     "command_line_config",
     "compose",
+    "grammar_reason",
     "register_schemas",
     "validate",
 ]
@@ -86,6 +88,14 @@ def register_schemas() -> tuple[str, ...]:
     return marked()
 
 
+def grammar_reason(error: Exception, text: str) -> str:
+    """Why Hydra's override grammar could not read `text`, in a few words: the first line of
+    its error ("no viable alternative at input '[1'"), without its "expecting ..." list."""
+    said = str(error).removeprefix(f"Error parsing override '{text}'")
+    lines = [line.strip() for line in said.splitlines() if line.strip()]
+    return lines[0].split(" expecting ")[0] if lines else "not Hydra's override grammar"
+
+
 def _parse(overrides: Sequence[str]) -> list[Any]:
     """Hydra's parse of each override; `ConfigError` names one its grammar cannot read."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
@@ -97,9 +107,7 @@ def _parse(overrides: Sequence[str]) -> list[Any]:
     except HydraException as exc:  # OverrideParseException: which argument, and where
         text = getattr(exc, "override", None) or str(exc)
         key, equal, _ = text.lstrip("+~").partition("=")
-        said = str(exc).removeprefix(f"Error parsing override '{text}'")
-        lines = [line.strip() for line in said.splitlines() if line.strip()]
-        why = lines[0].split(" expecting ")[0] if lines else "not Hydra's override grammar"
+        why = grammar_reason(exc, text)
         what = f"cannot read {text!r} ({why})" if equal else f"{text!r} is no key=value"
         raise ConfigError(
             key if equal and key else text,
@@ -153,8 +161,8 @@ def _composed(
 ) -> tuple[DictConfig, list[str]]:
     """`_compose` (Hydra's own keys set too, never given a `+`) with `paths.output_dir` placed:
     `output_dir`, else the run directory Hydra would make."""
-    own = [o for o in overrides if o.lstrip("+~").startswith(("hydra.", "hydra/"))]
-    appendable = [o for o in (overrides if appendable is None else appendable) if o not in own]
+    appendable = [o for o in (overrides if appendable is None else appendable)
+                  if not is_hydra_key(o)]  # fmt: skip
     cfg, taken = _compose(config_name, list(overrides), Path(root or config_dir()), appendable)
     if output_dir is not None or OmegaConf.is_interpolation(cfg.paths, "output_dir"):
         run_dir = OmegaConf.select(cfg, "hydra.run.dir")
@@ -224,7 +232,7 @@ def command_line_config(
     for override in _parse([a for a in args if not a.startswith("-")]):
         if not override.is_sweep_override():
             first.append(override.input_line)
-        elif (key := override.key_or_group).startswith(("hydra.", "hydra/")):
+        elif is_hydra_key(key := override.key_or_group):
             value, swept = override.input_line.partition("=")[2], key.split("sweeper.params.")[-1]
             how = f"to sweep {swept}: {swept}='{value}'; " if swept != key else ""
             raise ConfigError(key, f"Hydra's own settings take one value, not a sweep; {how}a "

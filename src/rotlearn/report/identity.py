@@ -20,6 +20,7 @@ __all__ = [
     "HEADLINE_KEYS",
     "MAX_NAME_LENGTH",
     "hparams_record",
+    "is_hydra_key",
     "is_plumbing",
     "override_keys",
     "parse_override",
@@ -54,6 +55,12 @@ def set_keys(overrides: Iterable[str]) -> list[str]:
     return [
         key.replace("/", ".") for key, _ in filter(None, map(parse_override, map(str, overrides)))
     ]
+
+
+def is_hydra_key(key: str) -> bool:
+    """Whether a key, or an override, sets Hydra's own config (`hydra.*`, `hydra/<group>`)."""
+    key = key.lstrip("+~")
+    return key == "hydra" or key.startswith(("hydra.", "hydra/"))
 
 
 def is_plumbing(key: str) -> bool:
