@@ -11,6 +11,8 @@ import stat
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from rotlearn import io
 from rotlearn.io import (
@@ -148,6 +150,21 @@ def test_a_number_array_file_is_read_bounded_and_never_unpickled(tmp_path, data,
     assert str(path) in str(info.value)
 
 
+def test_a_number_array_is_bounded_as_the_float64_array_it_becomes(tmp_path, monkeypatch):
+    """int8 numbers become 8 times as many bytes as float64: a file within the cap could
+    allocate 8 times the cap (2 GiB from a 256 MiB file)."""
+    monkeypatch.setitem(io.MAX_BYTES, "number array", 1000)
+    path = tmp_path / "pairs.npy"
+    path.write_bytes(_npy(np.ones((20, 6), np.float32)))  # 960 bytes as float64: read
+    assert read_number_array(path, 6, "x").shape == (20, 6)
+    path.write_bytes(_npy(np.ones((30, 6), np.int8)))  # a 308-byte file, 1440 bytes as float64
+    assert path.stat().st_size < 1000
+    with pytest.raises(
+        UnreadableFileError, match=r"\(30, 6\) numbers take 1440 bytes as float64, over"
+    ):
+        read_number_array(path, 6, "x")
+
+
 def test_a_genuine_number_array_reads_in_either_order_as_float64(tmp_path):
     for order in ("C", "F"):
         path = tmp_path / f"{order}.npy"
@@ -268,3 +285,17 @@ def test_a_failed_write_leaves_the_old_file_and_no_temporary(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["metrics.json"]
     write_text_atomic(path, "new")
     assert path.read_text() == "new" and len(list(tmp_path.iterdir())) == 1
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    text=st.text(alphabet="ab #\n\r\x0b\x0c\x1c\x85\u2028", max_size=200),
+    block=st.integers(1, 30),
+)
+def test_lines_read_a_block_at_a_time_are_splitlines(text, block):
+    """`read_number_rows` reads a file's lines a block at a time (a file of short lines is not
+    held as millions of strings); the lines and so the line numbers in messages are
+    `str.splitlines`'s, a `\\r\\n` across a block's end included."""
+    from rotlearn.io import _lines
+
+    assert list(_lines(text, block)) == text.splitlines()

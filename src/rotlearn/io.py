@@ -13,6 +13,7 @@ the previous file as it was."""
 
 from __future__ import annotations
 
+import array as pyarray
 import contextlib
 import errno
 import json
@@ -513,22 +514,22 @@ def parse_number_rows(
         ValueError: "<where>:<line>: ..." for the first row of the wrong length, with a word that
             is not a number, or with a NaN / infinity; "<where>: no rows" when there is none.
     """
-    values, lines = [], []
+    values, lines = pyarray.array("d"), pyarray.array("q")  # 8 bytes a number, not a float object
     for lineno, words in rows:
         if len(words) < width or (len(words) > width and not extra_ok):
             raise ValueError(
                 f"{where}:{lineno}: expected {width} numbers ({layout}), got {len(words)}"
             )
         try:
-            values.append([float(w) for w in words[:width]])
+            values.extend([float(w) for w in words[:width]])
         except ValueError:
             raise ValueError(f"{where}:{lineno}: not a number in {' '.join(words)!r}") from None
         lines.append(lineno)
-    if not values:
+    if not lines:
         raise ValueError(f"{where}: no rows of numbers ({layout})")
     with np.errstate(over="ignore"):
-        array = np.asarray(values, dtype=dtype)
-    return require_finite(array, np.asarray(lines), where, layout)
+        numbers = np.frombuffer(values, np.float64).reshape(-1, width).astype(dtype)
+    return require_finite(numbers, np.frombuffer(lines, np.int64), where, layout)
 
 
 def read_number_rows(
@@ -551,21 +552,34 @@ def read_number_rows(
         ValueError: naming the file and line of the first malformed row (wrong count, not a
             number, NaN or infinite), or an empty file or one that is not UTF-8 text.
     """
-    path = Path(path)
-    rows = []
-    for lineno, line in enumerate(read_text_lines(path), start=1):
-        text = line.split("#", 1)[0]
-        words = (text.replace(",", " ") if commas else text).split()
-        if words:
-            rows.append((lineno, words))
-    return parse_number_rows(rows, str(path), width, layout, extra_ok, dtype)
+    _require_input(path)
+
+    def rows() -> Iterator[tuple[int, list[str]]]:  # one at a time: a row's words are dropped
+        for lineno, line in enumerate(_lines(read_text(path, "text file")), start=1):
+            text = line.split("#", 1)[0]
+            if words := (text.replace(",", " ") if commas else text).split():
+                yield lineno, words
+
+    return parse_number_rows(rows(), str(path), width, layout, extra_ok, dtype)
+
+
+def _lines(text: str, block: int = _MIB) -> Iterator[str]:
+    """`text.splitlines()`, a block of about `block` characters at a time (each cut after a
+    newline, so every line is whole): a file of short lines is not held as one string each."""
+    start = 0
+    while start < len(text):
+        cut = text.find("\n", start + block)
+        end = len(text) if cut < 0 else cut + 1
+        yield from text[start:end].splitlines()
+        start = end
 
 
 def read_number_array(path: str | os.PathLike, width: int, layout: str) -> np.ndarray:
     """A `.npy` file of rows of `width` real numbers, (N, width) or (B, N, width) float64, all
-    finite. Read bounded (`read_bytes`, "number array") and parsed from numpy's header, whose
-    shape and dtype are checked against the bytes that follow before anything is allocated;
-    never unpickled.
+    finite. Read bounded (`read_bytes`, "number array": the file, and the float64 array it
+    becomes, which is up to 8 times larger) and parsed from numpy's header, whose shape and
+    dtype are checked against the bytes that follow before anything is allocated; never
+    unpickled.
 
     Raises:
         FileNotFoundError: no such file.
@@ -602,6 +616,11 @@ def read_number_array(path: str | os.PathLike, width: int, layout: str) -> np.nd
     if len(shape) not in (2, 3) or shape[-1] != width:
         expected = f"(N, {width}) or (B, N, {width})"
         raise ValueError(f"{path}: expected an array of shape {expected}, got {shape}")
+    if (wide := math.prod(shape) * 8) > (cap := MAX_BYTES["number array"]):  # int8: 8 x the file
+        raise UnreadableFileError(
+            f"{path}: its {shape} numbers take {wide} bytes as float64, over the {cap} bytes a "
+            "number array may take; not read"
+        )
     array = np.frombuffer(body, dtype).reshape(shape, order="F" if fortran else "C")
     values = array.astype(np.float64)
     rows = ~np.isfinite(values).all(axis=-1)
