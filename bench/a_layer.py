@@ -104,11 +104,19 @@ def bench_batch(
     clock = _clock(args.clock, device)
     dtype = torch.bfloat16 if autocast else torch.float32
     calls = {}
+    errors: dict[str, str] = {}
     for name in names:
         dim, layer = LAYERS[name]
         leaf = torch.randn(batch, dim, generator=gen, device=device).to(dtype).requires_grad_(True)
-        with torch.no_grad(), torch.autocast(device.type, dtype=torch.bfloat16, enabled=autocast):
-            weight = torch.randn_like(layer(leaf), dtype=torch.float32)
+        try:  # a layer that fails (a dtype it refuses, a library's batch limit) is one cell
+            with (
+                torch.no_grad(),
+                torch.autocast(device.type, dtype=torch.bfloat16, enabled=autocast),
+            ):
+                weight = torch.randn_like(layer(leaf), dtype=torch.float32)
+        except Exception as error:
+            errors[name] = f"{type(error).__name__}: {error}"[:200]
+            continue
 
         def call(layer=layer, leaf=leaf, weight=weight):
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=autocast):
@@ -117,7 +125,6 @@ def bench_batch(
 
         calls[name] = call
     times: dict[str, list[float]] = {name: [] for name in calls}
-    errors: dict[str, str] = {}
     inner = {}
     for name, call in calls.items():  # warm-up, and how many calls fill the budget
         try:
@@ -140,7 +147,7 @@ def bench_batch(
             _sync(device)
             times[name].append((clock() - start) / inner[name])
     rows = {}
-    for name in calls:
+    for name in names:
         if name in errors:
             rows[name] = {"error": errors[name]}
             continue

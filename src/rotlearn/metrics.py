@@ -27,7 +27,7 @@ from rotlearn.bingham import (
     hpd_level,
     nll,
 )
-from rotlearn.geometry import angle_deg
+from rotlearn.geometry import angle_deg, linalg
 
 __all__ = ["AngularError", "BeliefCalibration", "SampleValues"]
 
@@ -122,7 +122,7 @@ class BeliefCalibration(Metric):
         iff level <= alpha), float64, in the order seen (draws as `compute`)."""
         A = dim_zero_cat(self.beliefs).to(torch.float64).reshape(-1, 4, 4)
         q = dim_zero_cat(self.targets).to(torch.float64).reshape(-1, 4)
-        spread = torch.linalg.eigvalsh(A).diff(dim=-1).sum(-1)  # l4 - l1
+        spread = linalg.eigvalsh(A).diff(dim=-1).sum(-1)  # l4 - l1
         supported = spread <= MAX_DISPERSION
         losses = torch.full_like(spread, math.nan)
         losses[supported] = nll(A[supported], q[supported])

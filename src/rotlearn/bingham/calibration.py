@@ -68,6 +68,7 @@ from torch import Tensor
 
 from rotlearn.bingham.descriptors import _check_A, _check_q, _symmetric, mode
 from rotlearn.bingham.sampling import sample
+from rotlearn.geometry import linalg
 
 __all__ = [
     "CREDIBLE_LEVELS",
@@ -116,7 +117,7 @@ def hpd_level(
     with torch.no_grad():
         A = _symmetric(A).to(dtype).expand(*batch, 4, 4).reshape(-1, 4, 4)
         q = q.to(dtype).expand(*batch, 4).reshape(-1, 4)
-        l1 = torch.linalg.eigvalsh(A)[:, :1]
+        l1 = linalg.eigvalsh(A)[:, :1]
         S = A - l1.unsqueeze(-1) * torch.eye(4, dtype=dtype, device=A.device)
         target = torch.einsum("bi,bij,bj->b", q, S, q)
         levels = torch.empty_like(target)

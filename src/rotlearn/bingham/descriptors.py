@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from rotlearn.errors import batch_index
-from rotlearn.geometry import sym4_eigh_min
+from rotlearn.geometry import linalg, sym4_eigh_min
 from rotlearn.geometry.shapes import require_shape
 
 __all__ = [
@@ -70,7 +70,7 @@ def eigh(A: Tensor) -> tuple[Tensor, Tensor]:
     """All eigenvalues (..., 4), ascending, and unit eigenvectors as columns (..., 4, 4) of the
     symmetric part of A, in A's dtype (`torch.linalg.eigh`; used where every direction is
     needed: `bingham_parameters`, sampling)."""
-    ev, V = torch.linalg.eigh(_symmetric(A))
+    ev, V = linalg.eigh(_symmetric(A))
     return ev.to(A.dtype), V.to(A.dtype)
 
 

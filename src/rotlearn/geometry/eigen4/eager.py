@@ -25,6 +25,8 @@ import functools
 import torch
 from torch import Tensor
 
+from rotlearn.geometry import linalg
+
 # Matrices per pass on CPU (`chunk_size`): 16384 per thread, at least 32768; the working set
 # (~2 MB per 16384 in float32) then stays in the last-level cache. Measured: 32768 best with 2
 # threads (an earlier, quiet session) and, with 1 thread, 32768 took 0.90-0.94x the time of 16384
@@ -194,7 +196,7 @@ def jacobi_forward(A: Tensor, rounds: int) -> tuple[Tensor, Tensor, Tensor]:
 
 def eigh_forward(A: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """torch.linalg.eigh (LAPACK on CPU, cuSOLVER on CUDA) with q's sign made canonical."""
-    eigenvalues, V = torch.linalg.eigh(A, UPLO="U")
+    eigenvalues, V = linalg.eigh(A, UPLO="U")
     q = V[..., 0]  # (B, 4) view: canonical sign in place, so V keeps q as its column 0
     q.mul_(canonical_sign(q.t()).t())
     return eigenvalues, q.clone(), V.contiguous()  # row-major, as every path (LAPACK's is not)
