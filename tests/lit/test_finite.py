@@ -92,18 +92,27 @@ def test_finite_check_every_must_be_positive(make_cfg, value):
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_observing_a_training_step_does_not_synchronise_with_the_gpu(make_cfg):
-    """With CUDA's sync debug mode set to error, any host sync while a step is observed raises."""
+    """With CUDA's sync debug mode set to error, any host sync while a step is observed raises.
+
+    The first step runs before the mode is set: it uploads the per-device constants once
+    (`rotlearn.geometry.symmetric`'s index, a host-to-device copy that the mode counts as a
+    sync) and loads the kernels; every later step must not synchronise."""
     model = build(make_cfg([*FAST, "trainer.accelerator=gpu"]))[0].cuda()
     batch = {
         "input": torch.randn(8, 16, 6, device="cuda"),
         "R": torch.eye(3, device="cuda").expand(8, 3, 3).contiguous(),
     }
-    torch.cuda.synchronize()
-    torch.cuda.set_sync_debug_mode("error")
-    try:
+
+    def step() -> None:
         prediction, inputs_bad = model._observed_step(batch, "train", 0)
         model._observe("loss", model.loss(prediction, batch), "train", 0, inputs_bad)
         model._finite.failed()
+
+    step()
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        step()
     finally:
         torch.cuda.set_sync_debug_mode("default")
     assert model._finite.read() is None
