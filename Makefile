@@ -105,7 +105,7 @@ reproduce-ood-quick: $(STAMP) ## Table I's A rows only (KITTI demo, chordal and 
 		$(OOD)_quick/kitti_a_bingham_ensemble $(OOD)_quick/kitti_a_chordal_ensemble --out $(OOD)_quick/kitti
 	@echo "report (ensembles beside the single runs: evaluated.members=3): $(OOD)_quick/kitti/report.md"
 
-reproduce-ood-paper-scale: $(STAMP) ## GPU: Table I's A head (chordal, Bingham) at the paper's scale, world written first (1.3 GB)
+reproduce-ood-paper-scale: $(STAMP) ## GPU: Table I's A head (chordal, Bingham) at the paper's scale, world written first (1.5 GB)
 	@test -d data/paper_scale/kitti || $(BIN)/rotlearn-make-demo-data --out data/paper_scale --only kitti --scale paper --workers 9
 	$(BIN)/rotlearn-train experiment=kitti_ood_paper_scale trainer=gpu $(QUIET) hydra.sweep.dir=$(OOD)_paper_scale
 	@echo "report: $(OOD)_paper_scale/report.md"
