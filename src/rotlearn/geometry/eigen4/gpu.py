@@ -8,13 +8,13 @@ algorithm, the round counts and the backward formula are those of the other path
 (`rotlearn.geometry.eigen4`); float32 math uses IEEE-rounded square roots and divisions
 (`sqrt_rn`, `div_rn`: Triton's default ones are approximate), float64 Triton's float64 ones.
 
-Needs `triton` >= 3.0 (`pip install rotlearn[gpu]`; tested here with 3.7: in the interpreter, and
-compiled for sm_90 without a GPU). On CUDA tensors the kernels
-are compiled by Triton on first use per dtype (cached by Triton). On CPU tensors the same kernels
-run in Triton's interpreter (a second copy of this module whose kernels `triton.jit` wrapped with
-TRITON_INTERPRET=1; so the kernels call only Triton builtins, none of triton.language's own jit
-functions such as tl.zeros, which the interpreter cannot call when triton was imported without
-it): slow, and only for the tests of this machine without a GPU.
+Needs `triton` >= 3.0 (`pip install rotlearn[gpu]`; tested with 3.7 in the interpreter and
+compiled for sm_90 without a GPU, and with 3.6 on an H200: docs/results.md). On CUDA tensors the
+kernels are compiled by Triton on first use per dtype (cached by Triton). On CPU tensors the
+same kernels run in Triton's interpreter (a second copy of this module whose kernels
+`triton.jit` wrapped with TRITON_INTERPRET=1; so the kernels call only Triton builtins, none of
+triton.language's own jit functions such as tl.zeros, which the interpreter cannot call when
+triton was imported without it): slow, and only for the tests of this machine without a GPU.
 """
 
 from __future__ import annotations
