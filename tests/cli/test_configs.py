@@ -185,6 +185,22 @@ def test_a_misspelt_key_of_hydras_gets_the_nearest_not_hydras_advice_to_append_i
         make_cfg(["hydra.sweeper.paramz.rep=a"])
 
 
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("hydra.launcher.n_jobs=2", r"hydra\.launcher\.n_jobs: unknown key; allowed: _target_; "
+         r"n_jobs is a setting of hydra/launcher=joblib$"),
+        ("hydra.launcher.partition=gpu", r"hydra\.launcher\.partition: unknown key; allowed: "
+         r"_target_; partition is a setting of hydra/launcher=slurm, submitit_slurm$"),
+        ("hydra.launcher.n_jobz=2", r"hydra\.launcher\.n_jobz: unknown key; allowed: _target_$"),
+    ],
+)  # fmt: skip
+def test_a_setting_of_another_launcher_names_the_launcher_that_has_it(make_cfg, override, message):
+    """`hydra.launcher.n_jobs=2` under the basic launcher said only "allowed: _target_"."""
+    with pytest.raises(ConfigError, match=message):
+        make_cfg([override])
+
+
 def test_plain_hydra_compose_needs_no_rotlearn_import_first(tmp_path):
     """conf/ composes with Hydra alone (the schemas and the configs' `${rl.*:}` resolvers
     register through rotlearn's Hydra plugin), in a fresh interpreter that imports nothing of

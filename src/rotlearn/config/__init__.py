@@ -116,6 +116,21 @@ def _parse(overrides: Sequence[str]) -> list[Any]:
         ) from None
 
 
+def _elsewhere(node: str, key: str, root: Path) -> str:
+    """ "; <key> is a setting of <group>=<option>, ..." for the options of the config group at
+    `node` (e.g. hydra.launcher) that set `key`: Hydra's and its plugins' (its ConfigStore) and
+    the YAML files of `root`; "" if none does."""
+    from hydra.core.config_store import ConfigStore
+
+    group, stored = node.replace(".", "/"), ConfigStore.instance().repo
+    for part in group.split("/"):
+        stored = stored.get(part, {}) if isinstance(stored, dict) else {}
+    nodes = {n.removesuffix(".yaml"): c.node for n, c in stored.items() if n.endswith(".yaml")}
+    nodes |= {f.stem: OmegaConf.load(f) for f in sorted(root.joinpath(group).glob("*.yaml"))}
+    has = sorted(n for n, cfg in nodes.items() if isinstance(cfg, DictConfig) and key in cfg)
+    return f"; {key} is a setting of {group}={', '.join(has)}" if has else ""
+
+
 def _compose(
     name: str, overrides: list[str], root: Path, appendable: Sequence[str] | None = None
 ) -> tuple[DictConfig, list[str]]:
@@ -142,7 +157,8 @@ def _compose(
                         parent = getattr(exc.__cause__, "parent_node", None)
                         if str(key).startswith("hydra.") and isinstance(parent, DictConfig):
                             node, _, name = key.rpartition(".")  # Hydra's advice: append it
-                            refuse_unknown(node, [name], sorted(map(str, parent)))
+                            elsewhere = _elsewhere(node, name, root)
+                            refuse_unknown(node, [name], sorted(map(str, parent)), elsewhere)
                         raise
                     taken[absent[0]] = f"+{taken[absent[0]]}"
         except MissingConfigException as exc:

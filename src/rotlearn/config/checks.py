@@ -91,13 +91,14 @@ def plain(cfg: DictConfig) -> dict[str, Any]:
         raise ConfigError(exc.full_key, f"cannot be resolved: {exc.msg.splitlines()[0]}") from None
 
 
-def refuse_unknown(key: str, names: list[str], allowed: list[str]) -> None:
-    """Refuse the first of `names` (keys of node `key`) not in `allowed`, naming the nearest."""
+def refuse_unknown(key: str, names: list[str], allowed: list[str], note: str = "") -> None:
+    """Refuse the first of `names` (keys of node `key`) not in `allowed`, naming the nearest
+    (then `note`)."""
     for name in (n for n in names if n not in allowed):
         near = difflib.get_close_matches(str(name), allowed, n=1)
         hint = f"; did you mean {key + '.' if key else ''}{near[0]}?" if near else ""
         full = f"{key}.{name}" if key else str(name)
-        raise ConfigError(full, f"unknown key{hint}; allowed: {', '.join(allowed) or 'none'}")
+        raise ConfigError(full, f"unknown key{hint}; allowed: {', '.join(allowed) or 'none'}{note}")
 
 
 def _nodes(values: dict[str, Any]) -> list[tuple[str, str, dict[str, Any]]]:
