@@ -85,6 +85,23 @@ def test_batches_stack_the_two_frames_as_channels(tmp_path):
     torch.testing.assert_close(double["input"].float(), floats)
 
 
+def _first_test_batch_shape(root: Path) -> tuple[int, ...]:
+    dm = KittiOdometryDataModule(str(root), ["01"], ["00"], image_size=8, num_workers=1)
+    dm.setup()
+    return tuple(next(iter(dm.test_dataloader()))["input"].shape)
+
+
+def test_loader_workers_start_inside_a_joblib_job(tmp_path):
+    """`hydra/launcher=joblib` runs each job in a loky process, whose default start method
+    ("loky") cannot start a loader worker ("'Process' object has no attribute 'env'")."""
+    joblib = pytest.importorskip("joblib")
+    root = write_kitti(tmp_path, {"00": yaw_sequence(4, 1.0), "01": yaw_sequence(3, 1.0)})
+    kitti_module(root).setup()  # the frame caches, written once here
+    jobs = joblib.Parallel(n_jobs=2, backend="loky")  # n_jobs=1 would run in this process
+    shape = jobs(joblib.delayed(_first_test_batch_shape)(root) for _ in range(1))[0]
+    assert shape == (3, 6, 8, 8)
+
+
 # -- frame cache -------------------------------------------------------------------------------
 
 

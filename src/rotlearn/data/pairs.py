@@ -16,6 +16,7 @@ caller (the OOD evaluation, the data-dependent initialisation, benchmarks) use.
 
 from __future__ import annotations
 
+import multiprocessing
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,6 +37,9 @@ if TYPE_CHECKING:  # constraints of the config values, checked by rotlearn.confi
     from annotated_types import Ge, Gt, Le, Lt
 
 __all__ = ["ImagePairDataModule", "ImagePairs", "PairIndex"]
+
+# The start method Python uses on this platform by default (the first listed), for loader workers.
+_PLATFORM_START = multiprocessing.get_all_start_methods()[0]
 
 
 @dataclass
@@ -251,6 +255,9 @@ class ImagePairDataModule(pl.LightningDataModule):
             num_workers=self.num_workers,
             persistent_workers=self.num_workers > 0,
             pin_memory=torch.cuda.is_available(),
+            # the platform's own start method, not the process's: a job of hydra/launcher=joblib
+            # runs in a loky process, whose default ("loky") cannot start a loader worker
+            multiprocessing_context=_PLATFORM_START if self.num_workers > 0 else None,
             **kwargs,
         )
 
