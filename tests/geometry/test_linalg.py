@@ -11,8 +11,8 @@ from rotlearn.geometry.linalg import _in_chunks
 CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 
 
-def _symmetric(*batch: int, n: int = 4, dtype=torch.float64, device="cpu") -> torch.Tensor:
-    M = torch.randn(*batch, n, n, dtype=dtype, device=device)
+def _symmetric(*batch: int, n: int = 4, dtype=torch.float64) -> torch.Tensor:
+    M = torch.randn(*batch, n, n, dtype=dtype)
     return M + M.transpose(-1, -2)
 
 
