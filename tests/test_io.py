@@ -296,6 +296,6 @@ def test_lines_read_a_block_at_a_time_are_splitlines(text, block):
     """`read_number_rows` reads a file's lines a block at a time (a file of short lines is not
     held as millions of strings); the lines and so the line numbers in messages are
     `str.splitlines`'s, a `\\r\\n` across a block's end included."""
-    from rotlearn.io import _lines
+    from rotlearn.io import text_lines
 
-    assert list(_lines(text, block)) == text.splitlines()
+    assert list(text_lines(text, block)) == text.splitlines()

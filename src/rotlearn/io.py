@@ -50,12 +50,14 @@ __all__ = [
     "read_record",
     "read_table",
     "read_text",
+    "read_text_file",
     "read_text_lines",
     "read_yaml",
     "require_finite",
     "resolve_inside",
     "rewrite_in_place",
     "strict_int",
+    "text_lines",
     "write_bytes_atomic",
     "write_json_atomic",
     "write_text_atomic",
@@ -552,10 +554,9 @@ def read_number_rows(
         ValueError: naming the file and line of the first malformed row (wrong count, not a
             number, NaN or infinite), or an empty file or one that is not UTF-8 text.
     """
-    _require_input(path)
 
     def rows() -> Iterator[tuple[int, list[str]]]:  # one at a time: a row's words are dropped
-        for lineno, line in enumerate(_lines(read_text(path, "text file")), start=1):
+        for lineno, line in enumerate(text_lines(read_text_file(path)), start=1):
             text = line.split("#", 1)[0]
             if words := (text.replace(",", " ") if commas else text).split():
                 yield lineno, words
@@ -563,7 +564,7 @@ def read_number_rows(
     return parse_number_rows(rows(), str(path), width, layout, extra_ok, dtype)
 
 
-def _lines(text: str, block: int = _MIB) -> Iterator[str]:
+def text_lines(text: str, block: int = _MIB) -> Iterator[str]:
     """`text.splitlines()`, a block of about `block` characters at a time (each cut after a
     newline, so every line is whole): a file of short lines is not held as one string each."""
     start = 0
@@ -633,8 +634,8 @@ def read_number_array(path: str | os.PathLike, width: int, layout: str) -> np.nd
     return values
 
 
-def read_text_lines(path: Path) -> list[str]:
-    """The lines of a UTF-8 text file (a dataset's), read bounded (`read_text`, "text file").
+def read_text_file(path: str | os.PathLike) -> str:
+    """A UTF-8 text file of a dataset's, read bounded (`read_text`, "text file").
 
     Raises:
         FileNotFoundError: no such file.
@@ -642,7 +643,13 @@ def read_text_lines(path: Path) -> list[str]:
             file or too large.
     """
     _require_input(path)
-    return read_text(path, "text file").splitlines()
+    return read_text(path, "text file")
+
+
+def read_text_lines(path: Path) -> list[str]:
+    """The lines of `read_text_file(path)` (a list: for files of a few lines; `text_lines`
+    reads long ones a block at a time)."""
+    return read_text_file(path).splitlines()
 
 
 def _require_input(path: str | os.PathLike) -> None:

@@ -9,6 +9,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from rotlearn.cli.train import train
 from rotlearn.data import ShapeNetDataModule, read_point_file, sample_meshes
@@ -121,3 +123,52 @@ def test_shapenet_trains_end_to_end(make_cfg, demo_data):
                     *SMALL_NET])  # fmt: skip
     metrics = train(cfg)
     assert metrics["global_step"] == 3 and 0.0 <= metrics["test/err_mean"] <= 180.0
+
+
+TRIANGLE = ["# a triangle", "v 0 0 0", "v 1 0 0", "v 0 1 0", "f 1 2 3"]
+
+
+@pytest.mark.parametrize("newline", ["\n", "\r\n", "\r", "\x85", "\u2028"])
+def test_a_mesh_reads_the_same_whatever_its_line_breaks(tmp_path, newline):
+    """Every line break that `str.splitlines` knows splits the vertex check's lines and the
+    mesh parser's alike (a line the check reads is a line trimesh reads)."""
+    pytest.importorskip("trimesh")
+    from rotlearn.data.shapenet import read_mesh
+
+    path = tmp_path / "m.obj"
+    path.write_bytes(newline.join(TRIANGLE).encode())
+    mesh = read_mesh(path)
+    assert np.asarray(mesh.vertices).tolist() == [[0, 0, 0], [1, 0, 0], [0, 1, 0]]
+    path.write_bytes(newline.join([*TRIANGLE, "v nan 0 0"]).encode())
+    with pytest.raises(ValueError, match=r"m\.obj:6: not finite \(v x y z\)"):
+        read_mesh(path)
+
+
+def test_the_vertex_check_holds_a_few_times_the_text_not_a_string_per_line(tmp_path):
+    """A hostile OBJ of short vertex lines: the check of its "v" rows peaks at a few times the
+    file's size in Python memory (it held two lists of strings per line: ~45x)."""
+    import tracemalloc
+
+    from rotlearn.data.shapenet import _obj_vertices
+
+    text = "v 0 0 0\n" * 400_000 + "f 1 2 3\n"
+    tracemalloc.start()
+    try:
+        vertices = _obj_vertices(tmp_path / "m.obj", text)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert vertices.shape == (400_000, 3)
+    assert peak < 15 * len(text), f"peak {peak / len(text):.1f} x the text"
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.text(alphabet="v0 #\n\r\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029", max_size=60))
+def test_the_mesh_text_breaks_lines_where_splitlines_does(text):
+    """What trimesh parses (every break written as "\\n") has the lines `str.splitlines` reads."""
+    from rotlearn.data.shapenet import _LINE_BREAKS
+
+    written = _LINE_BREAKS.sub("\n", text)
+    assert (
+        written.split("\n")[: len(text.splitlines())] == text.splitlines() == written.splitlines()
+    )

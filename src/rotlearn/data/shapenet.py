@@ -16,6 +16,8 @@ import io
 import json
 import logging
 import os
+import re
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Literal
 
@@ -41,8 +43,9 @@ from rotlearn.io import (
     read_cached_array,
     read_manifest,
     read_number_rows,
-    read_text_lines,
+    read_text_file,
     resolve_inside,
+    text_lines,
     write_text_atomic,
 )
 from rotlearn.trust import config_target
@@ -56,6 +59,9 @@ log = logging.getLogger("rotlearn")
 
 AIRPLANE_SYNSET = "02691156"
 POINT_SUFFIXES = (".pts", ".xyz")
+# Every line break of `str.splitlines` (the vertex check's lines), as one pattern: written as
+# "\n" before trimesh parses the text, so that it reads the lines the check read.
+_LINE_BREAKS = re.compile(r"\r\n|[\r\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029]")
 
 
 def read_point_file(path: str | os.PathLike) -> np.ndarray:
@@ -69,15 +75,19 @@ def read_point_file(path: str | os.PathLike) -> np.ndarray:
     return read_number_rows(path, 3, "x y z", extra_ok=True, dtype=np.float32)
 
 
-def _obj_vertices(path: Path, lines: list[str]) -> np.ndarray:
-    """The "v x y z" rows of an OBJ file's lines, (V, 3) float64, checked to be finite numbers
-    (`rotlearn.io.parse_number_rows` names the line at fault)."""
-    rows = []
-    for lineno, line in enumerate(lines, start=1):
-        words = line.split("#", 1)[0].split()
-        if words and words[0] == "v":
-            rows.append((lineno, words[1:]))
-    return parse_number_rows(rows, str(path), 3, "v x y z", extra_ok=True)
+def _obj_vertices(path: Path, text: str) -> np.ndarray:
+    """The "v x y z" rows of an OBJ file's `text`, (V, 3) float64, checked to be finite numbers
+    (`rotlearn.io.parse_number_rows` names the line at fault); the lines are read a block at a
+    time and each row's words dropped once parsed, so a file of short lines costs a few times
+    its size, not a string per line."""
+
+    def rows() -> Iterator[tuple[int, list[str]]]:
+        for lineno, line in enumerate(text_lines(text), start=1):
+            words = line.split("#", 1)[0].split()
+            if words and words[0] == "v":
+                yield lineno, words[1:]
+
+    return parse_number_rows(rows(), str(path), 3, "v x y z", extra_ok=True)
 
 
 def _parse_obj(path: Path, text: str):
@@ -114,9 +124,9 @@ def read_mesh(path: str | os.PathLike):
         ValueError: naming the file (and the line, for a vertex or an encoding error).
     """
     path = Path(path)
-    lines = read_text_lines(path)
-    _obj_vertices(path, lines)
-    mesh = _parse_obj(path, "\n".join(lines))
+    text = _LINE_BREAKS.sub("\n", read_text_file(path))  # trimesh's lines: the check's lines
+    _obj_vertices(path, text)
+    mesh = _parse_obj(path, text)
     faces, vertices = np.asarray(mesh.faces), np.asarray(mesh.vertices)
     if faces.shape[0] == 0:
         raise ValueError(f"{path}: the mesh has no faces")
