@@ -40,6 +40,7 @@ CASES: dict[str, tuple[str, list[str]]] = {
     "a run folder for a sweep": ("rotlearn-train", ["-m", "rep=a,sixd", "hydra.run.dir=new"]),
     "a sweep folder for one run": ("rotlearn-train", ["hydra.sweep.dir=new"]),
     "a misspelt key of Hydra's": ("rotlearn-train", ["hydra.run.dirr=new"]),
+    "a setting of another launcher": ("rotlearn-train", ["hydra.launcher.n_jobs=2"]),
     "a sweep of Hydra's own settings": (
         "rotlearn-train",
         ["-m", "sweep=seeds", "hydra.sweeper.params.trial=range(0,5)"],

@@ -50,6 +50,9 @@ EXPECTED = {
                                    r"nothing was written$"),
     "a misspelt key of Hydra's": (1, r"^rotlearn-train: config key hydra\.run\.dirr: unknown "
                                   r"key; did you mean hydra\.run\.dir\?; allowed: dir \(nothing"),
+    "a setting of another launcher": (1, r"^rotlearn-train: config key hydra\.launcher\.n_jobs: "
+                                      r"unknown key; allowed: _target_; n_jobs is a setting of "
+                                      r"hydra/launcher=joblib \(nothing was written\)$"),
     "a sweep of Hydra's own settings": (1, r"^rotlearn-train: config key hydra\.sweeper\.params"
                                         r"\.trial: Hydra's own settings take one value, not a "
                                         r"sweep; to sweep trial: trial='range\(0,5\)'; a value"),
