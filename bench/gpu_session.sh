@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Issue 26 on a GPU, in one call of at most about 7 minutes (written for one H100/H200):
-#   1. the solver's CUDA tests (tests/geometry: the Triton kernels on CUDA, CUDA against the CPU
-#      paths, the profiler's launch count, autocast, compile, fresh processes);
+#   1. every test that needs CUDA (the solver's in tests/geometry: the Triton kernels on CUDA, CUDA
+#      against the CPU paths, the profiler's launch count, autocast, compile, fresh processes;
+#      eigh past cuSOLVER's batch limit; a training step without host syncs; every trainer=);
 #   2. bench/a_layer.py --device cuda: eigh, roma, the eager Jacobi, the Triton kernel (the
 #      "rotlearn" column), 6D and SVD-9D at B = 32 ... 1M, float32 and bf16 autocast;
 #   3. a whole trainer=gpu epoch, A head against 6D, at the paper's batch (100) and at 2048;
@@ -69,9 +70,10 @@ if not torch.cuda.is_available():
 PY
 
 TESTS=(tests/geometry/test_eigen4.py tests/geometry/test_eigen4_triton.py
-       tests/geometry/test_eigen4_first_call.py tests/geometry/test_eigen4_ops.py)
-stage tests 150 "$PY" -m pytest -q -p no:cacheprovider -m "not slow" -k "cuda or triton" \
-    --junitxml="$out/tests.xml" "${TESTS[@]}"
+       tests/geometry/test_eigen4_first_call.py tests/geometry/test_eigen4_ops.py
+       tests/geometry/test_linalg.py tests/lit/test_finite.py tests/cli/test_configs.py)
+stage tests 200 "$PY" -m pytest -q -p no:cacheprovider -m "not slow" \
+    -k "cuda or triton or gpu or trainer_option" --junitxml="$out/tests.xml" "${TESTS[@]}"
 
 stage a_layer_cuda 150 "$PY" bench/a_layer.py --device cuda --repeats 3 --budget 0.1 \
     --out "$out/a_layer_cuda.json"
