@@ -185,6 +185,18 @@ def test_a_misspelt_key_of_hydras_gets_the_nearest_not_hydras_advice_to_append_i
         make_cfg(["hydra.sweeper.paramz.rep=a"])
 
 
+def test_an_unknown_option_of_hydras_groups_lists_its_plugins_options(make_cfg):
+    """`hydra/launcher=jobli` listed only conf/'s slurm.yaml (and `hydra/sweeper=optuan` nothing):
+    the launchers and sweepers of Hydra and its plugins live in its ConfigStore."""
+    with pytest.raises(ConfigError, match=r"^config key hydra/launcher: no option 'jobli'; did you "
+                       r"mean hydra/launcher=joblib\?; options: basic, joblib, slurm, "
+                       r"submitit_local, submitit_slurm$"):  # fmt: skip
+        make_cfg(["hydra/launcher=jobli"])
+    with pytest.raises(ConfigError, match=r"no option 'optuan'; did you mean "
+                       r"hydra/sweeper=optuna\?; options: basic, optuna$"):  # fmt: skip
+        make_cfg(["hydra/sweeper=optuan"])
+
+
 @pytest.mark.parametrize(
     ("override", "message"),
     [

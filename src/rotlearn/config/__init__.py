@@ -116,18 +116,26 @@ def _parse(overrides: Sequence[str]) -> list[Any]:
         ) from None
 
 
-def _elsewhere(node: str, key: str, root: Path) -> str:
-    """ "; <key> is a setting of <group>=<option>, ..." for the options of the config group at
-    `node` (e.g. hydra.launcher) that set `key`: Hydra's and its plugins' (its ConfigStore) and
-    the YAML files of `root`; "" if none does."""
+def _options(group: str, root: Path) -> dict[str, Any]:
+    """The options of config group `group` (e.g. "rep", "hydra/launcher"): name -> its config,
+    a node of Hydra's ConfigStore (Hydra's and its plugins' options) or the YAML file of `root`
+    (a Path; it takes precedence, as in Hydra's search path)."""
     from hydra.core.config_store import ConfigStore
 
-    group, stored = node.replace(".", "/"), ConfigStore.instance().repo
+    stored = ConfigStore.instance().repo
     for part in group.split("/"):
         stored = stored.get(part, {}) if isinstance(stored, dict) else {}
-    nodes = {n.removesuffix(".yaml"): c.node for n, c in stored.items() if n.endswith(".yaml")}
-    nodes |= {f.stem: OmegaConf.load(f) for f in sorted(root.joinpath(group).glob("*.yaml"))}
-    has = sorted(n for n, cfg in nodes.items() if isinstance(cfg, DictConfig) and key in cfg)
+    found = {n.removesuffix(".yaml"): c.node for n, c in stored.items() if n.endswith(".yaml")}
+    return dict(sorted((found | {f.stem: f for f in root.joinpath(group).glob("*.yaml")}).items()))
+
+
+def _elsewhere(node: str, key: str, root: Path) -> str:
+    """ "; <key> is a setting of <group>=<option>, ..." for the options of the config group at
+    `node` (e.g. hydra.launcher) that set `key`; "" if none does."""
+    group = node.replace(".", "/")
+    configs = {n: OmegaConf.load(c) if isinstance(c, Path) else c
+               for n, c in _options(group, root).items()}  # fmt: skip
+    has = [n for n, cfg in configs.items() if isinstance(cfg, DictConfig) and key in cfg]
     return f"; {key} is a setting of {group}={', '.join(has)}" if has else ""
 
 
@@ -165,7 +173,7 @@ def _compose(
             group, _, option = str(exc.missing_cfg_file).rpartition("/")
             if (group, option) not in {(o.key_or_group, str(o.value())) for o in parsed}:
                 raise
-            real = sorted(p.stem for p in root.joinpath(group).glob("*.yaml"))
+            real = list(_options(group, root))
             near = difflib.get_close_matches(option, real, n=1, cutoff=0.5)
             hint = f"; did you mean {group}={near[0]}?" if near else ""
             message = f"no option {option!r}{hint}; options: {', '.join(real)}"
