@@ -58,6 +58,7 @@ __all__ = [
     "rewrite_in_place",
     "strict_int",
     "text_lines",
+    "word_rows",
     "write_bytes_atomic",
     "write_json_atomic",
     "write_text_atomic",
@@ -554,14 +555,18 @@ def read_number_rows(
         ValueError: naming the file and line of the first malformed row (wrong count, not a
             number, NaN or infinite), or an empty file or one that is not UTF-8 text.
     """
+    rows = word_rows(read_text_file(path), commas)
+    return parse_number_rows(rows, str(path), width, layout, extra_ok, dtype)
 
-    def rows() -> Iterator[tuple[int, list[str]]]:  # one at a time: a row's words are dropped
-        for lineno, line in enumerate(text_lines(read_text_file(path)), start=1):
-            text = line.split("#", 1)[0]
-            if words := (text.replace(",", " ") if commas else text).split():
-                yield lineno, words
 
-    return parse_number_rows(rows(), str(path), width, layout, extra_ok, dtype)
+def word_rows(text: str, commas: bool = False) -> Iterator[tuple[int, list[str]]]:
+    """(line number, words) of each line of `text` that has words before its `#` comment (with
+    `commas`, commas separate words too), one at a time (`text_lines`): a row's words are
+    dropped once the caller has parsed them."""
+    for lineno, line in enumerate(text_lines(text), start=1):
+        kept = line.split("#", 1)[0]
+        if words := (kept.replace(",", " ") if commas else kept).split():
+            yield lineno, words
 
 
 def text_lines(text: str, block: int = _MIB) -> Iterator[str]:

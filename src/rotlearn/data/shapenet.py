@@ -17,7 +17,6 @@ import json
 import logging
 import os
 import re
-from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Literal
 
@@ -45,7 +44,7 @@ from rotlearn.io import (
     read_number_rows,
     read_text_file,
     resolve_inside,
-    text_lines,
+    word_rows,
     write_text_atomic,
 )
 from rotlearn.trust import config_target
@@ -78,16 +77,10 @@ def read_point_file(path: str | os.PathLike) -> np.ndarray:
 def _obj_vertices(path: Path, text: str) -> np.ndarray:
     """The "v x y z" rows of an OBJ file's `text`, (V, 3) float64, checked to be finite numbers
     (`rotlearn.io.parse_number_rows` names the line at fault); the lines are read a block at a
-    time and each row's words dropped once parsed, so a file of short lines costs a few times
-    its size, not a string per line."""
-
-    def rows() -> Iterator[tuple[int, list[str]]]:
-        for lineno, line in enumerate(text_lines(text), start=1):
-            words = line.split("#", 1)[0].split()
-            if words and words[0] == "v":
-                yield lineno, words[1:]
-
-    return parse_number_rows(rows(), str(path), 3, "v x y z", extra_ok=True)
+    time and each row's words dropped once parsed (`rotlearn.io.word_rows`), so a file of short
+    lines costs a few times its size, not a string per line."""
+    rows = ((lineno, words[1:]) for lineno, words in word_rows(text) if words[0] == "v")
+    return parse_number_rows(rows, str(path), 3, "v x y z", extra_ok=True)
 
 
 def _parse_obj(path: Path, text: str):
