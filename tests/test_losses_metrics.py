@@ -233,7 +233,10 @@ def test_a_belief_sharper_than_the_supported_range_is_not_sharpened_further():
     """A training belief that passed MAX_DISPERSION failed the run (the checked NLL refuses it);
     unchecked, its dispersion is taken at the bound, so the loss grows with the belief's scale."""
     A, q, F, R = _beliefs((), F64, seed=32)
-    cases = ((bingham.nll, A / A.norm(), q, 4e6), (fisher.nll, F / F.norm(), R, 2e6))
+    cases = (
+        (bingham.nll, A / A.norm(), q, 4 * bingham.MAX_DISPERSION),
+        (fisher.nll, F / F.norm(), R, 2e6),
+    )
     for fn, unit, target, scale in cases:
         with pytest.raises(ValueError, match=r"above MAX_(DISPERSION|SINGULAR_SUM)"):
             fn(scale * unit, target)

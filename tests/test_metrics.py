@@ -53,7 +53,7 @@ def test_belief_calibration_reruns_give_the_same_numbers_and_reset_forgets():
 
 def test_belief_beyond_the_supported_dispersion_gets_a_nan_nll_and_is_still_scored(caplog):
     A = beliefs(6, 4, F64)
-    A[1] = torch.diag(torch.tensor([2e6, 2e6, 2e6, 0.0], dtype=F64))  # spread 2e6 > 1e6
+    A[1] = 2 * bh.MAX_DISPERSION * torch.diag(torch.tensor([1.0, 1.0, 1.0, 0.0], dtype=F64))
     q = torch.tensor([[0.0, 0.0, 0.0, 1.0]] * 4, dtype=F64)
     metric = BeliefCalibration(num_samples=16)
     metric.update(A, q)

@@ -34,6 +34,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from rotlearn.bingham.descriptors import MAX_DISPERSION
 from rotlearn.extras import require
 from rotlearn.io import MAX_BYTES, plain_name, read_bytes, read_json, write_bytes_atomic
 from rotlearn.paths import checkpoint_file
@@ -446,8 +447,8 @@ _MAX_MASSES = 101  # knots of a level map (rotlearn.bingham.calibration.LEVEL_KN
 # The temperatures a record may hold: A / T and T * A stay finite in float32 for every belief the
 # Bingham code supports (eigenvalue spread up to MAX_DISPERSION), so the tempered beliefs, their DT
 # and their samples are finite numbers. A fit never leaves this range on float32 beliefs.
-TEMPERATURE_RANGE = (1e6 / float(torch.finfo(torch.float32).max),
-                     float(torch.finfo(torch.float32).max) / 1e6)  # fmt: skip
+TEMPERATURE_RANGE = (MAX_DISPERSION / float(torch.finfo(torch.float32).max),
+                     float(torch.finfo(torch.float32).max) / MAX_DISPERSION)  # fmt: skip
 
 
 def read_temperature(path: str | os.PathLike) -> dict[str, Any] | None:

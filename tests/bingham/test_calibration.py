@@ -28,12 +28,15 @@ EPS = 0.04  # the DKW bound: 2 exp(-2 M EPS^2) = 5.5e-6
 PROPS = settings(max_examples=25, deadline=None)
 
 
-def beliefs(seed: int, m: int, dtype: torch.dtype = F64, offset: float = 0.0) -> torch.Tensor:
+def beliefs(
+    seed: int, m: int, dtype: torch.dtype = F64, offset: float = 0.0, scales: tuple = (-1, 3)
+) -> torch.Tensor:
     """(m, 4, 4) random beliefs from near-uniform (eigenvalue spread ~0.1) to concentrated (~1e4,
-    a few degrees), with random directions, shifted by `offset` I (the same belief)."""
+    a few degrees; `scales`: the range of log10 of the scale), with random directions, shifted by
+    `offset` I (the same belief)."""
     g = gen(seed)
     B = torch.randn(m, 4, 4, generator=g, dtype=F64)
-    scale = torch.logspace(-1, 3, m, dtype=F64)[torch.randperm(m, generator=g)]
+    scale = torch.logspace(*scales, m, dtype=F64)[torch.randperm(m, generator=g)]
     A = B @ B.mT * scale[:, None, None] + offset * torch.eye(4, dtype=F64)
     return A.to(dtype)
 
@@ -51,9 +54,15 @@ def discrete_uniform_gap(levels: torch.Tensor, n: int) -> float:
     return float((empirical - (k + 1) / (n + 1)).abs().max())
 
 
-@pytest.mark.parametrize(("dtype", "offset"), [(F64, 0.0), (F32, -300.0)])
-def test_targets_drawn_from_the_belief_give_uniform_levels_and_no_calibration_error(dtype, offset):
-    A = beliefs(0, M, dtype, offset)
+@pytest.mark.parametrize(
+    ("dtype", "offset", "scales"),
+    [(F64, 0.0, (-1, 3)), (F32, -300.0, (-1, 3)), (F32, 1e6, (5, 6.5))],
+    ids=["float64", "float32", "float32-sharp"],  # sharp: spreads ~1e5-1e7 (~0.01-0.1 degree)
+)
+def test_targets_drawn_from_the_belief_give_uniform_levels_and_no_calibration_error(
+    dtype, offset, scales
+):
+    A = beliefs(0, M, dtype, offset, scales)
     q = bh.sample(A, 1, gen(1))[:, 0]
     levels = bh.hpd_level(A, q, N, gen(2))
     assert levels.shape == (M,) and levels.dtype == dtype
@@ -73,8 +82,13 @@ def test_a_belief_too_sharp_for_its_targets_undercovers_and_the_ece_says_so():
     assert bh.expected_calibration_error(levels) > 0.15
 
 
-def test_the_mode_is_inside_every_credible_region():
-    A = beliefs(6, 200)
+@pytest.mark.parametrize(
+    ("dtype", "offset", "scales"),
+    [(F64, 0.0, (-1, 3)), (F32, 1e6, (5, 6.5))],
+    ids=["float64", "float32-sharp"],  # sharp: the energies of float32 draws need float64 sums
+)
+def test_the_mode_is_inside_every_credible_region(dtype, offset, scales):
+    A = beliefs(6, 200, dtype, offset, scales)
     levels = bh.hpd_level(A, bh.mode(A), 100, gen(7))
     assert levels.max() <= 0.01  # 0 up to the rounding of the mode's quadratic form
     assert bh.coverage(levels).min() == 1.0

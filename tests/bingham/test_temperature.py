@@ -130,11 +130,12 @@ def test_the_bracket_keeps_every_tempered_belief_supported():
 
 
 def test_spreads_beyond_max_dispersion_fit_with_an_unknown_before():
-    A = beliefs(50, seed=51) * 1e5  # spreads up to 6e6 > MAX_DISPERSION
-    q = targets(A / 1e5, seed=52)
+    scale = 0.1 * bh.MAX_DISPERSION
+    A = beliefs(50, seed=51) * scale  # spreads up to 6 MAX_DISPERSION
+    q = targets(A / scale, seed=52)
     fit = bh.fit_temperature(A, q)
     assert math.isnan(fit.nll_before) and math.isfinite(fit.nll_after)
-    assert float(fit.temperature) == pytest.approx(1e5, rel=0.2)
+    assert float(fit.temperature) == pytest.approx(scale, rel=0.2)
 
 
 @pytest.mark.parametrize(

@@ -117,15 +117,17 @@ def hpd_level(
     with torch.no_grad():
         A = _symmetric(A).to(dtype).expand(*batch, 4, 4).reshape(-1, 4, 4)
         q = q.to(dtype).expand(*batch, 4).reshape(-1, 4)
-        l1 = linalg.eigvalsh(A)[:, :1]
-        S = A - l1.unsqueeze(-1) * torch.eye(4, dtype=dtype, device=A.device)
-        target = torch.einsum("bi,bij,bj->b", q, S, q)
-        levels = torch.empty_like(target)
+        # The energies x^T (A - l1 I) x in float64: in float32 they would carry rounding of
+        # about 1e-7 (l4 - l1), as much as a sharp belief's energies themselves.
+        A64 = A.double()
+        S = A64 - linalg.eigvalsh(A64)[:, :1, None] * torch.eye(4, dtype=A64.dtype, device=A.device)
+        target = torch.einsum("bi,bij,bj->b", q.double(), S, q.double())
+        levels = torch.empty_like(target, dtype=dtype)
         rows = max(1, _CHUNK_SAMPLES // num_samples)
         for start in range(0, A.shape[0], rows):
             part = slice(start, start + rows)
             x = sample(A[part], num_samples, generator)  # (rows, n, 4)
-            s = torch.einsum("bni,bij,bnj->bn", x, S[part], x)
+            s = torch.einsum("bni,bij,bnj->bn", x.double(), S[part], x.double())
             below = (s < target[part].unsqueeze(-1)).sum(-1)
             levels[part] = below.to(dtype) / num_samples
     return levels.reshape(batch)

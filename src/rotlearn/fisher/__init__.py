@@ -61,8 +61,9 @@ float64 is at most 2.3e-12 up to s1 = 1e3, 7e-12 at 1e4 and 1.2e-10 at 1e5 (roun
 to float64 alone moves log c by ~eps s1; for diagonal F 1.5e-11 at 1e5); in float32 at most
 5e-7 (1 + s1): 7e-6 for s1 <= 100, 3e-3 at s1 = 1e4 (the exponent tr(F^T R) itself has that
 float32 error).
-Supported range: s1 + s2 <= MAX_DISPERSION / 2 = 5e5 (A's eigenvalue spread l4 - l1 = 2 (s1 + s2)
-is the Bingham normaliser's range).
+Supported range: s1 + s2 <= MAX_SINGULAR_SUM = 5e5 (A's eigenvalue spread l4 - l1 = 2 (s1 + s2)
+= 1e6, within the Bingham normaliser's MAX_DISPERSION = 1e8; the bound is lower because the NLL
+tr(F^T R) - log c(F) subtracts two numbers of size s1 and keeps their float32 rounding).
 
 Every public function takes any leading batch shape, float32 and float64, any device; under
 autocast (mixed precision) it computes and returns float32. Bad input (NaN or Inf, F out of
