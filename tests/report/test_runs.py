@@ -124,6 +124,17 @@ def test_values_that_read_alike_keep_their_settings_apart(tmp_path):
     assert runs.groupby("setting").size().tolist() == [2, 2, 2, 2]
 
 
+def test_a_null_value_and_an_absent_key_keep_their_settings_apart(tmp_path):
+    """A label leaves out a key a run does not have, and it left out a null value too, so a run
+    with `scheduler: null` and one without a scheduler key read alike and were pooled; where
+    both occur, the null one says `scheduler=null`."""
+    for num, scheduler in enumerate(({"scheduler": None}, {}, {"scheduler": {"gamma": 0.5}})):
+        config = {"rep": {"name": "a"}, **scheduler}
+        _run(tmp_path / "sweep" / str(num), config, {"rep": "a"}, [], 1.0)
+    runs = collect_runs(tmp_path / "sweep")
+    assert list(runs["setting"]) == ["a scheduler=null", "a", "a scheduler.gamma=0.5"]
+
+
 def test_a_class_that_tells_runs_apart_is_named_by_its_class(tmp_path):
     """Where no config group option says it, a differing `_target_` reads as the class name."""
     for num, loss in enumerate(("BinghamNLLLoss", "ChordalLoss")):

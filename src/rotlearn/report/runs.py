@@ -302,6 +302,9 @@ def _settings(
     }
     text = {key: _distinct_text([f[key] for f in flats if f.get(key) is not None])
             for key in grouping}  # fmt: skip
+    # null is said where another run lacks the key: both would read as nothing
+    said_null = {k for k in grouping if any(f and k not in f for f in flats)
+                 and any(k in f and f[k] is None for f in flats)}  # fmt: skip
     columns, labels, all_parts = [], [], []
     for flat, chosen in zip(flats, choices, strict=True):
         columns.append({k: cell(flat.get(k)) for k in shown})
@@ -313,8 +316,10 @@ def _settings(
                 continue
             if node in varied:
                 part = f"{node}={chosen[node]}"
-            elif key not in flat or (value := flat[key]) is None:
+            elif key not in flat or ((value := flat[key]) is None and key not in said_null):
                 continue  # unset, or absent: the settings that set it say so
+            elif value is None:
+                part = f"{key}=null"
             elif key.endswith("._target_"):  # the class by its name: loss=BinghamNLLLoss
                 part = f"{key.removesuffix('._target_')}={str(value).rpartition('.')[2]}"
             else:
