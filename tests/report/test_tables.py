@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pandas as pd
 
-from rotlearn.report.tables import markdown_table, results_table
+from rotlearn.report.tables import INFINITE_NOTE, markdown_table, results_table
 
 
 def test_the_builder_rounds_marks_missing_values_and_escapes_cells():
@@ -21,6 +22,15 @@ def test_the_builder_rounds_marks_missing_values_and_escapes_cells():
         "| c d | - | 4 | 0.8 |",
     ]
     assert markdown_table(pd.DataFrame(rows)) == markdown_table(rows)
+
+
+def test_an_infinite_value_is_said_to_be_one_below_the_table():
+    """'inf' in a cell read like a very large number; the table now says what it is."""
+    finite = [{"metric": "nll", "value": 1.5}]
+    assert "inf:" not in markdown_table(finite)
+    for value in (math.inf, -math.inf, np.float64(np.inf), np.float32(np.inf)):
+        text = markdown_table([*finite, {"metric": "loss", "value": value}])
+        assert text.splitlines()[-3:] == [f"| loss | {value:.2f} |", "", INFINITE_NOTE]
 
 
 def test_a_runs_results_are_one_table_of_what_it_measured():

@@ -3,7 +3,8 @@
 
 A leaf of floor 4 (pandas and floors 0-1): floor-3 callbacks write their tables with it.
 Numbers are rounded for reading (`digits`, or a format per column); NaN and missing values read
-"-"; a "|" inside a cell is escaped.
+"-"; an infinite value reads "inf" and the table then ends with a line that says what it means
+(`INFINITE_NOTE`); a "|" inside a cell is escaped.
 """
 
 from __future__ import annotations
@@ -37,6 +38,8 @@ __all__ = [
 ]
 
 LABELS = {"dt": "DT", "eigengap": "gap", "raw_norm": "norm", "autoencoder": "AE"}
+INFINITE_NOTE = ("inf: the run recorded an infinite value (it overflowed: a diverged metric), "
+                 "not a large number rounded")  # fmt: skip
 Format = str | Callable[[Any], str]
 
 
@@ -77,10 +80,15 @@ def markdown_table(
     pairs = [(c, c) if isinstance(c, str) else (c[0], c[1]) for c in columns]
     formats = dict(formats or {})
     lines = ["| " + " | ".join(header for _, header in pairs) + " |", "|" + "---|" * len(pairs)]
+    infinite = False
     for record in records:
-        cells = [_cell(record.get(key), formats.get(key), digits) for key, _ in pairs]
+        values = [record.get(key) for key, _ in pairs]
+        infinite |= any(isinstance(v, (float, np.floating)) and np.isinf(v) for v in values)
+        cells = [
+            _cell(v, formats.get(key), digits) for v, (key, _) in zip(values, pairs, strict=True)
+        ]
         lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+    return "\n".join([*lines, "", INFINITE_NOTE] if infinite else lines)
 
 
 def setting_order(done: pd.DataFrame, column: str = "setting") -> list[Any]:
