@@ -185,6 +185,24 @@ def test_a_misspelt_key_of_hydras_gets_the_nearest_not_hydras_advice_to_append_i
         make_cfg(["hydra.sweeper.paramz.rep=a"])
 
 
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("~optim.lrr", r"^config key optim\.lrr: unknown key; did you mean optim\.lr\?; allowed: "
+                       r"_partial_, _target_, lr, weight_decay; ~ deletes a key it has$"),
+        ("~optimm", r"^config key optimm: unknown key; did you mean optim\?; allowed: calibrate, "),
+        ("~optim.lr=1e-3", r"^config key optim\.lr: is 0\.0005, not 0\.001: ~optim\.lr=0\.001 "
+                           r"deletes it only at that value; ~optim\.lr deletes it whatever it is$"),
+    ],
+)  # fmt: skip
+def test_a_deletion_hydra_cannot_make_is_named_with_the_nearest_key(make_cfg, override, message):
+    """Hydra answered `~optim.lrr` with "Could not delete from config. 'optim.lrr' does not
+    exist." (no suggestion); a deletion that works still does."""
+    with pytest.raises(ConfigError, match=message):
+        make_cfg([override])
+    assert "lr" not in make_cfg(["~optim.lr=0.0005"]).optim
+
+
 def test_an_unknown_option_of_hydras_groups_lists_its_plugins_options(make_cfg):
     """`hydra/launcher=jobli` listed only conf/'s slurm.yaml (and `hydra/sweeper=optuan` nothing):
     the launchers and sweepers of Hydra and its plugins live in its ConfigStore."""

@@ -31,6 +31,9 @@ EXPECTED = {
                             r"mean optim\.lr\?; allowed: lr, "),
     "the README's misspelt key": (1, r"^rotlearn-train: config key data\.phi_maxdeg: unknown "
                                   r"key; did you mean data\.phi_max_deg\?; allowed: phi_max_deg"),
+    "a misspelt key to delete": (1, r"^rotlearn-train: config key optim\.lrr: unknown key; did "
+                                 r"you mean optim\.lr\?; allowed: .*lr, weight_decay; ~ deletes "
+                                 r"a key it has \(nothing was written\)$"),
     "unknown option": (1, rf"^rotlearn-train: config key rep: no option 'aa'; did you mean rep=a"
                        rf"\?; {OPTIONS} \(nothing was written\)$"),
     "a schema as an option": (1, rf"^rotlearn-train: config key rep: no option 'head_schema'; "

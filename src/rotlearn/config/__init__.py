@@ -139,6 +139,24 @@ def _elsewhere(node: str, key: str, root: Path) -> str:
     return f"; {key} is a setting of {group}={', '.join(has)}" if has else ""
 
 
+def _refuse_deletions(name: str, taken: list[str], parsed: list[Any]) -> None:
+    """`ConfigError` for a `~key` Hydra could not delete: a key the config lacks (the nearest
+    named) or a `~key=value` whose value it does not hold (one composition without them)."""
+    from hydra import compose
+
+    deleting = [o for o in parsed if o.is_delete()]
+    kept = [t for t, o in zip(taken, parsed, strict=True) if not o.is_delete()]
+    cfg = compose(name, kept, return_hydra_config=True) if deleting else None
+    for key, value in ((o.key_or_group, o.value()) for o in deleting):
+        node, _, leaf = key.rpartition(".")
+        parent = OmegaConf.select(cfg, node) if node else cfg
+        if isinstance(parent, DictConfig) and leaf not in parent:
+            refuse_unknown(node, [leaf], sorted(map(str, parent)), "; ~ deletes a key it has")
+        if value is not None and (held := OmegaConf.select(cfg, key)) != value:
+            raise ConfigError(key, f"is {held!r}, not {value!r}: ~{key}={value} deletes it only "
+                              f"at that value; ~{key} deletes it whatever it is")  # fmt: skip
+
+
 def _compose(
     name: str, overrides: list[str], root: Path, appendable: Sequence[str] | None = None
 ) -> tuple[DictConfig, list[str]]:
@@ -162,6 +180,7 @@ def _compose(
                               and (appendable is None or overrides[i] in appendable)
                               and (o.key_or_group + ".").startswith(f"{key}.")]  # fmt: skip
                     if isinstance(exc, MissingConfigException) or not absent:
+                        _refuse_deletions(name, taken, parsed)
                         parent = getattr(exc.__cause__, "parent_node", None)
                         if str(key).startswith("hydra.") and isinstance(parent, DictConfig):
                             node, _, name = key.rpartition(".")  # Hydra's advice: append it
