@@ -39,7 +39,7 @@ A belief whose typical error is theta radians has |lam| ~ 2 / theta^2: 6.6e3 at 
 at 0.03 degrees (the A head's test error on the KITTI-format world at the paper's scale), 1e8 at
 0.008 degrees. The normaliser and its moments are verified up to 1e8 in both dtypes, and the NLL's
 fit term is taken without cancellation (`rotlearn.bingham.log_prob`), so a float32 NLL stays
-within about 1e-5 nats of the float64 one of the same A across the range."""
+within 1e-3 nats of the float64 one of the same A across the range (tested; 3e-5 measured)."""
 
 LOG_AREA_S3 = math.log(2.0 * math.pi**2)
 """log |S^3|: subtract from `log_prob` for a density w.r.t. the surface measure."""

@@ -275,8 +275,8 @@ def log_prob(A: Tensor, q: Tensor, check: bool = True) -> Tensor:
         (subtract `LOG_AREA_S3` for the surface measure). Invariant to q -> -q and A -> A + cI.
         Differentiable in A (through eigenvalues only, well defined at repeated ones) and q.
         Under autocast computed in float32 and returned in float32. The fit term q^T A q - l1
-        is valued in float64 (`_fit`), so a float32 result stays within about 1e-3 nats of
-        the float64 one of the same A even for the sharpest supported beliefs.
+        is valued in float64 (`_fit`), so a float32 result stays within 1e-3 nats of the
+        float64 one of the same A even for the sharpest supported beliefs.
 
     Raises:
         TypeError: A or q not floating.
