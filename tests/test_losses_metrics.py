@@ -235,7 +235,7 @@ def test_a_belief_sharper_than_the_supported_range_is_not_sharpened_further():
     A, q, F, R = _beliefs((), F64, seed=32)
     cases = (
         (bingham.nll, A / A.norm(), q, 4 * bingham.MAX_DISPERSION),
-        (fisher.nll, F / F.norm(), R, 2e6),
+        (fisher.nll, F / F.norm(), R, 4 * fisher.MAX_SINGULAR_SUM),
     )
     for fn, unit, target, scale in cases:
         with pytest.raises(ValueError, match=r"above MAX_(DISPERSION|SINGULAR_SUM)"):

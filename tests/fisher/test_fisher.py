@@ -100,13 +100,17 @@ def test_reference_matches_closed_forms_and_euler_quadrature(euler):
 
 def singular_value_grid() -> np.ndarray:
     """(m, 3) proper singular values: every ordered triple of magnitudes from 0 to 1e5 with both
-    signs of s3, repeated and near-repeated values, and random ones over 1e-4 .. 1e5."""
+    signs of s3, repeated and near-repeated values, a few up to the bound, and random ones over
+    1e-4 .. 1e5."""
     mags = [1e5, 1e4, 1e3, 300.0, 30.0, 5.0, 1.0, 0.3, 1e-6, 0.0]
     cases = []
     for s1, s2, s3 in itertools.combinations_with_replacement(mags, 3):
         cases += [(s1, s2, s3), (s1, s2, -s3)] if s3 > 0 else [(s1, s2, s3)]
     cases += [
         (2.5e5, 2.5e5, -2.5e5),
+        (2.5e7, 2.5e7, -2.5e7),  # s1 + s2 = MAX_SINGULAR_SUM
+        (4e7, 1e3, 0.5),
+        (1e6, 1e6, 1e6),
         (1e4 * (1 + 1e-9), 1e4, 0.5),
         (7.0, 3.0, -3.0 + 1e-9),
         (1e3, 2.0, -2.0),
@@ -339,6 +343,24 @@ def test_likelihood_and_mode_are_the_bingham_ones(seed, shape, dtype):
     error = (mode - quat_to_rotmat(bh.mode(A))).abs().amax((-2, -1))
     assert (error[unique] <= 100 * tol[unique]).all()
     assert (fs.log_prob(F, mode) >= out - tol).all()  # the most likely rotation
+
+
+@pytest.mark.parametrize("total", [1e4, 1e6, 0.9 * fs.MAX_SINGULAR_SUM])
+def test_float32_nll_of_a_sharp_belief_matches_float64(total):
+    """tr(F^T R) and log c(F) are each of the size s1 + s2 + s3; subtracted in float32 they left
+    some 1e-7 (s1 + s2) nats (as the Bingham NLL's fit term did). Targets near the mode."""
+    n, g = 500, gen(int(math.log10(total)))
+    U, V = (special_orthogonalize(torch.randn(n, 3, 3, generator=g, dtype=F64)) for _ in "UV")
+    s = total * torch.tensor([0.5, 0.45, 0.05], dtype=F64)  # s1 + s2 = 0.95 total
+    F = (U * s[None, None, :]) @ V.mT
+    axis = torch.nn.functional.normalize(torch.randn(n, 3, generator=g, dtype=F64), dim=-1)
+    angle = torch.rand(n, 1, generator=g, dtype=F64) * 3 / math.sqrt(2 * s[1:].sum())
+    half = torch.cat((axis * (angle / 2).sin(), (angle / 2).cos()), -1)
+    R = (U @ V.mT @ quat_to_rotmat(half)).float()
+    exact = fs.nll(F.float().double(), R.double())
+    got = fs.nll(F.float(), R)
+    assert got.dtype == F32
+    assert ((got.double() - exact).abs() <= 1e-3 + 1e-6 * exact.abs()).all()
 
 
 def test_log_prob_integrates_to_one(euler):

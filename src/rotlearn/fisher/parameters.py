@@ -10,6 +10,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from rotlearn.bingham import MAX_DISPERSION
 from rotlearn.errors import batch_index
 from rotlearn.geometry import special_orthogonalize
 from rotlearn.geometry.autocast import float32_under_autocast
@@ -24,12 +25,9 @@ __all__ = [
     "proper_svd",
 ]
 
-MAX_SINGULAR_SUM = 5e5
+MAX_SINGULAR_SUM = MAX_DISPERSION / 2
 """Largest supported s1 + s2 (the two largest singular values of F): A's eigenvalue spread
-l4 - l1 = 2 (s1 + s2) is then 1e6, inside the Bingham normaliser's MAX_DISPERSION. Not that bound
-itself: the NLL tr(F^T R) - log c(F) subtracts two numbers of size s1 + s2 + s3, so its float32
-rounding grows as 1e-7 (s1 + s2) nats (the Bingham NLL takes its fit term without that
-cancellation, `rotlearn.bingham.log_prob`)."""
+l4 - l1 = 2 (s1 + s2) is then the Bingham normaliser's MAX_DISPERSION."""
 
 
 # ----------------------------------------------------------------------------------- validation
