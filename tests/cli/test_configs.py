@@ -149,6 +149,11 @@ def test_schemas_match_their_targets_signatures(target):
         ("data.redraw_test=maybe", r"data\.redraw_test: should be a valid boolean"),
         ("rep.out_dim=7", r"rep\.out_dim: is 7 but the 'a' head outputs 10"),
         ("+loss.weight=2", r"loss\.weight: unknown key; allowed: none"),
+        (  # an element of a list the YAML does not list: Hydra makes {'0': 0.5} of it
+            "optim.betas.0=0.5",
+            r"optim\.betas: should be a valid list, got \{'0': 0\.5\}; a list the config does "
+            r"not hold yet is set whole: optim\.betas=\[\.\.\.\]$",
+        ),
     ],
 )
 def test_misspelt_keys_and_wrong_types_fail_before_training(make_cfg, override, message):

@@ -302,7 +302,9 @@ def _check(key: str, value: Any, annotation: Any) -> None:
             text = re.sub(r"^(Value error, )?(\w+ )?(?=should )", "", error["msg"])
             at = "".join(f"[{i}]" for i in error["loc"] if isinstance(i, int))
             said.append(text.replace(" after validation", "") + (f" (at {at})" if at else ""))
-        raise ConfigError(key, f"{' or '.join(dict.fromkeys(said))}, got {value!r}") from None
+        whole = isinstance(value, dict) and value and all(str(k).isdigit() for k in value)
+        hint = f"; a list the config does not hold yet is set whole: {key}=[...]" if whole else ""
+        raise ConfigError(key, f"{' or '.join(dict.fromkeys(said))}, got {value!r}{hint}") from None
 
 
 def check_values(values: dict[str, Any]) -> None:
