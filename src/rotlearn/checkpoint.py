@@ -34,7 +34,6 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from rotlearn.bingham.descriptors import MAX_DISPERSION
 from rotlearn.extras import require
 from rotlearn.io import MAX_BYTES, plain_name, read_bytes, read_json, write_bytes_atomic
 from rotlearn.paths import checkpoint_file
@@ -42,7 +41,6 @@ from rotlearn.trust import UntrustedConfigError, trusted_config
 
 __all__ = [
     "TEMPERATURE_FILE",
-    "TEMPERATURE_RANGE",
     "THRESHOLDS_FILE",
     "SavedRun",
     "UnsafeCheckpointError",
@@ -56,6 +54,7 @@ __all__ = [
     "rebuildable",
     "resolve_checkpoint",
     "save_checkpoint",
+    "temperature_range",
     "tested_checkpoint",
 ]
 
@@ -444,11 +443,18 @@ def read_thresholds(path: str | os.PathLike) -> dict[str, Any] | None:
 _TEMPERATURE_KEYS = {"temperature", "checkpoint", "val_nll", "val_nll_uncalibrated", "num_val"}
 _OPTIONAL_TEMPERATURE_KEYS = {"credible_masses"}
 _MAX_MASSES = 101  # knots of a level map (rotlearn.bingham.calibration.LEVEL_KNOTS + 1 = 21)
-# The temperatures a record may hold: A / T and T * A stay finite in float32 for every belief the
-# Bingham code supports (eigenvalue spread up to MAX_DISPERSION), so the tempered beliefs, their DT
-# and their samples are finite numbers. A fit never leaves this range on float32 beliefs.
-TEMPERATURE_RANGE = (MAX_DISPERSION / float(torch.finfo(torch.float32).max),
-                     float(torch.finfo(torch.float32).max) / MAX_DISPERSION)  # fmt: skip
+
+
+def temperature_range() -> tuple[float, float]:
+    """The temperatures a record may hold: A / T and T * A stay finite in float32 for every
+    belief the Bingham code supports (eigenvalue spread up to MAX_DISPERSION), so the tempered
+    beliefs, their DT and their samples are finite numbers. A fit never leaves this range on
+    float32 beliefs. (rotlearn.bingham is imported here, not with this module: the refusals that
+    read a checkpoint should not wait for it.)"""
+    from rotlearn.bingham import MAX_DISPERSION
+
+    top = float(torch.finfo(torch.float32).max)
+    return MAX_DISPERSION / top, top / MAX_DISPERSION
 
 
 def read_temperature(path: str | os.PathLike) -> dict[str, Any] | None:
@@ -461,8 +467,8 @@ def read_temperature(path: str | os.PathLike) -> dict[str, Any] | None:
 
     Raises:
         ValueError: the file is larger than 4096 bytes, not JSON, holds NaN or an infinity, lacks
-            or adds a key, or holds a temperature that is not a number in `TEMPERATURE_RANGE`
-            (about 3e-33 to 3e32), a checkpoint that is not a plain file name, a count that is
+            or adds a key, or holds a temperature that is not a number in `temperature_range()`
+            (about 3e-31 to 3e30), a checkpoint that is not a plain file name, a count that is
             not a positive integer, or credible masses that are not 2 to 101 numbers rising from
             0 to 1; the message names the file. Nothing is half-read: the record is checked whole
             before it is returned.
@@ -481,7 +487,7 @@ def read_temperature(path: str | os.PathLike) -> dict[str, Any] | None:
         keys = sorted(map(str, record)) if isinstance(record, dict) else type(record).__name__
         raise ValueError(f"{path}: the temperature record must be {expected}, got {keys}")
     t = record["temperature"]
-    low, high = TEMPERATURE_RANGE
+    low, high = temperature_range()
     if not _number(t) or not low <= t <= high:
         raise ValueError(
             f"{path}: temperature must be a number in [{low:.3g}, {high:.3g}] (A / T must stay "
