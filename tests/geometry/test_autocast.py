@@ -43,3 +43,12 @@ def test_float64_is_left_alone_and_other_devices_unaffected():
     meta = torch.empty(2, 2, device="meta", dtype=torch.bfloat16)
     with torch.autocast("cpu", dtype=torch.bfloat16):
         assert product(meta, meta)[0][:2] == (torch.bfloat16, torch.bfloat16)
+
+
+def test_valued_as_takes_the_value_of_one_and_the_gradient_of_the_other():
+    x = torch.tensor([1.0, 2.0], requires_grad=True)
+    precise = torch.tensor([1.25, -3.5], dtype=torch.float64, requires_grad=True)
+    out = amp.valued_as(3 * x, precise)
+    assert out.dtype == torch.float32 and out.tolist() == [1.25, -3.5]
+    out.sum().backward()
+    assert x.grad.tolist() == [3.0, 3.0] and precise.grad is None

@@ -23,7 +23,7 @@ from rotlearn.bingham.descriptors import (
     _symmetric,
     dispersion_from_eigenvalues,
 )
-from rotlearn.geometry.autocast import float32_under_autocast
+from rotlearn.geometry.autocast import float32_under_autocast, valued_as
 
 __all__ = ["log_normalizer", "log_prob", "moments", "nll", "normalizer"]
 
@@ -252,7 +252,7 @@ def _fit(S: Tensor, q: Tensor, l1: Tensor, mode: Tensor) -> Tensor:
         r = _quad_form(S64, m64) / (m64 * m64).sum(-1)
         eye = torch.eye(4, dtype=torch.float64, device=S.device)
         exact = _quad_form(S64 - r[..., None, None] * eye, q.double()).clamp_min(0.0)
-    return fit + (exact.to(fit.dtype) - fit).detach()
+    return valued_as(fit, exact)
 
 
 @float32_under_autocast

@@ -19,7 +19,7 @@ from rotlearn.fisher.parameters import (
     bingham_from_fisher,
 )
 from rotlearn.geometry import quat_to_rotmat
-from rotlearn.geometry.autocast import float32_under_autocast
+from rotlearn.geometry.autocast import float32_under_autocast, valued_as
 
 __all__ = ["log_normalizer", "log_prob", "nll", "sample"]
 
@@ -106,7 +106,7 @@ def log_prob(F: Tensor, R: Tensor, check: bool = True) -> Tensor:
             1.5 * torch.eye(3, dtype=mode.dtype, device=mode.device) - 0.5 * mode.mT @ mode
         )
         exact = (F.double() * (mode - R.double())).sum((-2, -1)).clamp_min(0.0)
-    return -(fit + (exact.to(fit.dtype) - fit).detach()) - log_n
+    return -valued_as(fit, exact) - log_n
 
 
 def nll(F: Tensor, R: Tensor, check: bool = True) -> Tensor:

@@ -8,6 +8,8 @@ tuned for float32/float64, and several kernels (LU, SVD, sparse products) have n
 implementation on the CPU. `torch.amp.custom_fwd(cast_inputs=...)` does this for an old-style
 `autograd.Function` on one device type; `float32_under_autocast` does it at the public function
 boundary for every device type, so it also covers functions that call no custom Function.
+`valued_as` is the other half of working in a lower precision: a term valued in float64 (the NLLs'
+fit terms, which cancel in float32) with the gradient of its float32 expression.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from typing import Any, TypeVar
 import torch
 from torch import Tensor
 
-__all__ = ["REDUCED_DTYPES", "autocast_enabled", "float32_under_autocast"]
+__all__ = ["REDUCED_DTYPES", "autocast_enabled", "float32_under_autocast", "valued_as"]
 
 REDUCED_DTYPES = (torch.float16, torch.bfloat16)  # the dtypes autocast casts to
 
@@ -71,3 +73,10 @@ def float32_under_autocast(fn: F) -> F:
             return fn(*args, **kwargs)
 
     return wrapper  # type: ignore[return-value]
+
+
+def valued_as(x: Tensor, value: Tensor) -> Tensor:
+    """`x` with the value of `value` (cast to x's dtype) and the gradient of `x`: for a term
+    whose value is taken more precisely (e.g. in float64, without a cancellation) than the
+    expression that gives its gradient. `value` carries no gradient."""
+    return x + (value.detach().to(x.dtype) - x).detach()
