@@ -26,11 +26,15 @@ venv: $(STAMP) ## create or refresh .venv (torch==2.13.0 CPU build, every extra,
 train: $(STAMP) ## train the default experiment (A head, synthetic Wahba data); ARGS=overrides
 	$(BIN)/rotlearn-train $(ARGS)
 
+# Test files run on every core (pytest-xdist), a whole file per worker so that its fixtures are made
+# once: most end-to-end tests wait on a child process. JOBS=0: all in this one process.
+JOBS ?= $(shell nproc 2>/dev/null || echo 2)
+
 test: $(STAMP) ## fast test suite (under 10 minutes on 2 cores)
-	$(BIN)/python -m pytest -m "not slow" -q $(ARGS)
+	$(BIN)/python -m pytest -m "not slow" -q -n $(JOBS) --dist loadfile $(ARGS)
 
 test-full: $(STAMP) ## every test, the slow ones too
-	$(BIN)/python -m pytest -q $(ARGS)
+	$(BIN)/python -m pytest -q -n $(JOBS) --dist loadfile $(ARGS)
 
 lint: $(STAMP) ## ruff lint and format check
 	$(BIN)/ruff check .
