@@ -13,7 +13,9 @@ are exactly the rotations between the images; the dataset appears only when comp
 are photo-textured street panoramas (`rotlearn.data.demo.natural.street_panorama`: real textures,
 1/f spectra, occlusion, shading); each sequence views its own scene, so whichever sequence is
 tested on shows a street never seen in training, except the revisits (by default sequence 11
-drives a new trajectory through sequence 02's street: a seen scene to compare with).
+drives a new trajectory through sequence 02's street: a seen scene to compare with). Each frame
+then goes through a street camera (`rotlearn.data.demo.camera`): drifting exposure, sensor noise
+and vehicles crossing the view, so that some pairs are harder than others, as on real streets.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rotlearn.data.demo import camera
 from rotlearn.data.demo.synth import (
     camera_matrix,
     exp_rotvec,
@@ -105,11 +108,12 @@ def _write_kitti_sequence(
     K: np.ndarray,
     width: int,
     height: int,
+    street_camera: bool,
 ) -> None:
     """One sequence: poses, times.txt, calib.txt and image_2 frames. The sequence views the
     street panorama of `scene` (a sequence name; drawn from the stream (seed, scene number)),
-    from its own starting heading (a roll of the panorama) and with its own motion, from
-    separate streams of (seed, sequence number)."""
+    from its own starting heading (a roll of the panorama) and with its own motion, exposure and
+    traffic (`street_camera`), from separate streams of (seed, sequence number)."""
     from rotlearn.data.demo.natural import street_panorama
 
     world = street_panorama(np.random.default_rng([seed, 1, 2, int(scene)]), panorama_width(K))
@@ -123,8 +127,14 @@ def _write_kitti_sequence(
     np.savetxt(folder / "times.txt", 0.1 * np.arange(frames), fmt="%e")
     (folder / "calib.txt").write_text(_kitti_calib(K))
     rays = pixel_rays(K, width, height)
+    exposure = np.random.default_rng([seed, 1, int(name), 2])
+    gains = camera.exposure_gains(exposure, frames)
+    passers = camera.traffic(np.random.default_rng([seed, 1, int(name), 3]), frames, width, height)
     for i, pose in enumerate(poses):
-        write_png(folder / "image_2" / f"{i:06d}.png", render(panorama, rays, pose[:, :3]))
+        image = render(panorama, rays, pose[:, :3])
+        if street_camera:
+            image = camera.expose(camera.draw_traffic(image, passers, i), gains[i], exposure)
+        write_png(folder / "image_2" / f"{i:06d}.png", image)
 
 
 def write_kitti_demo(
@@ -136,6 +146,7 @@ def write_kitti_demo(
     seed: int = 0,
     revisits: Mapping[str, str] = KITTI_REVISITS,
     workers: int = 1,
+    street_camera: bool = True,
 ) -> Path:
     """Write a demo KITTI odometry dataset (layout in the module docstring); returns `<out>/kitti`.
 
@@ -165,6 +176,9 @@ def write_kitti_demo(
         width, height: image size in pixels.
         seed: content seed; the same seed writes the same files.
         workers: processes writing sequences side by side (the files do not depend on it).
+        street_camera: what a street camera adds to each rendered view
+            (`rotlearn.data.demo.camera`): exposure that drifts by about a stop, sensor noise and
+            vehicles crossing the view; False writes the exact renders.
     """
     names = [*sequences, *revisits.values()]
     if frames < 2 or not all(str(s).isdigit() for s in names):
@@ -173,7 +187,7 @@ def write_kitti_demo(
     K = camera_matrix(width, height)
     with staged(out, "kitti", ["kitti"]) as stage:
         jobs = [(stage / "kitti", name, kitti_scene(name, revisits), seed, frames, K, width,
-                 height) for name in sequences]  # fmt: skip
+                 height, street_camera) for name in sequences]  # fmt: skip
         (stage / "kitti" / "poses").mkdir(parents=True)
         if workers > 1 and len(jobs) > 1:
             from concurrent.futures import ProcessPoolExecutor
