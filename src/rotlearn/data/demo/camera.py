@@ -70,7 +70,7 @@ def traffic(rng: np.random.Generator, frames: int, width: int, height: int) -> l
     them; a vehicle is 0.3-0.9 of the image height tall and 1-3 times as wide, at 30-120 % of the
     photograph's brightness, and moves 1-10 pixels a frame at 310 pixels across (the demo's
     width; scaled with it), entering from either side."""
-    from rotlearn.data.demo.natural import PHOTOS, _crop, bundled_images
+    from rotlearn.data.demo.natural import PHOTOS, bundled_images, crop
 
     photos = [bundled_images()[name] for name in PHOTOS]
     found = []
@@ -81,7 +81,7 @@ def traffic(rng: np.random.Generator, frames: int, width: int, height: int) -> l
             h = max(1, int(height * rng.uniform(0.3, 0.9)))
             w = max(1, int(h * rng.uniform(1.0, 3.0)))
             photo = photos[int(rng.integers(len(photos)))]
-            patch = _crop(rng, photo, h, w, rng.uniform(0.5, 2.0)) * rng.uniform(0.3, 1.2)
+            patch = crop(rng, photo, h, w, rng.uniform(0.5, 2.0)) * rng.uniform(0.3, 1.2)
             speed = rng.uniform(1, 10) * rng.choice([-1.0, 1.0]) * width / 310
             top = int(height * rng.uniform(0.3, 0.7))
             x0 = -w if speed > 0 else width

@@ -167,7 +167,8 @@ def write_kitti_demo(
     the scene at infinity this has no visual effect. Intrinsics: `camera_matrix(width, height)` (80
     degrees across), P2 = [K | 0]. Poses are written with "%e" (7 significant digits); the images
     are rendered from the float64 poses they round (orthonormal to ~1e-14), exact up to the
-    renderer's 1/32-pixel interpolation grid (~0.01 degrees at 310 pixels across).
+    renderer's 1/32-pixel interpolation grid (~0.01 degrees at 310 pixels across); the street
+    camera then changes pixels (exposure, noise, vehicles moving on their own), never a pose.
 
     Args:
         out: parent folder.

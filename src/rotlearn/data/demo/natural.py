@@ -31,6 +31,7 @@ __all__ = [
     "PHOTOS",
     "TEXTURES",
     "bundled_images",
+    "crop",
     "periodic_component",
     "pink_noise",
     "room_panorama",
@@ -131,7 +132,7 @@ def _paste(canvas: np.ndarray, patch: np.ndarray, x: int, y: int, alpha=None) ->
         canvas[y0:y1, cols] = a * patch + (1.0 - a) * canvas[y0:y1, cols]
 
 
-def _crop(rng: np.random.Generator, image: np.ndarray, h: int, w: int, scale: float) -> np.ndarray:
+def crop(rng: np.random.Generator, image: np.ndarray, h: int, w: int, scale: float) -> np.ndarray:
     """A random (h, w[, C]) view of `image` tiled (wrapping), sampled at `scale` source pixels
     per output pixel (area-filtered when shrinking)."""
     sh, sw = max(1, round(h * scale)), max(1, round(w * scale))
@@ -249,7 +250,7 @@ def _window_grid(rng, facade: np.ndarray, images) -> None:
         max(2, int(size * rng.uniform(0.4, 0.7))),
         max(2, int(size * rng.uniform(0.5, 0.8))),
     )
-    reflection = _crop(rng, images[PHOTOS[rng.integers(len(PHOTOS))]], h, w, rng.uniform(0.5, 2))
+    reflection = crop(rng, images[PHOTOS[rng.integers(len(PHOTOS))]], h, w, rng.uniform(0.5, 2))
     glass = 0.25 * cv2.GaussianBlur(reflection, (0, 0), 1.0) + np.float32([0.12, 0.1, 0.08])
     frame = np.float32(rng.uniform(0.7, 1.0, 3)) * facade.mean(axis=(0, 1)) * 1.2
     for y in range(size // 2, h - pane_h - 1, size + int(rng.integers(0, 3))):
@@ -266,20 +267,20 @@ def _facade(rng: np.random.Generator, h: int, w: int, images) -> np.ndarray:
     kind = rng.random()
     colour = _FACADE_COLOURS[rng.integers(len(_FACADE_COLOURS))] * rng.uniform(0.8, 1.15, 3)
     if kind < 0.45:
-        texture = _crop(rng, images["brick.png"], h, w, rng.uniform(0.4, 1.2))
+        texture = crop(rng, images["brick.png"], h, w, rng.uniform(0.4, 1.2))
         face = _gray_tinted(texture, colour, rng.uniform(0.8, 1.6))
     elif kind < 0.7:
-        texture = _crop(rng, images["gravel.png"], h, w, rng.uniform(0.6, 2.5))
+        texture = crop(rng, images["gravel.png"], h, w, rng.uniform(0.6, 2.5))
         face = _gray_tinted(cv2.GaussianBlur(texture, (0, 0), 0.7), colour, rng.uniform(0.4, 1.0))
     else:
-        photo = _crop(rng, images[PHOTOS[rng.integers(len(PHOTOS))]], h, w, rng.uniform(0.6, 2.0))
+        photo = crop(rng, images[PHOTOS[rng.integers(len(PHOTOS))]], h, w, rng.uniform(0.6, 2.0))
         face = _photo_tinted(photo, colour * 1.2, rng.uniform(0.0, 0.4)) * 0.6 + 0.4 * colour
     if rng.random() < 0.7:
         _window_grid(rng, face, images)
     if rng.random() < 0.35 and h > 16 and w > 16:  # a poster or sign: a photograph
         ph, pw = int(h * rng.uniform(0.2, 0.45)), int(w * rng.uniform(0.2, 0.5))
         name = PHOTOS[rng.integers(len(PHOTOS))]
-        poster = _crop(
+        poster = crop(
             rng,
             images[name],
             ph,
@@ -301,7 +302,7 @@ def _tree(rng: np.random.Generator, h: int, w: int, images) -> tuple[np.ndarray,
     crown = np.clip((1.0 - r + edge) * 6.0, 0, 1)
     trunk = ((np.abs(u - w / 2) < max(1.0, w / 16)) & (v > crown_h * 0.6)).astype(np.float32)
     leaves = _gray_tinted(
-        _crop(rng, images["grass.png"], h, w, rng.uniform(0.5, 1.5)),
+        crop(rng, images["grass.png"], h, w, rng.uniform(0.5, 1.5)),
         np.float32([0.20, 0.45, 0.30]) * rng.uniform(0.7, 1.2, 3),
         1.5,
     )
@@ -386,7 +387,7 @@ def room_panorama(rng: np.random.Generator, width: int) -> np.ndarray:
     # ceiling above 25 degrees up, floor below 20 degrees down, walls between
     ceiling_row, floor_row = _row(-25, height), _row(20, height)
     ceiling = _gray_tinted(
-        _crop(rng, images["gravel.png"], ceiling_row, width, 3.0), [0.55, 0.57, 0.6], 0.3
+        crop(rng, images["gravel.png"], ceiling_row, width, 3.0), [0.55, 0.57, 0.6], 0.3
     )
     canvas[:ceiling_row] = ceiling
     for _ in range(int(rng.integers(4, 8))):  # ceiling lights
@@ -403,13 +404,13 @@ def room_panorama(rng: np.random.Generator, width: int) -> np.ndarray:
         wall_colour = np.float32(rng.uniform(0.4, 0.75, 3)) * np.float32([0.9, 0.95, 1.0])
         if rng.random() < 0.5:
             texture = cv2.GaussianBlur(
-                _crop(rng, images["gravel.png"], floor_row - ceiling_row, w, 2.0), (0, 0), 1.5
+                crop(rng, images["gravel.png"], floor_row - ceiling_row, w, 2.0), (0, 0), 1.5
             )
             wall = _gray_tinted(texture, wall_colour, 1.2)
         else:  # wooden panels: a photograph's grain stretched into boards
             source = images[("coffee.png", "chelsea.png")[rng.integers(2)]]
             grain = cv2.resize(
-                _crop(rng, source, 64, 64, 1.0),
+                crop(rng, source, 64, 64, 1.0),
                 (w, floor_row - ceiling_row),
                 interpolation=cv2.INTER_CUBIC,
             )
@@ -427,7 +428,7 @@ def room_panorama(rng: np.random.Generator, width: int) -> np.ndarray:
             ph, pw = int(unit * rng.uniform(8, 24)), int(unit * rng.uniform(8, 30))
             name = PHOTOS[rng.integers(len(PHOTOS))]
             scale = max(images[name].shape[:2]) / max(ph, pw) * rng.uniform(0.4, 1.0)
-            picture = _crop(rng, images[name], ph, pw, scale)
+            picture = crop(rng, images[name], ph, pw, scale)
             border = max(2, int(unit * rng.uniform(0.5, 1.5)))
             frame = np.full(
                 (ph + 2 * border, pw + 2 * border, 3), rng.uniform(0.05, 0.5), np.float32
@@ -437,7 +438,7 @@ def room_panorama(rng: np.random.Generator, width: int) -> np.ndarray:
             _paste(canvas, frame, int(rng.integers(width)), y)
         elif kind < 0.75:
             dw, dh = int(unit * rng.uniform(10, 16)), floor_row - _row(-8, height)
-            wood = _crop(rng, images["coffee.png"], dh, dw, rng.uniform(0.3, 0.8))
+            wood = crop(rng, images["coffee.png"], dh, dw, rng.uniform(0.3, 0.8))
             door = _photo_tinted(wood, np.float32(rng.uniform(0.3, 0.7, 3)), 0.3)
             door *= _ramp(dh, dw, rng, 0.5)
             door[:, [0, 1, -2, -1]] *= 0.4
@@ -445,7 +446,7 @@ def room_panorama(rng: np.random.Generator, width: int) -> np.ndarray:
         else:
             sw, sh = int(unit * rng.uniform(12, 30)), int(unit * rng.uniform(8, 20))
             name = PHOTOS[rng.integers(len(PHOTOS))]
-            shelf = _photo_tinted(_crop(rng, images[name], sh, sw, 1.0), [0.7, 0.7, 0.7], 0.5)
+            shelf = _photo_tinted(crop(rng, images[name], sh, sw, 1.0), [0.7, 0.7, 0.7], 0.5)
             shelf[:: max(3, sh // 4)] = 0.12
             shelf[:, [0, 1, -2, -1]] = 0.12
             _paste(canvas, shelf, int(rng.integers(width)), floor_row - sh)
