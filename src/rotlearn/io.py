@@ -51,7 +51,6 @@ __all__ = [
     "read_table",
     "read_text",
     "read_text_file",
-    "read_text_lines",
     "read_yaml",
     "require_finite",
     "resolve_inside",
@@ -649,12 +648,6 @@ def read_text_file(path: str | os.PathLike) -> str:
     """
     _require_input(path)
     return read_text(path, "text file")
-
-
-def read_text_lines(path: Path) -> list[str]:
-    """The lines of `read_text_file(path)` (a list: for files of a few lines; `text_lines`
-    reads long ones a block at a time)."""
-    return read_text_file(path).splitlines()
 
 
 def _require_input(path: str | os.PathLike) -> None:

@@ -34,10 +34,11 @@ from rotlearn.geometry import quat_normalize, quat_to_rotmat, relative_rotation
 from rotlearn.io import (
     cache_file,
     plain_name,
-    read_text_lines,
+    read_text_file,
     require_finite,
     resolve_inside,
     strict_int,
+    text_lines,
 )
 from rotlearn.trust import config_target
 
@@ -49,8 +50,10 @@ __all__ = ["MAVDataModule", "match_poses", "read_frame_list", "read_pair_file", 
 
 def _rows(path: Path, columns: int | None = None, min_columns: int = 1):
     """(line number, fields) of a CSV file's rows, skipping blank lines and `#` comments; the
-    field count checked (`rotlearn.io.read_text_lines` raises for a missing or non-text file)."""
-    for lineno, line in enumerate(read_text_lines(path), start=1):
+    field count checked (`rotlearn.io.read_text_file` raises for a missing or non-text file). The
+    lines are split a block at a time (`text_lines`): a pose file at 200 Hz is never held as a
+    list of all its lines."""
+    for lineno, line in enumerate(text_lines(read_text_file(path)), start=1):
         text = line.strip()
         if not text or text.startswith("#"):
             continue
