@@ -26,6 +26,10 @@ def test_a_run_is_named_by_its_overrides_in_their_shortest_form():
     # in a sweep, only what the sweep varies
     assert run_name(CONFIG, overrides, CHOICES, keys=["rep", "optim.lr"]) == "rep=a,optim.lr=0.001"
     assert run_name(CONFIG, [], CHOICES) == "defaults"
+    # what the terminal shows is no setting (make reproduce-ood turns the progress bar off)
+    quiet = ["rep=a", "trainer.enable_progress_bar=false", "trainer.enable_model_summary=false"]
+    assert run_name(CONFIG, quiet, CHOICES) == "rep=a"
+    assert "trainer.enable_progress_bar" not in hparams_record(CONFIG, quiet, CHOICES)
     assert run_name(CONFIG, ["data.root=/data/kitti/"], CHOICES) == "data.root=kitti"
     # a list typed on the command line (rotlearn-eval's ensembles), item by item: no "2]"
     ensemble = "ckpt=[outputs/sweep/0,outputs/sweep/1,outputs/sweep/2/]"

@@ -4,8 +4,9 @@ and the short names and hyper-parameter records made from those (plain Python, n
 A run is described by the settings a person chose: the overrides of its command line (`rep=a`,
 `optim.lr=1e-3`) and, in a sweep, the keys swept. Never by plumbing: where files go (`hydra.*`,
 `paths.*`), the loggers' and callbacks' own settings (`logger.*`, `callbacks.*`), a resume's
-`ckpt_path`, the report layout. Used by `rotlearn-train` (the TensorBoard run's name and its
-HPARAMS record) and by `rotlearn-report` (the label of each group of runs).
+`ckpt_path`, the report layout, the terminal's progress bar and model summary. Used by
+`rotlearn-train` (the TensorBoard run's name and its HPARAMS record) and by `rotlearn-report`
+(the label of each group of runs).
 """
 
 from __future__ import annotations
@@ -31,8 +32,10 @@ __all__ = [
     "swept_keys",
 ]
 
-# Where files go and how they are written: never a setting that describes a run.
-PLUMBING = ("hydra", "paths", "logger", "callbacks", "ckpt_path", "report")
+# Where files go and how they are written, and what the terminal shows: never a setting that
+# describes a run (a key, or the node of keys below it).
+PLUMBING = ("hydra", "paths", "logger", "callbacks", "ckpt_path", "report",
+            "trainer.enable_progress_bar", "trainer.enable_model_summary")  # fmt: skip
 # Shown in every run's HPARAMS record, set or not: what it trained (groups by their option).
 HEADLINE_KEYS = ("rep", "loss", "net", "data", "optim.lr", "seed")
 MAX_NAME_LENGTH = 120  # characters of a run's name (a directory name); longer ones end in a hash
@@ -64,8 +67,10 @@ def is_hydra_key(key: str) -> bool:
 
 
 def is_plumbing(key: str) -> bool:
-    """True for keys that say where or how files are written, not what the run is."""
-    return key.split(".", 1)[0].split("/", 1)[0] in PLUMBING
+    """True for keys that say where or how files are written or what the terminal shows, not
+    what the run is (`PLUMBING`: a key or a node; `a/b`, a config group, is `a.b`)."""
+    key = key.replace("/", ".")
+    return any(key == p or key.startswith(f"{p}.") for p in PLUMBING)
 
 
 def override_keys(overrides: Iterable[str]) -> list[str]:
