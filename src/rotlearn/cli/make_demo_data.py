@@ -78,6 +78,12 @@ def main(argv: list[str] | None = None) -> int:
         help="processes per writer that takes them (kitti; default 1)",
     )
     parser.add_argument(
+        "--no-street-camera",
+        action="store_true",
+        help="write the exact renders, without the street camera's exposure, noise and traffic "
+        "(kitti: rotlearn.data.demo.camera), as the KITTI demo was written before it",
+    )
+    parser.add_argument(
         "--only",
         type=dataset_list,
         default=list(writers),
@@ -85,10 +91,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     for name in (n for n in writers if n in args.only):
-        options = {k: v for k, v in (("scale", args.scale), ("workers", args.workers))
-                   if k in inspect.signature(writers[name]).parameters}  # fmt: skip
+        given = (("scale", args.scale), ("workers", args.workers),
+                 ("street_camera", not args.no_street_camera))  # fmt: skip
+        options = {k: v for k, v in given if k in inspect.signature(writers[name]).parameters}
         if args.scale != "demo" and "scale" not in options:
             parser.error(f"--scale {args.scale}: the {name} writer has only the demo size")
+        if args.no_street_camera and "street_camera" not in options:
+            parser.error(f"--no-street-camera: the {name} writer has no street camera")
         start = time.perf_counter()
         try:
             roots = writers[name](args.out, seed=args.seed, **options)

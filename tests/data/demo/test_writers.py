@@ -383,6 +383,20 @@ def test_main_writes_the_chosen_datasets(tmp_path, monkeypatch, capsys):
         main(["--out", str(tmp_path), "--only", "kitti,lidar"])
 
 
+def test_main_writes_the_kitti_demo_without_its_street_camera_when_asked(
+    tmp_path, monkeypatch, capsys
+):
+    asked = []
+    monkeypatch.setattr(kitti_demo, "write_kitti_demo", lambda out, **kw: asked.append(kw) or out)
+    assert main(["--out", str(tmp_path), "--only", "kitti"]) == 0
+    assert main(["--out", str(tmp_path), "--only", "kitti", "--no-street-camera"]) == 0
+    assert [kw["street_camera"] for kw in asked] == [True, False]
+    with pytest.raises(SystemExit):  # a writer without a camera says so, before writing
+        main(["--out", str(tmp_path / "mav"), "--only", "mav", "--no-street-camera"])
+    assert "the mav writer has no street camera" in capsys.readouterr().err
+    assert not (tmp_path / "mav").exists()
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [

@@ -202,8 +202,16 @@ def write_kitti_demo(
     return out / "kitti"
 
 
-def write_demo(out: str | Path, seed: int = 0, scale: str = "demo", workers: int = 1) -> list[Path]:
-    """The demo (`rotlearn-make-demo-data`) at one of `KITTI_SCALES`: the roots written."""
+def write_demo(
+    out: str | Path,
+    seed: int = 0,
+    scale: str = "demo",
+    workers: int = 1,
+    street_camera: bool = True,
+) -> list[Path]:
+    """The demo (`rotlearn-make-demo-data`) at one of `KITTI_SCALES`, with or without the street
+    camera (`write_kitti_demo`): the roots written."""
     if scale not in KITTI_SCALES:
         raise ValueError(f"scale must be one of {sorted(KITTI_SCALES)}, got {scale!r}")
-    return [write_kitti_demo(out, seed=seed, workers=workers, **KITTI_SCALES[scale])]
+    sizes = KITTI_SCALES[scale]
+    return [write_kitti_demo(out, seed=seed, workers=workers, street_camera=street_camera, **sizes)]
