@@ -127,9 +127,11 @@ def _write_kitti_sequence(
     np.savetxt(folder / "times.txt", 0.1 * np.arange(frames), fmt="%e")
     (folder / "calib.txt").write_text(_kitti_calib(K))
     rays = pixel_rays(K, width, height)
-    exposure = np.random.default_rng([seed, 1, int(name), 2])
-    gains = camera.exposure_gains(exposure, frames)
-    passers = camera.traffic(np.random.default_rng([seed, 1, int(name), 3]), frames, width, height)
+    if street_camera:  # its own streams: the poses and the renders do not depend on it
+        exposure = np.random.default_rng([seed, 1, int(name), 2])
+        gains = camera.exposure_gains(exposure, frames)
+        traffic = np.random.default_rng([seed, 1, int(name), 3])
+        passers = camera.traffic(traffic, frames, width, height)
     for i, pose in enumerate(poses):
         image = render(panorama, rays, pose[:, :3])
         if street_camera:
