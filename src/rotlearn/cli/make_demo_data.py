@@ -90,6 +90,7 @@ def main(argv: list[str] | None = None) -> int:
         help=f"comma-separated subset of {','.join(writers)} (default: all)",
     )
     args = parser.parse_args(argv)
+    chosen = {}  # every chosen writer's options, checked before the first one writes
     for name in (n for n in writers if n in args.only):
         given = (("scale", args.scale), ("workers", args.workers),
                  ("street_camera", not args.no_street_camera))  # fmt: skip
@@ -98,6 +99,8 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--scale {args.scale}: the {name} writer has only the demo size")
         if args.no_street_camera and "street_camera" not in options:
             parser.error(f"--no-street-camera: the {name} writer has no street camera")
+        chosen[name] = options
+    for name, options in chosen.items():
         start = time.perf_counter()
         try:
             roots = writers[name](args.out, seed=args.seed, **options)

@@ -397,6 +397,18 @@ def test_main_writes_the_kitti_demo_without_its_street_camera_when_asked(
     assert not (tmp_path / "mav").exists()
 
 
+@pytest.mark.parametrize("flag", [["--no-street-camera"], ["--scale", "paper"]])
+def test_a_flag_one_chosen_writer_cannot_take_is_refused_before_any_writes(
+    tmp_path, monkeypatch, capsys, flag
+):
+    """With every dataset chosen (the default), the kitti demo was written whole, which at the
+    paper's scale takes minutes, before the mav writer refused the flag."""
+    monkeypatch.setattr(kitti_demo, "write_kitti_demo", lambda out, **kw: pytest.fail("written"))
+    with pytest.raises(SystemExit):
+        main(["--out", str(tmp_path / "out"), *flag])
+    assert "the mav writer" in capsys.readouterr().err and not (tmp_path / "out").exists()
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [
