@@ -47,6 +47,8 @@ CASES: dict[str, tuple[str, list[str]]] = {
         ["-m", "sweep=seeds", "hydra.sweeper.params.trial=range(0,5)"],
     ),
     "value out of range": ("rotlearn-train", ["data.batch_size=0"]),
+    "a value of the wrong type": ("rotlearn-train", ["optim.lr=abc"]),
+    "a Trainer value out of range": ("rotlearn-train", ["trainer.max_epochs=0"]),
     "calibrate without a belief": ("rotlearn-train", ["rep=sixd", "calibrate=true"]),
     "likelihood loss without a belief": ("rotlearn-train", ["rep=sixd", "loss=bingham"]),
     "eval without ckpt": ("rotlearn-eval", []),

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import inspect
 import re
+from typing import Any
 
 import lightning.pytorch as pl
 import pytest
@@ -118,29 +119,59 @@ def test_another_torch_optimizer_is_checked_by_its_own_signature(make_cfg):
         validate(make_cfg([*sgd[:2], "+optim.betas=[0.9,0.99]"]))
 
 
-@pytest.mark.parametrize(
-    ("module", "group"),
-    [("lightning.pytorch.callbacks", "callbacks"), ("lightning.pytorch.loggers", "logger"),
-     ("torch.optim", "optim"), ("torch.optim.lr_scheduler", "scheduler")],
-)  # fmt: skip
+LIBRARY_MODULES = [
+    ("lightning.pytorch.callbacks", "callbacks"),
+    ("lightning.pytorch.loggers", "logger"),
+    ("torch.optim", "optim"),
+    ("torch.optim.lr_scheduler", "scheduler"),
+]
+
+
+def _library_classes(module: str) -> list[str]:
+    """The dotted names of the classes a user may name from `module`."""
+    from hydra.utils import get_object
+
+    found = get_object(module)
+    return [f"{module}.{n}" for n, c in vars(found).items()
+            if inspect.isclass(c) and c.__module__.startswith(module)]  # fmt: skip
+
+
+@pytest.mark.parametrize(("module", "group"), LIBRARY_MODULES)
 def test_every_library_class_accepts_its_own_defaults(module, group):
     """Every class a user may name from these modules is read (keys) and each literal default
     passes the check of its own annotation: a tuple default written as a YAML list, an object
     default (`NOT_LITERAL`) skipped. Both once failed (a crash, 9 refusals)."""
-    from hydra.utils import get_object
-
-    from rotlearn.config.checks import _annotation, _check
+    from rotlearn.config.checks import _annotation, _check, _imported_annotation
     from rotlearn.config.source import MISSING, NOT_LITERAL
 
-    found = get_object(module)
-    classes = [
-        n for n, c in vars(found).items() if inspect.isclass(c) and c.__module__.startswith(module)
-    ]
+    classes = _library_classes(module)
     assert len(classes) >= 5
-    for name in classes:
-        for p in arguments(f"{module}.{name}", group) or ():
+    for target in classes:
+        for p in arguments(target, group) or ():
             if p.default is not NOT_LITERAL and p.default != MISSING:
-                _check(f"{group}.{p.name}", p.default, _annotation(p.owner, p.name))
+                annotation = _annotation(p) or _imported_annotation(p.owner, p.name)
+                _check(f"{group}.{p.name}", p.default, annotation)
+
+
+def test_an_annotation_read_from_source_is_the_imported_one():
+    """A value is first checked against the annotation its source text tells, nothing imported
+    (a refusal in a second, not after Lightning loads). Where that text names only builtins,
+    typing and annotated-types constructs, it is the annotation of the imported constructor:
+    every rotlearn component's and library class's argument (where the import reads no more than
+    any, for names its module imports for type checkers only, the source says more)."""
+    from rotlearn.config.checks import _annotation, _imported_annotation
+    from rotlearn.config.source import marked
+
+    targets = [(t, "") for t in marked()]
+    targets += [(t, group) for module, group in LIBRARY_MODULES for t in _library_classes(module)]
+    read = []
+    for target, group in targets:
+        for p in arguments(target, group) or ():
+            if p.annotation is not None and (annotation := _annotation(p)) is not None:
+                imported = _imported_annotation(p.owner, p.name)  # Any: names it cannot see
+                assert annotation == imported or imported is Any, (target, p.name)
+                read.append(p.name)
+    assert len(read) > 150 and {"batch_size", "phi_max_deg", "foreach", "monitor"} <= set(read)
 
 
 def test_a_tuple_argument_takes_a_yaml_list(make_cfg):

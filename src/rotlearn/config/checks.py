@@ -7,7 +7,8 @@ required arguments from the source (`rotlearn.config.source`), the data root and
 datamodule's `layout` says it holds (`{key}`: each value of that key; `key=value:` first, a path
 only that value needs). `check_values` validates each value with pydantic against its argument's
 annotation, constraints included (`Annotated[int, Gt(0)]`; library classes: `library_constraints`),
-then the rules that span keys, each declared by the component that needs it: a component's
+read from the source where it names only typing constructs (a refusal before torch loads), else
+imported; then the rules that span keys, each declared by the component that needs it: a component's
 `config_needs` ((key, class, what), ...: the node at `key` defines that class's methods; read
 from the source by `check_keys`), the head and the loss are built (the head registry checks name
 and size, a likelihood loss its head), and `calibrate: true` asks `PostHocCalibration.refusal`.
@@ -29,7 +30,15 @@ from annotated_types import Ge, Gt, Le, Len, Lt, MinLen
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from rotlearn.config.source import MISSING, class_attribute, is_marked, parameters, provides
+from rotlearn.config.source import (
+    MISSING,
+    Parameter,
+    class_attribute,
+    is_marked,
+    parameters,
+    provides,
+    typing_names,
+)
 from rotlearn.errors import ConfigError
 
 __all__ = [
@@ -194,6 +203,8 @@ def library_constraints() -> dict[str, dict[str, Any]]:
 
     def registered(kind: str) -> Any:
         def check(name: str) -> str:
+            if name == "auto":  # the default, without importing Lightning (seconds)
+                return name
             from lightning.pytorch.accelerators import AcceleratorRegistry as Accelerators
             from lightning.pytorch.strategies import StrategyRegistry as Strategies
 
@@ -238,23 +249,35 @@ def library_constraints() -> dict[str, dict[str, Any]]:
     }  # fmt: skip
 
 
-def _annotation(owner: str, name: str) -> Any:
-    """The annotation of argument `name` of `owner` (a class: of its `__init__`), constraints
-    included; unannotated, the type of its default (bool, a number, str) or any."""
+def _annotation(p: Parameter) -> Any:
+    """The annotation of argument `p` from its source text, constraints included, where it names
+    only builtins and what its module imports from typing modules and annotated-types (nothing
+    else is imported, so a value it refuses is answered at once); unannotated, the type of its
+    default (bool, a number, str) or any; None where it names anything else
+    (`_imported_annotation`)."""
+    if p.annotation is None:
+        kind = type(p.default) if p.default != MISSING else object
+        return bool if kind is bool else {int: float, float: float, str: str}.get(kind, Any)
+    try:  # with the names its module imports from the typing modules (`typing_names`)
+        return eval(p.annotation, {}, typing_names(p.owner.rpartition(".")[0]))
+    except NameError:
+        return None
+
+
+def _imported_annotation(owner: str, name: str) -> Any:
+    """The annotation of argument `name` of `owner` (a class: of its `__init__`), imported;
+    a name it uses that its module imports for type checkers only: any value."""
     from hydra.utils import get_object
 
     function = get_object(owner)
     function = inspect.unwrap(function.__init__ if inspect.isclass(function) else function)
-    annotation = (parameter := inspect.signature(function).parameters[name]).annotation
-    if annotation is parameter.empty:
-        kind = type(parameter.default)
-        return bool if kind is bool else {int: float, float: float, str: str}.get(kind, Any)
+    annotation = inspect.signature(function).parameters[name].annotation
     if not isinstance(annotation, str):
         return annotation
     constraints = {n: getattr(annotated_types, n) for n in annotated_types.__all__}
     try:  # constraint names are imported for type checkers only (torch is all a bare install has)
         return eval(annotation, function.__globals__, constraints)
-    except NameError:  # another name imported for type checkers only: any value
+    except NameError:
         return Any
 
 
@@ -308,23 +331,25 @@ def _check(key: str, value: Any, annotation: Any) -> None:
 
 
 def check_values(values: dict[str, Any]) -> None:
-    """Pass 2, importing the components: every value against its annotation, then the rules
-    that span keys."""
+    """Pass 2, importing only what each check needs, the fastest first: the values whose
+    annotations their source tells, the head and the loss built, the values whose annotations
+    need their component imported, then the calibration rule."""
     from hydra.errors import InstantiationException
     from hydra.utils import instantiate
 
-    from rotlearn.lit.calibration import PostHocCalibration
-
     for name in (n for n in TOP_LEVEL if n in values):
         _check(name, values[name], TOP_LEVEL[name])
+    later = []
     for key, group, node in _nodes(values):
         target = node["_target_"]
-        owners = {p.name: p.owner for p in arguments(target, group) or ()}
+        found = {p.name: p for p in arguments(target, group) or ()}
         narrowed = library_constraints().get(group, {}) | library_constraints().get(target, {})
-        for name in (n for n in node if n in owners):
-            _check(
-                f"{key}.{name}", node[name], narrowed.get(name) or _annotation(owners[name], name)
-            )
+        for name, value in node.items():
+            if name in found and not (isinstance(value, dict) and "_target_" in value):
+                if (annotation := narrowed.get(name) or _annotation(found[name])) is None:
+                    later.append((f"{key}.{name}", value, found[name]))
+                else:
+                    _check(f"{key}.{name}", value, annotation)
     built = {}
     for key in ("rep", "loss"):  # stateless and cheap: built to ask the registry and the loss
         try:
@@ -333,6 +358,10 @@ def check_values(values: dict[str, Any]) -> None:
             if isinstance(exc.__cause__, ConfigError):
                 raise exc.__cause__.within(key) from None
             raise
+    for key, value, p in later:  # these import Lightning (seconds)
+        _check(key, value, _imported_annotation(p.owner, p.name))
+    from rotlearn.lit.calibration import PostHocCalibration
+
     head = built["rep"] if "head" in values["model"] else None
     why = PostHocCalibration.refusal(head, values["model"])
     if values.get("calibrate") is True and why:

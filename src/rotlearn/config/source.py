@@ -3,7 +3,8 @@
 `parameters(target)` lists a constructor's arguments and defaults from the syntax tree of the
 module that defines it, following re-exports and a class's `**kwargs` to its bases. That takes
 milliseconds where importing would load torch and Lightning (seconds), so `rotlearn.config`
-answers an unknown key, option or data folder at once; annotations are read once imported.
+answers an unknown key, option or data folder at once, and a value whose annotation names only
+`typing` and annotated-types constructs (`rotlearn.config.checks`).
 """
 
 from __future__ import annotations
@@ -24,16 +25,19 @@ __all__ = [
     "marked",
     "parameters",
     "provides",
+    "typing_names",
 ]
 
 MISSING = "???"  # OmegaConf's mark of a value still to set: a required argument
 NOT_LITERAL = object()  # a default that is no literal (`device=torch.device("cpu")`)
+TYPING = ("typing", "typing_extensions", "collections.abc", "annotated_types", "pathlib")
 
 
 class Parameter(NamedTuple):
     name: str
     default: Any  # MISSING where required, NOT_LITERAL where its source is no literal
     owner: str  # the dotted class or function whose signature declares it
+    annotation: str | None  # its source text (None: unannotated)
 
 
 @cache
@@ -86,6 +90,28 @@ def _find(name: str, depth: int = 0) -> tuple[str, ast.AST] | None:
     return found
 
 
+@cache
+def typing_names(module: str) -> dict[str, Any]:
+    """The names module `module` imports from `TYPING`'s modules (cheap to import; type checkers'
+    imports included), as those define them: enough to read most annotations of its source."""
+    names = {}
+    for stmt in _body(_module(module)[0].body) if _module(module) else ():
+        pairs = []
+        if isinstance(stmt, ast.ImportFrom) and stmt.module in TYPING and not stmt.level:
+            pairs = [(a.asname or a.name, stmt.module, a.name) for a in stmt.names]
+        elif isinstance(stmt, ast.Import):  # import typing as t, import collections.abc
+            for alias in (a for a in stmt.names if a.name in TYPING):
+                top = alias.name.split(".")[0]
+                pairs.append((alias.asname or top, alias.name if alias.asname else top, None))
+        for name, source, attr in pairs:
+            try:
+                found = importlib.import_module(source)
+            except ImportError:
+                continue
+            names[name] = getattr(found, attr, None) if attr else found
+    return {name: value for name, value in names.items() if value is not None}
+
+
 def _value(module: str, expr: ast.expr) -> Any:
     """A default: a literal (a tuple as a list), the module constant it names, or NOT_LITERAL."""
     try:
@@ -125,7 +151,8 @@ def parameters(target: str, bases: bool = True) -> tuple[tuple[Parameter, ...], 
         for arg, default in zip(named, [*defaults, *args.defaults, *args.kw_defaults], strict=True):
             value = MISSING if default is None else _value(module, default)
             if arg.arg not in ("self", "cls"):
-                params.setdefault(arg.arg, Parameter(arg.arg, value, owner))
+                text = ast.unparse(arg.annotation) if arg.annotation else None
+                params.setdefault(arg.arg, Parameter(arg.arg, value, owner, text))
         if args.kwarg is None or not bases:
             return tuple(params.values()), args.kwarg is not None
     return tuple(params.values()), True
