@@ -33,6 +33,7 @@ CASES: dict[str, tuple[str, list[str]]] = {
     "misspelt key with +": ("rotlearn-train", ["+optim.lrr=1e-3"]),
     "the README's misspelt key": ("rotlearn-train", ["data.phi_maxdeg=10"]),
     "a misspelt key to delete": ("rotlearn-train", ["~optim.lrr"]),
+    "a misspelt key in a mapping": ("rotlearn-train", ["optim={{lrr: 1e-3}}"]),
     "unknown option": ("rotlearn-train", ["rep=aa"]),
     "a schema as an option": ("rotlearn-train", ["rep=head_schema"]),
     "no data root": ("rotlearn-train", ["data=kitti", "data.root=/nonexistent"]),

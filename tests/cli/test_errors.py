@@ -34,6 +34,8 @@ EXPECTED = {
     "a misspelt key to delete": (1, r"^rotlearn-train: config key optim\.lrr: unknown key; did "
                                  r"you mean optim\.lr\?; allowed: .*lr, weight_decay; ~ deletes "
                                  r"a key it has \(nothing was written\)$"),
+    "a misspelt key in a mapping": (1, r"^rotlearn-train: config key optim\.lrr: unknown key; "
+                                    r"did you mean optim\.lr\?; allowed: lr, betas, eps, "),
     "unknown option": (1, rf"^rotlearn-train: config key rep: no option 'aa'; did you mean rep=a"
                        rf"\?; {OPTIONS} \(nothing was written\)$"),
     "a schema as an option": (1, rf"^rotlearn-train: config key rep: no option 'head_schema'; "

@@ -42,7 +42,13 @@ from hydra.errors import ConfigCompositionException, MissingConfigException  # n
 from omegaconf import DictConfig, OmegaConf, open_dict  # noqa: E402
 
 from rotlearn.config import resolvers  # noqa: E402, F401  (registers `${rl.*:...}`)
-from rotlearn.config.checks import check_keys, check_values, plain, refuse_unknown  # noqa: E402
+from rotlearn.config.checks import (  # noqa: E402
+    arguments,
+    check_keys,
+    check_values,
+    plain,
+    refuse_unknown,
+)
 from rotlearn.config.source import NOT_LITERAL, marked, parameters  # noqa: E402
 from rotlearn.errors import ConfigError  # noqa: E402
 from rotlearn.paths import config_dir  # noqa: E402
@@ -182,10 +188,12 @@ def _compose(
                     if isinstance(exc, MissingConfigException) or not absent:
                         _refuse_deletions(name, taken, parsed)
                         parent = getattr(exc.__cause__, "parent_node", None)
-                        if str(key).startswith("hydra.") and isinstance(parent, DictConfig):
-                            node, _, name = key.rpartition(".")  # Hydra's advice: append it
-                            elsewhere = _elsewhere(node, name, root)
-                            refuse_unknown(node, [name], sorted(map(str, parent)), elsewhere)
+                        node, _, leaf = str(key).rpartition(".")  # Hydra's advice: append it
+                        if isinstance(parent, DictConfig) and leaf not in parent:  # data={a: 1}
+                            target, group = str(parent.get("_target_")), node.split(".")[0]
+                            found = arguments(target, group) if group != "hydra" else None
+                            allowed = [p.name for p in found or ()] or sorted(map(str, parent))
+                            refuse_unknown(node, [leaf], allowed, _elsewhere(node, leaf, root))
                         raise
                     taken[absent[0]] = f"+{taken[absent[0]]}"
         except MissingConfigException as exc:
