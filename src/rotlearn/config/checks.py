@@ -259,9 +259,10 @@ def _annotation(p: Parameter) -> Any:
         kind = type(p.default) if p.default != MISSING else object
         return bool if kind is bool else {int: float, float: float, str: str}.get(kind, Any)
     try:  # with the names its module imports from the typing modules (`typing_names`)
-        return eval(p.annotation, {}, typing_names(p.owner.rpartition(".")[0]))
+        annotation = eval(p.annotation, {}, typing_names(p.owner.rpartition(".")[0]))
     except NameError:
         return None
+    return None if isinstance(annotation, str) else annotation  # "Foo": for the import to say
 
 
 def _imported_annotation(owner: str, name: str) -> Any:
