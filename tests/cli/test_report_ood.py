@@ -102,6 +102,13 @@ def test_table_one_is_shown_beside_the_paper_and_pooled_runs_are_named(tmp_path)
     assert "| quat loss=chordal | 1 | quat | " in text
     bingham = next(line for line in lines[side:] if line.startswith("| a loss=bingham + DT |"))
     assert "| - |" in bingham and "(-)" in bingham  # no paper row for the trained belief
+    # every run with samples gets the oracle row in Table I, none beside the paper
+    oracle = table[table["score"] == "error"]
+    assert set(oracle["method"]) == {"a loss=chordal + own error (oracle)",
+                                     "a loss=bingham + own error (oracle)",
+                                     "quat loss=chordal + own error (oracle)"}  # fmt: skip
+    paper_section = lines[side : lines.index("## OOD scores on each test set")]
+    assert not any("oracle" in line for line in paper_section)
     # the per-score table: AUROC 1 for the separated A runs, 0 for the reversed quat norm
     scores = lines.index("## OOD scores on each test set")
     erased = [line.split("|") for line in lines[scores:] if "| test, half erased |" in line]

@@ -392,8 +392,17 @@ def test_the_report_collects_table_one(trained_run, make_cfg, tmp_path):
     report = files["report"].read_text()
     assert "## OOD rejection (paper Table I)" in report
     table = pd.read_csv(files["ood_table"])
-    assert list(table["method"]) == ["a", "a + DT", "a + gap", "a + norm"]
+    assert list(table["method"]) == ["a", "a + DT", "a + gap", "a + norm", "a + own error (oracle)"]
     assert (table["clean kept %"] <= 100).all()
+    # the oracle keeps the pairs whose own error is below the DT row's quantile of the errors of
+    # the set the thresholds come from, and the paper comparison leaves it out
+    oracle, dt = table.iloc[-1], table[table["method"] == "a + DT"].iloc[0]
+    samples = pd.read_csv(run_dir / "ood_samples.csv")
+    reference = pd.read_csv(run_dir / "ood.csv")["thresholds_from"].iloc[0]
+    threshold = np.quantile(samples[samples["set"] == reference]["error"], float(dt["q"]))
+    clean = samples[samples["set"] == "clean"]["error"]
+    assert oracle["q"] == dt["q"] and oracle["score"] == "error"
+    assert oracle["clean kept %"] == pytest.approx(100 * (clean < threshold).mean())
 
 
 def tiny_mav_overrides(root) -> list[str]:

@@ -341,12 +341,33 @@ def _ood_frames(done: pd.DataFrame) -> list[tuple[pd.Series, pd.DataFrame]]:
     return frames
 
 
+def _oracle_frame(run: pd.Series, frame: pd.DataFrame) -> pd.DataFrame:
+    """`frame` with rows of `ORACLE`, each pair's own error as its score, at the Table I quantile
+    of the run's DT (else of its first score), thresholds from the same reference set: from the
+    run's `ood_samples.csv` (`frame` as it is without one)."""
+    from rotlearn.ood.evaluation import reference_set, rejection_table
+    from rotlearn.scores import Score
+
+    table = frame[frame["in_table"]]
+    sets = _samples(run) if len(table) else None
+    reference = reference_set(frame)
+    if sets is None or reference not in sets or "corrupted" not in sets.get("corrupted", {}):
+        return frame
+    dt = table[table["score"] == "dt"]
+    q = float((dt if len(dt) else table)["q"].iloc[0])
+    oracle = Score("error", True, None, description="the pair's own error (deg): an oracle")
+    rows = rejection_table(sets, [oracle], [q], {"error": q}, reference)
+    return pd.concat([frame, rows[rows["in_table"]]], ignore_index=True)
+
+
 def _ood_table(frames: list[tuple[pd.Series, pd.DataFrame]]) -> pd.DataFrame:
     """Table I rows of every run with an `ood.csv`, each named by its setting label, with its
-    head (rep), score and config group choices."""
+    head (rep), score and config group choices; a run with `ood_samples.csv` gets a last row
+    for the oracle that rejects by each pair's own error (`_oracle_frame`)."""
     rows = []
     for run, frame in frames:
         rep = str(frame["rep"].iloc[0]) if "rep" in frame and len(frame) else str(run["setting"])
+        frame = _oracle_frame(run, frame)
         scores = [None, *frame[frame["in_table"]]["score"].unique()]
         rows_one = tables.table_one_rows(str(run["setting"]), frame)
         for score, row in zip(scores, rows_one, strict=True):
@@ -361,7 +382,10 @@ OOD_NOTE = (
     "included. Errors are mean degrees over the kept pairs; precision (kept pairs that are "
     "clean) and recall (clean pairs kept) are of keeping in-distribution pairs; AUROC of "
     "the score for telling OOD pairs from clean ones (1 perfect, 0.5 chance, below 0.5 "
-    "inverted). Each job's ood.md has every quantile."
+    "inverted). Each job's ood.md has every quantile. + own error (oracle): keeping the pairs "
+    "whose own error is below the same quantile of the reference pairs' errors, which no score "
+    "can know: an uncertainty that tracked the error exactly would reach it; a score above it "
+    "flags OOD pairs beyond their error, and a target it misses is out of any such score's reach."
 )
 
 
@@ -381,12 +405,13 @@ def _ood_sections(frames, layout, out: Path, files: dict[str, Path]) -> list[str
                  **{str(k): str(v) for k, v in (options.get("sets") or {}).items()}}  # fmt: skip
     paper = layout.get("paper")
     if isinstance(paper, Mapping) and paper.get("rows"):
+        ours = ood[ood["score"] != "error"]  # the oracle has no paper row
         where = ", ".join(f"{k}={v}" for k, v in (paper.get("where") or {}).items())
         md += [f"### Side by side with the paper ({paper.get('source', 'paper')})", "",
                "Each cell: ours (the paper's); ours over a method's runs (seeds) as mean "
                "[min-max], AUROC as mean (min-max). The paper's numbers are on real data at full "
                "size" + (f"; compared: our runs with {where}" if where else "") + ". "
-               + str(paper.get("note", "")), "", tables.paper_table(ood, paper), ""]  # fmt: skip
+               + str(paper.get("note", "")), "", tables.paper_table(ours, paper), ""]  # fmt: skip
     quantiles = options.get("quantiles")
     quantiles = [float(q) for q in quantiles] if isinstance(quantiles, list) else None
     md += ["## OOD scores on each test set", "",
@@ -405,22 +430,30 @@ def _ood_sections(frames, layout, out: Path, files: dict[str, Path]) -> list[str
     return md + _ood_figures(frames, out, set_names, files)
 
 
+def _samples(run: pd.Series) -> dict[str, dict] | None:
+    """The sets of the run's `ood_samples.csv` (`rotlearn.ood.records.read_samples`); None
+    where it has none or it is unreadable (warned)."""
+    from rotlearn.ood.records import SAMPLES_FILE, read_samples
+
+    path = Path(run["dir"]) / SAMPLES_FILE
+    if not path.is_file():
+        return None
+    try:
+        return read_samples(path)
+    except (ValueError, OSError, pd.errors.ParserError) as exc:
+        log.warning("report: %s unreadable (%s); its OOD figures are skipped", path, exc)
+        return None
+
+
 def _ood_samples(frames) -> list[tuple[str, dict, list, dict]]:
     """(setting, sets, scores, reference scores) of each run whose `ood_samples.csv` is
     readable (the reference: the set its thresholds come from)."""
     from rotlearn.ood.evaluation import reference_set
-    from rotlearn.ood.records import SAMPLES_FILE, read_samples
     from rotlearn.scores import SCORES
 
     runs = []
     for run, frame in frames:
-        path = Path(run["dir"]) / SAMPLES_FILE
-        if not path.is_file():
-            continue
-        try:
-            sets = read_samples(path)
-        except (ValueError, OSError, pd.errors.ParserError) as exc:
-            log.warning("report: %s unreadable (%s); its OOD figures are skipped", path, exc)
+        if (sets := _samples(run)) is None:
             continue
         reference = sets.get(reference_set(frame), {})
         names = [n for n in dict.fromkeys(frame["score"]) if n in SCORES and n in reference]

@@ -37,7 +37,8 @@ __all__ = [
     "table_one_rows",
 ]
 
-LABELS = {"dt": "DT", "eigengap": "gap", "raw_norm": "norm", "autoencoder": "AE"}
+LABELS = {"dt": "DT", "eigengap": "gap", "raw_norm": "norm", "autoencoder": "AE",
+          "error": "own error (oracle)"}  # fmt: skip
 INFINITE_NOTE = ("inf: the run recorded an infinite value (it overflowed: a diverged metric), "
                  "not a large number rounded")  # fmt: skip
 Format = str | Callable[[Any], str]
