@@ -187,3 +187,21 @@ def test_extra_sets_give_the_error_per_test_set(tmp_path, capsys):
     assert (tmp_path / "out" / "ood_sets.png").stat().st_size > 1000
     assert "| outdoor + indoor |" in text.split("## OOD scores on each test set")[1]
     assert "report" in capsys.readouterr().out
+
+
+def test_the_oracle_row_ranks_by_each_pairs_own_error_and_skips_unreadable_samples(
+    tmp_path, caplog
+):
+    """The fabricated erased pairs have 4x the error of clean ones, so the own-error oracle
+    ranks them perfectly (AUROC 1) whatever the DT does (here: chance); a run whose
+    ood_samples.csv is not a samples file gets no oracle row and a warning, not a crash."""
+    report = {"ood": {"quantiles": [0.75]}}
+    _fabricate_run(tmp_path / "a", "a", "bingham", report, separation=0.0)
+    _fabricate_run(tmp_path / "b", "a", "chordal", report)
+    (tmp_path / "b" / "ood_samples.csv").write_text("x,y\n1,2\n")
+    with caplog.at_level("WARNING", logger="rotlearn"):
+        table = pd.read_csv(make_report([tmp_path / "a", tmp_path / "b"])["ood_table"])
+    oracle = table[table["score"] == "error"]
+    assert list(oracle["job"]) == ["a"] and list(oracle["AUROC"]) == [1.0]
+    assert table[table["method"] == "a loss=bingham + DT"]["AUROC"].iloc[0] < 0.9
+    assert "ood_samples.csv unreadable" in caplog.text and "oracle row" in caplog.text

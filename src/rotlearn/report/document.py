@@ -341,17 +341,17 @@ def _ood_frames(done: pd.DataFrame) -> list[tuple[pd.Series, pd.DataFrame]]:
     return frames
 
 
-def _oracle_frame(run: pd.Series, frame: pd.DataFrame) -> pd.DataFrame:
-    """`frame` with rows of `ORACLE`, each pair's own error as its score, at the Table I quantile
-    of the run's DT (else of its first score), thresholds from the same reference set: from the
-    run's `ood_samples.csv` (`frame` as it is without one)."""
+def _oracle_frame(frame: pd.DataFrame, sets: dict[str, dict] | None) -> pd.DataFrame:
+    """`frame` with the rows of an oracle whose score is each pair's own error, at the Table I
+    quantile of the run's DT (else of its first score), thresholds from the same reference set,
+    from the run's samples (`sets`: `_samples`; `frame` as it is without them)."""
     from rotlearn.ood.evaluation import reference_set, rejection_table
     from rotlearn.scores import Score
 
-    table = frame[frame["in_table"]]
-    sets = _samples(run) if len(table) else None
-    reference = reference_set(frame)
-    if sets is None or reference not in sets or "corrupted" not in sets.get("corrupted", {}):
+    table, reference = frame[frame["in_table"]], reference_set(frame)
+    if not len(table) or sets is None or reference not in sets:
+        return frame
+    if "corrupted" not in sets.get("corrupted", {}):
         return frame
     dt = table[table["score"] == "dt"]
     q = float((dt if len(dt) else table)["q"].iloc[0])
@@ -360,14 +360,15 @@ def _oracle_frame(run: pd.Series, frame: pd.DataFrame) -> pd.DataFrame:
     return pd.concat([frame, rows[rows["in_table"]]], ignore_index=True)
 
 
-def _ood_table(frames: list[tuple[pd.Series, pd.DataFrame]]) -> pd.DataFrame:
+def _ood_table(frames: list[tuple[pd.Series, pd.DataFrame]], samples: list) -> pd.DataFrame:
     """Table I rows of every run with an `ood.csv`, each named by its setting label, with its
-    head (rep), score and config group choices; a run with `ood_samples.csv` gets a last row
-    for the oracle that rejects by each pair's own error (`_oracle_frame`)."""
+    head (rep), score and config group choices; a run with samples (`samples`, one per run:
+    `_samples`) gets a last row for the oracle that rejects by each pair's own error
+    (`_oracle_frame`)."""
     rows = []
-    for run, frame in frames:
+    for (run, frame), sets in zip(frames, samples, strict=True):
         rep = str(frame["rep"].iloc[0]) if "rep" in frame and len(frame) else str(run["setting"])
-        frame = _oracle_frame(run, frame)
+        frame = _oracle_frame(frame, sets)
         scores = [None, *frame[frame["in_table"]]["score"].unique()]
         rows_one = tables.table_one_rows(str(run["setting"]), frame)
         for score, row in zip(scores, rows_one, strict=True):
@@ -391,7 +392,8 @@ OOD_NOTE = (
 
 def _ood_sections(frames, layout, out: Path, files: dict[str, Path]) -> list[str]:
     """Table I, the paper comparison, per-score and per-set tables and the OOD figures."""
-    ood = _ood_table(frames)
+    samples = [_samples(run) for run, _ in frames]
+    ood = _ood_table(frames, samples)
     files["ood_table"] = write_text_atomic(out / "ood_table.csv", ood.to_csv(index=False))
     md = ["## OOD rejection (paper Table I)", "", OOD_NOTE, "",
           tables.markdown_table(ood, ["job", *tables.TABLE_ONE_COLUMNS]), ""]  # fmt: skip
@@ -427,7 +429,7 @@ def _ood_sections(frames, layout, out: Path, files: dict[str, Path]) -> list[str
                "quantile. Each extra set is the clean test set plus the pairs of scenes not "
                "trained on, which count as OOD.", "",
                tables.sets_table(frames, set_names), ""]  # fmt: skip
-    return md + _ood_figures(frames, out, set_names, files)
+    return md + _ood_figures(frames, samples, out, set_names, files)
 
 
 def _samples(run: pd.Series) -> dict[str, dict] | None:
@@ -441,19 +443,21 @@ def _samples(run: pd.Series) -> dict[str, dict] | None:
     try:
         return read_samples(path)
     except (ValueError, OSError, pd.errors.ParserError) as exc:
-        log.warning("report: %s unreadable (%s); its OOD figures are skipped", path, exc)
+        log.warning("report: %s unreadable (%s); its oracle row and OOD figures are skipped",
+                    path, exc)  # fmt: skip
         return None
 
 
-def _ood_samples(frames) -> list[tuple[str, dict, list, dict]]:
+def _ood_samples(frames, samples: list) -> list[tuple[str, dict, list, dict]]:
     """(setting, sets, scores, reference scores) of each run whose `ood_samples.csv` is
-    readable (the reference: the set its thresholds come from)."""
+    readable (`samples`: `_samples` of each run; the reference: the set its thresholds come
+    from)."""
     from rotlearn.ood.evaluation import reference_set
     from rotlearn.scores import SCORES
 
     runs = []
-    for run, frame in frames:
-        if (sets := _samples(run)) is None:
+    for (run, frame), sets in zip(frames, samples, strict=True):
+        if sets is None:
             continue
         reference = sets.get(reference_set(frame), {})
         names = [n for n in dict.fromkeys(frame["score"]) if n in SCORES and n in reference]
@@ -461,7 +465,9 @@ def _ood_samples(frames) -> list[tuple[str, dict, list, dict]]:
     return runs
 
 
-def _ood_figures(frames, out: Path, set_names: Mapping[str, str], files: dict) -> list[str]:
+def _ood_figures(
+    frames, samples: list, out: Path, set_names: Mapping[str, str], files: dict
+) -> list[str]:
     """Per head and score, from each run's `ood_samples.csv`: precision-recall over q on each
     flagged set but the clean one (`ood_pr.png`), error against score on the half-erased set
     (`ood_scatter.png`), score box plots (`ood_box.png`); the error per test set
@@ -469,7 +475,7 @@ def _ood_figures(frames, out: Path, set_names: Mapping[str, str], files: dict) -
     from rotlearn.ood.evaluation import precision_recall_curve
 
     md: list[str] = []
-    runs = _ood_samples(frames)
+    runs = _ood_samples(frames, samples)
     if runs:
         flagged = list(dict.fromkeys(n for _, sets, _, _ in runs for n, v in sets.items()
                                      if n != "clean" and "corrupted" in v))  # fmt: skip
