@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed
 ARGS   ?=
 
 .DEFAULT_GOAL := help
-.PHONY: help venv train test test-full lint format bench reproduce-cpu reproduce-ood reproduce-ood-quick reproduce-ood-paper-scale reproduce-beliefs demo-data tensorboard clean
+.PHONY: help venv train test test-full lint format bench reproduce-cpu reproduce-ood reproduce-ood-quick reproduce-ood-ensembles reproduce-ood-paper-scale reproduce-beliefs demo-data tensorboard clean
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-12s %s\n", $$1, $$2}'
@@ -108,6 +108,16 @@ reproduce-ood-quick: $(STAMP) ## Table I's A rows only (KITTI demo, chordal and 
 	$(BIN)/rotlearn-report $(OOD)_quick/kitti_a_bingham $(OOD)_quick/kitti_a_chordal \
 		$(OOD)_quick/kitti_a_bingham_ensemble $(OOD)_quick/kitti_a_chordal_ensemble --out $(OOD)_quick/kitti
 	@echo "report (ensembles beside the single runs: evaluated.members=3): $(OOD)_quick/kitti/report.md"
+
+reproduce-ood-ensembles: $(STAMP) ## KITTI demo: A + Bingham on 9 seeds and their 3 ensembles of 3 seeds each (about 20 min), with report
+	@test -d data/demo/kitti || $(BIN)/rotlearn-make-demo-data --out data/demo --only kitti
+	$(BIN)/rotlearn-train -m experiment=kitti_ood_demo rep=a loss=bingham $(SEEDS) 'trial=range(0,9)' $(QUIET) \
+		hydra.sweep.dir=$(OOD)_ensembles/kitti_a_bingham
+	for k in 0 3 6; do $(BIN)/rotlearn-eval "ckpt=[$(OOD)_ensembles/kitti_a_bingham/$$k,$(OOD)_ensembles/kitti_a_bingham/$$((k+1)),$(OOD)_ensembles/kitti_a_bingham/$$((k+2))]" \
+		hydra.run.dir=$(OOD)_ensembles/kitti_a_bingham_ensemble_$$k || exit 1; done
+	$(BIN)/rotlearn-report $(OOD)_ensembles/kitti_a_bingham $(OOD)_ensembles/kitti_a_bingham_ensemble_0 \
+		$(OOD)_ensembles/kitti_a_bingham_ensemble_3 $(OOD)_ensembles/kitti_a_bingham_ensemble_6 --out $(OOD)_ensembles/kitti
+	@echo "report (9 single runs, 3 ensembles: evaluated.members=3): $(OOD)_ensembles/kitti/report.md"
 
 reproduce-ood-paper-scale: $(STAMP) ## GPU: Table I's A head (chordal, Bingham) at the paper's scale, world written first (1.5 GB)
 	@test -d data/paper_scale/kitti || $(BIN)/rotlearn-make-demo-data --out data/paper_scale --only kitti --scale paper --workers 9
