@@ -33,6 +33,7 @@ per-sample test error per x value), `reliability.png` and the OOD figures.
 from __future__ import annotations
 
 import logging
+import math
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -465,6 +466,18 @@ def _ood_samples(frames, samples: list) -> list[tuple[str, dict, list, dict]]:
     return runs
 
 
+def _mean_curve(curves: list[list[dict[str, Any]]]) -> list[dict[str, float]]:
+    """The precision-recall curve of several runs (each `precision_recall_curve` over the same
+    quantiles): at each q, the mean recall and the mean precision where it is defined."""
+    mean = []
+    for rows in zip(*curves, strict=True):
+        precision = [r["precision"] for r in rows if not math.isnan(r["precision"])]
+        recall = float(np.mean([r["recall"] for r in rows]))
+        precision = float(np.mean(precision)) if precision else math.nan
+        mean.append({"q": rows[0]["q"], "recall": recall, "precision": precision})
+    return mean
+
+
 def _ood_figures(
     frames, samples: list, out: Path, set_names: Mapping[str, str], files: dict
 ) -> list[str]:
@@ -481,14 +494,14 @@ def _ood_figures(
                                      if n != "clean" and "corrupted" in v))  # fmt: skip
         fig, axes = figures.grid(1, len(flagged), size=(5.0, 4.2))
         for ax, name in zip(axes[0], flagged, strict=True):
-            curves = {
-                f"{setting} + {tables.LABELS.get(s.name, s.name)}": precision_recall_curve(
-                    s, reference[s.name], sets[name]
-                )
-                for setting, sets, scores, reference in runs
-                for s in scores
-                if name in sets
-            }
+            pooled: dict[str, list] = {}  # runs of one setting (seeds) share its curve
+            for setting, sets, scores, reference in runs:
+                for s in (s for s in scores if name in sets):
+                    curve = precision_recall_curve(s, reference[s.name], sets[name])
+                    label = f"{setting} + {tables.LABELS.get(s.name, s.name)}"
+                    pooled.setdefault(label, []).append(curve)
+            curves = {label if len(c) == 1 else f"{label} (mean of {len(c)} runs)": _mean_curve(c)
+                      for label, c in pooled.items()}  # fmt: skip
             if curves:
                 ax.set_visible(True)
                 figures.pr_figure(curves, ax=ax, title=set_names.get(name, name))
@@ -516,7 +529,8 @@ def _ood_figures(
             files[key] = figures.save_figure(fig, out / f"{key}.png", dpi=90)
             md += [f"### {what}", "", f"![{what}]({key}.png)", ""]
         md = ["### Precision-recall over the quantile q (q = 0.05 to 0.97)", "",
-              "![precision-recall over q](ood_pr.png)", "", *md]  # fmt: skip
+              "Runs of one setting (seeds) share a curve: their mean recall and precision at "
+              "each q.", "", "![precision-recall over q](ood_pr.png)", "", *md]  # fmt: skip
     bars, sets = _set_bars(frames)
     if len(sets) >= 2 and bars:
         fig = figures.sets_bars_figure(bars, [set_names.get(s, s) for s in sets])

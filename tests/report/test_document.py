@@ -1,0 +1,26 @@
+"""rotlearn.report.document's pieces that pool several runs of one setting (seeds)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from rotlearn.report.document import _mean_curve
+
+
+def test_the_precision_recall_curve_of_several_seeds_is_their_mean_at_each_q():
+    """Seeds of one setting share one curve: at each q the mean recall, and the mean precision
+    over the runs that keep a pair (a run that keeps none has no precision there). Before, the
+    last seed's curve replaced the others' under the same label."""
+    first = [{"q": 0.25, "recall": 20.0, "precision": math.nan},
+             {"q": 0.75, "recall": 70.0, "precision": 90.0}]  # fmt: skip
+    second = [{"q": 0.25, "recall": 30.0, "precision": 80.0},
+              {"q": 0.75, "recall": 80.0, "precision": 70.0}]  # fmt: skip
+    mean = _mean_curve([first, second])
+    assert [r["q"] for r in mean] == [0.25, 0.75]
+    assert mean[0]["recall"] == 25.0 and mean[0]["precision"] == 80.0
+    assert mean[1] == {"q": 0.75, "recall": 75.0, "precision": pytest.approx(80.0)}
+    nothing = [{"q": 0.25, "recall": 0.0, "precision": math.nan}]
+    assert math.isnan(_mean_curve([nothing, nothing])[0]["precision"])
+    assert _mean_curve([second]) == second  # one run: its own curve
