@@ -199,9 +199,15 @@ def test_the_oracle_row_ranks_by_each_pairs_own_error_and_skips_unreadable_sampl
     _fabricate_run(tmp_path / "a", "a", "bingham", report, separation=0.0)
     _fabricate_run(tmp_path / "b", "a", "chordal", report)
     (tmp_path / "b" / "ood_samples.csv").write_text("x,y\n1,2\n")
+    _fabricate_run(tmp_path / "c", "quat", "chordal", report)  # a diverged run: NaN errors
+    samples = pd.read_csv(tmp_path / "c" / "ood_samples.csv")
+    samples.loc[samples["set"] == "val", "error"] = float("nan")
+    samples.to_csv(tmp_path / "c" / "ood_samples.csv", index=False)
     with caplog.at_level("WARNING", logger="rotlearn"):
-        table = pd.read_csv(make_report([tmp_path / "a", tmp_path / "b"])["ood_table"])
+        runs = [tmp_path / "a", tmp_path / "b", tmp_path / "c"]
+        table = pd.read_csv(make_report(runs)["ood_table"])
     oracle = table[table["score"] == "error"]
     assert list(oracle["job"]) == ["a"] and list(oracle["AUROC"]) == [1.0]
     assert table[table["method"] == "a loss=bingham + DT"]["AUROC"].iloc[0] < 0.9
     assert "ood_samples.csv unreadable" in caplog.text and "oracle row" in caplog.text
+    assert f"{tmp_path / 'c'}: no oracle row (no finite reference score" in caplog.text

@@ -342,10 +342,11 @@ def _ood_frames(done: pd.DataFrame) -> list[tuple[pd.Series, pd.DataFrame]]:
     return frames
 
 
-def _oracle_frame(frame: pd.DataFrame, sets: dict[str, dict] | None) -> pd.DataFrame:
+def _oracle_frame(run: pd.Series, frame: pd.DataFrame, sets: dict | None) -> pd.DataFrame:
     """`frame` with the rows of an oracle whose score is each pair's own error, at the Table I
     quantile of the run's DT (else of its first score), thresholds from the same reference set,
-    from the run's samples (`sets`: `_samples`; `frame` as it is without them)."""
+    from the run's samples (`sets`: `_samples`; `frame` as it is without them, or warned where
+    they give no threshold)."""
     from rotlearn.ood.evaluation import reference_set, rejection_table
     from rotlearn.scores import Score
 
@@ -355,9 +356,13 @@ def _oracle_frame(frame: pd.DataFrame, sets: dict[str, dict] | None) -> pd.DataF
     if "corrupted" not in sets.get("corrupted", {}):
         return frame
     dt = table[table["score"] == "dt"]
-    q = float((dt if len(dt) else table)["q"].iloc[0])
     oracle = Score("error", True, None, description="the pair's own error (deg): an oracle")
-    rows = rejection_table(sets, [oracle], [q], {"error": q}, reference)
+    try:
+        q = float((dt if len(dt) else table)["q"].iloc[0])
+        rows = rejection_table(sets, [oracle], [q], {"error": q}, reference)
+    except ValueError as exc:  # no finite reference error, a q outside [0, 1]
+        log.warning("report: %s: no oracle row (%s)", run["dir"], exc)
+        return frame
     return pd.concat([frame, rows[rows["in_table"]]], ignore_index=True)
 
 
@@ -369,7 +374,7 @@ def _ood_table(frames: list[tuple[pd.Series, pd.DataFrame]], samples: list) -> p
     rows = []
     for (run, frame), sets in zip(frames, samples, strict=True):
         rep = str(frame["rep"].iloc[0]) if "rep" in frame and len(frame) else str(run["setting"])
-        frame = _oracle_frame(frame, sets)
+        frame = _oracle_frame(run, frame, sets)
         scores = [None, *frame[frame["in_table"]]["score"].unique()]
         rows_one = tables.table_one_rows(str(run["setting"]), frame)
         for score, row in zip(scores, rows_one, strict=True):
