@@ -190,8 +190,7 @@ def _compose(
                         parent = getattr(exc.__cause__, "parent_node", None)
                         node, _, leaf = str(key).rpartition(".")  # Hydra's advice: append it
                         if isinstance(parent, DictConfig) and leaf not in parent:  # data={a: 1}
-                            target, group = str(parent.get("_target_")), node.split(".")[0]
-                            found = arguments(target, group) if group != "hydra" else None
+                            found = arguments(str(parent.get("_target_")), node.split(".")[0])
                             allowed = [p.name for p in found or ()] or sorted(map(str, parent))
                             refuse_unknown(node, [leaf], allowed, _elsewhere(node, leaf, root))
                         raise

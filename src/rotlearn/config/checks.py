@@ -25,7 +25,6 @@ from functools import cache
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-import annotated_types
 from annotated_types import Ge, Gt, Le, Len, Lt, MinLen
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
@@ -275,9 +274,8 @@ def _imported_annotation(owner: str, name: str) -> Any:
     annotation = inspect.signature(function).parameters[name].annotation
     if not isinstance(annotation, str):
         return annotation
-    constraints = {n: getattr(annotated_types, n) for n in annotated_types.__all__}
-    try:  # constraint names are imported for type checkers only (torch is all a bare install has)
-        return eval(annotation, function.__globals__, constraints)
+    try:  # constraint names are imported for type checkers only (`typing_names` reads those)
+        return eval(annotation, function.__globals__, typing_names(owner.rpartition(".")[0]))
     except NameError:
         return Any
 

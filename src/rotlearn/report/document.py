@@ -356,10 +356,10 @@ def _oracle_frame(run: pd.Series, frame: pd.DataFrame, sets: dict | None) -> pd.
     if "corrupted" not in sets.get("corrupted", {}):
         return frame
     dt = table[table["score"] == "dt"]
-    oracle = Score("error", True, None, description="the pair's own error (deg): an oracle")
+    oracle = Score(tables.ORACLE, True, None, description="the pair's own error (deg)")
     try:
         q = float((dt if len(dt) else table)["q"].iloc[0])
-        rows = rejection_table(sets, [oracle], [q], {"error": q}, reference)
+        rows = rejection_table(sets, [oracle], [q], {oracle.name: q}, reference)
     except ValueError as exc:  # no finite reference error, a q outside [0, 1]
         log.warning("report: %s: no oracle row (%s)", run["dir"], exc)
         return frame
@@ -413,7 +413,7 @@ def _ood_sections(frames, layout, out: Path, files: dict[str, Path]) -> list[str
                  **{str(k): str(v) for k, v in (options.get("sets") or {}).items()}}  # fmt: skip
     paper = layout.get("paper")
     if isinstance(paper, Mapping) and paper.get("rows"):
-        ours = ood[ood["score"] != "error"]  # the oracle has no paper row
+        ours = ood[ood["score"] != tables.ORACLE]  # the oracle has no paper row
         where = ", ".join(f"{k}={v}" for k, v in (paper.get("where") or {}).items())
         md += [f"### Side by side with the paper ({paper.get('source', 'paper')})", "",
                "Each cell: ours (the paper's); ours over a method's runs (seeds) as mean "

@@ -37,8 +37,9 @@ __all__ = [
     "table_one_rows",
 ]
 
+ORACLE = "error"  # the score of the report's oracle row: each pair's own error (its samples')
 LABELS = {"dt": "DT", "eigengap": "gap", "raw_norm": "norm", "autoencoder": "AE",
-          "error": "own error (oracle)"}  # fmt: skip
+          ORACLE: "own error (oracle)"}  # fmt: skip
 INFINITE_NOTE = ("inf: the run recorded an infinite value (it overflowed: a diverged metric), "
                  "not a large number rounded")  # fmt: skip
 Format = str | Callable[[Any], str]
