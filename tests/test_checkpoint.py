@@ -226,3 +226,43 @@ def test_loggers_and_training_callbacks_of_a_saved_config_are_neither_checked_no
     torch.save(checkpoint, path)
     with pytest.raises(UntrustedConfigError, match=r"callbacks\.ood\._target_: 'os.system'"):
         load_run(run)
+
+
+def _shared(levels: int) -> list:
+    """A list of 2**levels leaves in a few hundred bytes of pickle: each level holds the one
+    below twice, and pickle's memo stores it once."""
+    tree: list = ["leaf"]
+    for _ in range(levels):
+        tree = [tree, tree]
+    return tree
+
+
+@pytest.mark.parametrize("place", ["rotlearn_config", "optimizer_states"])
+def test_a_checkpoint_whose_shared_references_expand_without_bound_is_refused(
+    finished_run, tmp_path, capsys, place
+):
+    """A file of a few kilobytes whose config (or optimizer state, which Lightning's restore
+    walks) holds 2**40 values through pickle's memo: every loader refuses it at once, naming the
+    file, instead of walking it for ever."""
+    from rotlearn.cli.evaluate import _checked
+    from rotlearn.cli.predict import main as predict_main
+
+    checkpoint = torch.load(finished_run / "checkpoints" / "last.ckpt", weights_only=True)
+    if place == "rotlearn_config":
+        checkpoint["rotlearn_config"]["data"]["bomb"] = _shared(40)
+    else:
+        checkpoint["optimizer_states"] = [{"state": _shared(40)}]
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    torch.save(checkpoint, run / "checkpoints" / "last.ckpt")
+    (run / "pairs.txt").write_text("0 0 1 0 0 1\n")
+    expected = "more than 4194304 values"
+    with unchanged(tmp_path), within(60):
+        for load in (load_checkpoint, load_run, rotlearn.load):
+            with pytest.raises(UnsafeCheckpointError, match=expected) as info:
+                load(run)
+            assert str(run / "checkpoints" / "last.ckpt") in str(info.value)
+        with pytest.raises(SystemExit, match=expected):
+            _checked([f"ckpt={run}", f"hydra.run.dir={tmp_path / 'eval'}"])
+        assert predict_main([str(run), str(run / "pairs.txt")]) == 2
+        assert expected in capsys.readouterr().err

@@ -35,7 +35,14 @@ import torch
 from torch import Tensor
 
 from rotlearn.extras import require
-from rotlearn.io import MAX_BYTES, plain_name, read_bytes, read_json, write_bytes_atomic
+from rotlearn.io import (
+    MAX_BYTES,
+    plain_name,
+    read_bytes,
+    read_json,
+    tree_problem,
+    write_bytes_atomic,
+)
 from rotlearn.paths import checkpoint_file
 from rotlearn.trust import UntrustedConfigError, trusted_config
 
@@ -183,7 +190,9 @@ def load_checkpoint(path: str | os.PathLike, map_location: Any = "cpu") -> dict[
     Before torch reads it, the file must be a regular file of at most `MAX_BYTES["checkpoint"]`
     bytes and a whole zip archive whose records decompress to at most that many bytes (and at most
     a few times the file's size), so a truncated, huge or decompression-bomb file is refused at
-    once, naming it.
+    once, naming it; what it holds must nest at most `MAX_DEPTH` levels and, its shared
+    references followed, hold at most `MAX_NODES` values (`rotlearn.io.tree_problem`), so no
+    walk of it (a config check, Lightning's restore) can be made to take forever.
 
     Raises:
         FileNotFoundError: no such checkpoint.
@@ -218,6 +227,8 @@ def load_checkpoint(path: str | os.PathLike, map_location: Any = "cpu") -> dict[
         raise UnsafeCheckpointError(
             f"{path} is not a checkpoint: it holds a {type(checkpoint).__name__}, not a dict"
         )
+    if problem := tree_problem(checkpoint):  # before anything walks it
+        raise UnsafeCheckpointError(f"{path} is not a checkpoint rotlearn reads: {problem}")
     return checkpoint
 
 

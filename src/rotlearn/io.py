@@ -34,6 +34,7 @@ from rotlearn.errors import ConfigValueError
 __all__ = [
     "MAX_BYTES",
     "MAX_DEPTH",
+    "MAX_NODES",
     "UnreadableFileError",
     "WriteError",
     "atomic_write",
@@ -57,6 +58,7 @@ __all__ = [
     "rewrite_in_place",
     "strict_int",
     "text_lines",
+    "tree_problem",
     "word_rows",
     "write_bytes_atomic",
     "write_json_atomic",
@@ -82,6 +84,7 @@ MAX_BYTES: dict[str, int] = {
     "TensorBoard events": 1 * _GIB,  # a run's tensorboard/ folder, all event files together
 }
 MAX_DEPTH = 64  # nesting of a JSON or YAML document (rotlearn's own files nest a few levels)
+MAX_NODES = 2**22  # values in one loaded document or checkpoint (a tensor counts as one)
 
 
 class UnreadableFileError(ValueError):
@@ -175,19 +178,22 @@ def read_text(path: str | os.PathLike, kind: str, root: str | os.PathLike | None
         raise UnreadableFileError(f"{path}:{line}: not UTF-8 text (byte {exc.start})") from None
 
 
-def _depth(tree: Any) -> int:
-    """The nesting depth of plain data (lists and dicts), without recursion."""
-    deepest, stack = 0, [(tree, 1)]
+def tree_problem(tree: Any) -> str | None:
+    """Why loaded data (dicts, lists and tuples of leaves) is unsafe to walk: nested deeper than
+    `MAX_DEPTH`, or more than `MAX_NODES` values once its shared references are followed (a
+    pickle's memo lets a file of a kilobyte hold a tree of 2**40 values); None where it is safe.
+    Without recursion; stops at the first bound passed."""
+    stack, count = [(tree, 1)], 0
     while stack:
         node, depth = stack.pop()
-        if isinstance(node, dict | list):
-            deepest = max(deepest, depth)
+        if (count := count + 1) > MAX_NODES:
+            return f"more than {MAX_NODES} values (shared references followed)"
+        if isinstance(node, dict | list | tuple):
             if depth > MAX_DEPTH:
-                return depth
-            stack.extend(
-                (v, depth + 1) for v in (node.values() if isinstance(node, dict) else node)
-            )
-    return deepest
+                return f"nested too deeply (over {MAX_DEPTH} levels)"
+            children = node.values() if isinstance(node, dict) else node
+            stack.extend((child, depth + 1) for child in children)
+    return None
 
 
 def read_record(
@@ -205,14 +211,13 @@ def read_record(
     try:
         data = json.loads(text)
     except RecursionError:
-        data = None
-        deep = True
+        problem = f"nested too deeply (over {MAX_DEPTH} levels)"
     except ValueError as exc:
         raise UnreadableFileError(f"{path}: not JSON ({exc})") from None
     else:
-        deep = _depth(data) > MAX_DEPTH
-    if deep:
-        raise UnreadableFileError(f"{path}: JSON nested too deeply (over {MAX_DEPTH} levels)")
+        problem = tree_problem(data)
+    if problem:
+        raise UnreadableFileError(f"{path}: JSON {problem}")
     return data
 
 
