@@ -4,8 +4,9 @@ Each case runs its command in a fresh process in an empty working directory and 
 wall-clock seconds until it exits, refusing in one line. The folders some cases name are made
 first (`scenario`): a folder that is no run, a sweep directory with two jobs, a run of synthetic
 data (its checkpoint carries the config; no weights are needed to refuse it) and a KITTI folder
-with only sequence 00. Unknown keys, options and data folders are decided from files alone; value
-ranges and the rules that span keys import the components (torch, Lightning) first.
+with only sequence 00. Unknown keys, options, values, data folders and a run's data are decided
+from files alone (the sources, the checkpoint's config read without torch); the rules that span
+keys build the head and the loss (torch) or ask the calibration callback (Lightning).
 `make bench ARGS=cli_errors`; tests/cli/test_errors.py runs the same cases.
 """
 

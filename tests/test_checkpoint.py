@@ -19,6 +19,7 @@ from rotlearn.checkpoint import (
     UntrustedConfigError,
     load_checkpoint,
     load_run,
+    saved_config,
 )
 from rotlearn.io import MAX_BYTES
 from tests.conftest import unchanged, within
@@ -266,3 +267,17 @@ def test_a_checkpoint_whose_shared_references_expand_without_bound_is_refused(
             _checked([f"ckpt={run}", f"hydra.run.dir={tmp_path / 'eval'}"])
         assert predict_main([str(run), str(run / "pairs.txt")]) == 2
         assert expected in capsys.readouterr().err
+
+
+def test_the_config_read_without_torch_is_the_one_torch_reads(finished_run, tmp_path):
+    """`saved_config` (the first look of rotlearn-eval, before torch loads) reads a checkpoint's
+    config as `torch.load(weights_only=True)` does, and refuses what `load_checkpoint` refuses."""
+    ckpt = finished_run / "checkpoints" / "last.ckpt"
+    assert saved_config(ckpt) == load_checkpoint(ckpt)["rotlearn_config"]
+    broken = tmp_path / "last.ckpt"
+    broken.write_bytes(ckpt.read_bytes()[:-100])
+    with pytest.raises(UnsafeCheckpointError, match="not a whole PyTorch checkpoint"):
+        saved_config(broken)
+    torch.save({"rotlearn_config": {"bomb": _shared(40)}}, broken)
+    with within(30), pytest.raises(UnsafeCheckpointError, match="more than 4194304 values"):
+        saved_config(broken)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import errno
 import os
+import pickle
 import stat
 
 import numpy as np
@@ -199,6 +200,66 @@ def test_genuine_yaml_reads(tmp_path):
     path = tmp_path / "overrides.yaml"
     path.write_text("- data=tiny\n- optim.lr=0.001\n")
     assert read_yaml(path, "overrides file") == ["data=tiny", "optim.lr=0.001"]
+
+
+# ---- pickles read as data -----------------------------------------------------------------------
+
+_PLAIN = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats(allow_nan=False) | st.text(),
+    lambda inner: (
+        st.lists(inner, max_size=4)
+        | st.tuples(inner, inner)
+        | st.dictionaries(st.text(max_size=5) | st.integers(), inner, max_size=4)
+    ),
+    max_leaves=30,
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(value=_PLAIN, protocol=st.integers(0, pickle.HIGHEST_PROTOCOL))
+def test_a_pickle_of_plain_data_reads_as_pickle_loads_it(value, protocol):
+    """`plain_pickle` reads what `pickle.loads` would, for plain data in every protocol, without
+    an unpickler."""
+    from rotlearn.io import plain_pickle
+
+    assert plain_pickle(pickle.dumps(value, protocol=protocol)) == value
+
+
+def test_a_pickle_that_would_run_code_runs_nothing_and_reads_opaque(tmp_path):
+    """What unpickling builds by calling code is never called: a payload reads as OPAQUE, and
+    what would be put into an OrderedDict (a state_dict) is dropped; shared references stay
+    shared (`tree_problem` refuses to walk 2**40 of them)."""
+    import collections
+
+    from rotlearn.io import OPAQUE, plain_pickle, tree_problem
+
+    marker = tmp_path / "pwned"
+    payload = type("Payload", (), {"__reduce__": lambda self: (os.system, (f"touch {marker}",))})
+    data = {"run": payload(), "state_dict": collections.OrderedDict(w=torch.ones(2)), "n": 1}
+    assert plain_pickle(pickle.dumps(data, protocol=2)) == {
+        "run": OPAQUE, "state_dict": OPAQUE, "n": 1
+    }  # fmt: skip
+    assert not marker.exists()
+    tree: list = ["leaf"]
+    for _ in range(40):
+        tree = [tree, tree]
+    shared = plain_pickle(pickle.dumps(tree, protocol=2))
+    assert shared[0] is shared[1]
+    with within(30):
+        assert tree_problem(shared) == "more than 4194304 values (shared references followed)"
+    assert tree_problem([[[1]]]) is None
+
+
+@pytest.mark.parametrize(
+    "data",
+    [b"", b"\x80\x02", pickle.dumps([1, 2])[:-1], b"\x80\x02a.", b"\x80\x02}q\x00(]h\x00u."],
+    ids=["empty", "no opcodes", "no STOP", "stack underflow", "a list as a key"],
+)
+def test_a_broken_pickle_is_refused(data):
+    from rotlearn.io import plain_pickle
+
+    with pytest.raises(ValueError, match="pickle"):
+        plain_pickle(data)
 
 
 # ---- durable writes -----------------------------------------------------------------------------

@@ -29,15 +29,15 @@ import stat
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import torch
-from torch import Tensor
+import numpy as np
 
 from rotlearn.extras import require
 from rotlearn.io import (
     MAX_BYTES,
     plain_name,
+    plain_pickle,
     read_bytes,
     read_json,
     tree_problem,
@@ -45,6 +45,9 @@ from rotlearn.io import (
 )
 from rotlearn.paths import checkpoint_file
 from rotlearn.trust import UntrustedConfigError, trusted_config
+
+if TYPE_CHECKING:  # torch is imported where it is used: a first look at a file needs none
+    from torch import Tensor
 
 __all__ = [
     "TEMPERATURE_FILE",
@@ -61,6 +64,7 @@ __all__ = [
     "rebuildable",
     "resolve_checkpoint",
     "save_checkpoint",
+    "saved_config",
     "temperature_range",
     "tested_checkpoint",
 ]
@@ -70,6 +74,7 @@ TEMPERATURE_FILE = "temperature.json"  # beside the checkpoint whose belief it t
 # A checkpoint's records decompress to at most this many times the file's size: torch writes them
 # uncompressed (ratio 1); a deflated bomb (a few MB that inflate to gigabytes) is refused unread.
 _MAX_INFLATION = 4
+_FLOAT32_MAX = float(np.finfo(np.float32).max)  # beliefs and OOD scores are float32
 
 log = logging.getLogger("rotlearn")
 
@@ -147,6 +152,8 @@ def save_checkpoint(checkpoint: dict[str, Any], path: str | os.PathLike) -> Path
     """
     import io
 
+    import torch
+
     buffer = io.BytesIO()
     torch.save(checkpoint, buffer)
     return write_bytes_atomic(path, buffer.getbuffer())
@@ -201,6 +208,8 @@ def load_checkpoint(path: str | os.PathLike, map_location: Any = "cpu") -> dict[
             loaded; rotlearn never loads it), or it is no checkpoint at all (truncated, too large,
             a decompression bomb).
     """
+    import torch
+
     path = resolve_checkpoint(path)
     _check_archive(path)
     try:
@@ -230,6 +239,29 @@ def load_checkpoint(path: str | os.PathLike, map_location: Any = "cpu") -> dict[
     if problem := tree_problem(checkpoint):  # before anything walks it
         raise UnsafeCheckpointError(f"{path} is not a checkpoint rotlearn reads: {problem}")
     return checkpoint
+
+
+def saved_config(path: Path) -> Any:
+    """The run config (`rotlearn_config`) that checkpoint file `path` carries, read without torch
+    and without unpickling anything (`rotlearn.io.plain_pickle`), within `load_checkpoint`'s
+    bounds; None where it holds none. A first look, to refuse a run before torch loads;
+    `load_run` is what reads a checkpoint.
+
+    Raises:
+        UnsafeCheckpointError: as `load_checkpoint`, naming the file.
+    """
+    _check_archive(path)
+    with zipfile.ZipFile(path) as archive:  # torch's layout: <name>/data.pkl, then the tensors
+        records = [n for n in archive.namelist() if n.count("/") == 1 and n.endswith("/data.pkl")]
+        data = archive.read(records[0]) if len(records) == 1 else b""
+    try:
+        checkpoint = plain_pickle(data)
+    except ValueError as exc:
+        message = f"{path} is not a readable PyTorch checkpoint ({exc})"
+        raise UnsafeCheckpointError(message) from None
+    if problem := tree_problem(checkpoint):
+        raise UnsafeCheckpointError(f"{path} is not a checkpoint rotlearn reads: {problem}")
+    return checkpoint.get("rotlearn_config") if isinstance(checkpoint, dict) else None
 
 
 @dataclass(frozen=True)
@@ -295,6 +327,8 @@ class SavedRun:
         Raises:
             ValueError: naming the checkpoint and what does not fit.
         """
+        import torch
+
         with torch.device("meta"):
             module = self._instantiate(key)
         expected = module.state_dict() if isinstance(module, torch.nn.Module) else {}
@@ -310,6 +344,8 @@ class SavedRun:
             ValueError: naming the checkpoint: the node cannot be built, or the weights do not
                 fit it (missing, unexpected, another shape, not floating point, not finite).
         """
+        import torch
+
         self.check_fits(key, prefix)
         built = self._instantiate(key)
         if isinstance(built, torch.nn.Module):
@@ -349,6 +385,8 @@ def check_weights(
             another shape, a floating tensor stored as integers or bools (or the reverse), or
             a floating weight that is NaN or infinite in the module's dtype.
     """
+    import torch
+
     full = (lambda name: f"{prefix}.{name}") if prefix else (lambda name: name)
     missing = sorted(map(full, set(expected) - set(stored)))
     unexpected = sorted(map(full, set(stored) - set(expected)))
@@ -423,7 +461,7 @@ def _check_ood(ood: Any, path: Path, what: str) -> dict[str, Any]:
             raise ValueError(f"{path}: {what}'s {key} must be a finite number, got {ood[key]!r}")
     if not 0.0 <= ood["q"] <= 1.0:
         raise ValueError(f"{path}: {what}'s q must lie in [0, 1], got {ood['q']!r}")
-    largest = float(torch.finfo(torch.float32).max)  # scores are compared in float32
+    largest = _FLOAT32_MAX  # scores are compared in float32
     if not -largest <= ood["threshold"] <= largest:
         raise ValueError(
             f"{path}: {what}'s threshold must lie within float32's range (|t| <= {largest:.3g}), "
@@ -464,7 +502,7 @@ def temperature_range() -> tuple[float, float]:
     read a checkpoint should not wait for it.)"""
     from rotlearn.bingham import MAX_DISPERSION
 
-    top = float(torch.finfo(torch.float32).max)
+    top = _FLOAT32_MAX
     return MAX_DISPERSION / top, top / MAX_DISPERSION
 
 
@@ -559,6 +597,8 @@ def checkpoint_temperature(ckpt: Path) -> tuple[float, Any]:
     masses = record["credible_masses"]
     if masses is None:
         return record["temperature"], None
+    import torch
+
     from rotlearn.bingham import LevelMap
 
     return record["temperature"], LevelMap(torch.tensor(masses, dtype=torch.float64))
@@ -593,6 +633,8 @@ def load_run(path: str | os.PathLike, task: str | None = None) -> SavedRun:
         ValueError: not a rotlearn checkpoint, or of another task.
     """
     require("train", "load_run (a checkpoint's model is rebuilt from its Hydra config)")
+    import torch
+
     ckpt = tested_checkpoint(path)
     checkpoint = load_checkpoint(ckpt)
     saved = checkpoint.get("rotlearn_config")
@@ -601,7 +643,7 @@ def load_run(path: str | os.PathLike, task: str | None = None) -> SavedRun:
     config = trusted_config(rebuildable(saved), source=ckpt)
     state_dict = checkpoint.get("state_dict")
     if not isinstance(state_dict, dict) or not all(
-        isinstance(k, str) and isinstance(v, Tensor) for k, v in state_dict.items()
+        isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in state_dict.items()
     ):
         raise ValueError(f"{ckpt}: state_dict must map names to tensors")
     ood = read_thresholds(ckpt.parent / THRESHOLDS_FILE)

@@ -20,6 +20,7 @@ import json
 import logging
 import math
 import os
+import pickletools
 import re
 import secrets
 import stat
@@ -35,6 +36,7 @@ __all__ = [
     "MAX_BYTES",
     "MAX_DEPTH",
     "MAX_NODES",
+    "OPAQUE",
     "UnreadableFileError",
     "WriteError",
     "atomic_write",
@@ -42,6 +44,7 @@ __all__ = [
     "parse_number_rows",
     "parse_yaml",
     "plain_name",
+    "plain_pickle",
     "read_bytes",
     "read_cached_array",
     "read_json",
@@ -194,6 +197,87 @@ def tree_problem(tree: Any) -> str | None:
             children = node.values() if isinstance(node, dict) else node
             stack.extend((child, depth + 1) for child in children)
     return None
+
+
+# pickle opcodes whose argument is the value they push (strings, bytes, numbers)
+_PICKLED_VALUES = {"INT", "BININT", "BININT1", "BININT2", "LONG", "LONG1", "LONG4", "FLOAT",
+                   "BINFLOAT", "UNICODE", "BINUNICODE", "SHORT_BINUNICODE", "BINUNICODE8",
+                   "BINBYTES", "SHORT_BINBYTES", "BINBYTES8", "STRING", "BINSTRING",
+                   "SHORT_BINSTRING"}  # fmt: skip
+_PICKLED_CONSTANTS = {"NONE": None, "NEWTRUE": True, "NEWFALSE": False}
+OPAQUE = type("Opaque", (), {"__repr__": lambda self: "<not plain data>"})()
+
+
+def plain_pickle(data: bytes) -> Any:
+    """What a pickle holds, read opcode by opcode (`pickletools.genops`) where it is plain data:
+    dicts, lists, tuples, strings, bytes, numbers, booleans, None. Nothing is imported, built or
+    called: a value that unpickling would make by calling code (a tensor, an OrderedDict, any
+    global) reads as `OPAQUE`, and what would be put into it is dropped. Shared references stay
+    shared (`tree_problem` bounds a walk of the result).
+
+    Raises:
+        ValueError: not a whole pickle, or one whose stack does not add up.
+    """
+    stack: list[Any] = []
+    marks: list[int] = []
+    memo: dict[int, Any] = {}
+
+    def since_mark() -> list[Any]:
+        items = stack[marks.pop() :]
+        del stack[len(stack) - len(items) :]
+        return items
+
+    try:
+        for op, arg, _ in pickletools.genops(data):
+            name, target = op.name, stack[-1] if stack else None
+            if name in _PICKLED_VALUES:
+                stack.append(arg)
+            elif name in _PICKLED_CONSTANTS:
+                stack.append(_PICKLED_CONSTANTS[name])
+            elif name in ("EMPTY_DICT", "EMPTY_LIST", "EMPTY_TUPLE"):
+                stack.append({"EMPTY_DICT": {}, "EMPTY_LIST": [], "EMPTY_TUPLE": ()}[name])
+            elif name == "MARK":
+                marks.append(len(stack))
+            elif name in ("TUPLE", "LIST", "DICT"):
+                items = since_mark()
+                pairs = dict(zip(items[::2], items[1::2], strict=True)) if name == "DICT" else {}
+                stack.append({"TUPLE": tuple(items), "LIST": items, "DICT": pairs}[name])
+            elif name in ("TUPLE1", "TUPLE2", "TUPLE3"):
+                items = tuple(stack[-int(name[-1]) :])
+                del stack[-len(items) :]
+                stack.append(items)
+            elif name in ("APPEND", "APPENDS", "SETITEM", "SETITEMS"):
+                items = since_mark() if name.endswith("S") else [stack.pop()]
+                items = [stack.pop(), *items] if name == "SETITEM" else items
+                target = stack[-1]
+                if isinstance(target, list) and name.startswith("APPEND"):
+                    target.extend(items)
+                elif isinstance(target, dict) and name.startswith("SETITEM"):
+                    target.update(zip(items[::2], items[1::2], strict=True))
+            elif name in ("PUT", "BINPUT", "LONG_BINPUT", "MEMOIZE"):
+                memo[len(memo) if name == "MEMOIZE" else arg] = target
+            elif name in ("GET", "BINGET", "LONG_BINGET"):
+                stack.append(memo[arg])
+            elif name == "POP":
+                stack.pop()
+            elif name == "POP_MARK":
+                since_mark()
+            elif name == "DUP":
+                stack.append(stack[-1])
+            elif name == "STOP":  # the last opcode genops yields (it raises where there is none)
+                break
+            elif name not in ("PROTO", "FRAME"):  # what calls code: popped, OPAQUE pushed
+                before = op.stack_before
+                if pickletools.markobject in before:
+                    since_mark()
+                    before = before[: before.index(pickletools.markobject)]
+                if len(before) > len(stack):
+                    raise IndexError("stack underflow")
+                del stack[len(stack) - len(before) :]
+                stack.extend([OPAQUE] * len(op.stack_after))
+        return stack.pop()
+    except (IndexError, KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"not a pickle of plain data ({exc})") from None
 
 
 def read_record(

@@ -99,3 +99,28 @@ def test_a_refused_value_is_answered_before_torch_loads():
         "config key trainer.max_epochs: must be a positive integer (Lightning reads -1 as 'train "
         "forever', 0 as no training), got 0",
     ]
+
+
+def test_eval_refuses_a_run_it_cannot_use_before_torch_loads(tmp_path):
+    """rotlearn-eval reads a checkpoint's config without torch (`saved_config`), so OOD
+    callbacks on a synthetic run are refused in a second, not after torch's import (2 s on 2
+    cores), and nothing is written."""
+    import torch
+
+    from rotlearn.config import compose
+    from rotlearn.config.checks import plain
+
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    config = plain(compose(["data=tiny"], output_dir=run))
+    torch.save({"rotlearn_config": config, "state_dict": {}}, run / "checkpoints" / "last.ckpt")
+    out, modules = _modules_after(
+        "from rotlearn.cli.evaluate import _checked\n"
+        "try:\n"
+        f"    _checked(['ckpt={run}', 'hydra.run.dir={tmp_path / 'eval'}'])\n"
+        "except SystemExit as exc:\n"
+        "    print(exc)"
+    )
+    assert "torch" not in modules and "lightning" not in modules
+    assert "config key callbacks.ood: needs an image-pair datamodule" in out
+    assert not (tmp_path / "eval").exists()

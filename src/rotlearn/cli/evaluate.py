@@ -255,20 +255,21 @@ def _targets(tree: Any):
 
 def _first_look(cfg: DictConfig) -> None:
     """Refuse what the files alone tell (`rotlearn.config.checks.check_keys`: e.g. OOD callbacks
-    on data that is not image pairs, a data folder that is not there) before the components load.
-    The checkpoint is read with torch only; its config is looked at only where every `_target_`
+    on data that is not image pairs, a data folder that is not there) before torch and the
+    components load. The checkpoint's config is read without torch and without unpickling
+    (`rotlearn.checkpoint.saved_config`); it is looked at only where every `_target_`
     is an allowlisted library class or a rotlearn component (its source marks it
     `@config_target`), and nothing is built or imported from it; `load_run` then checks it in
     full (the allowlist by import). Anything else is left to those checks."""
     from types import SimpleNamespace
 
-    from rotlearn.checkpoint import load_checkpoint, rebuildable, tested_checkpoint
+    from rotlearn.checkpoint import rebuildable, saved_config, tested_checkpoint
     from rotlearn.config.checks import check_keys, plain
     from rotlearn.config.source import class_attribute, is_marked
     from rotlearn.trust import LIBRARY_TARGETS
 
     try:
-        saved = rebuildable(load_checkpoint(tested_checkpoint(cfg.ckpt)).get("rotlearn_config"))
+        saved = rebuildable(saved_config(tested_checkpoint(cfg.ckpt)))
     except (OSError, ValueError):
         return  # load_run says why
     try:  # a deep, odd or foreign config is left to load_run (RecursionError, TypeError, ...)
