@@ -57,6 +57,49 @@ def test_sizes_in_the_config_are_checked_before_anything_is_allocated(crafted, t
     assert path in str(info.value) and grown_mb < 500
 
 
+def test_weights_that_repeat_one_stored_value_are_refused_before_anything_is_allocated(
+    crafted, tmp_path
+):
+    """A file of kilobytes whose weights are views of one stored value (stride 0) would pass
+    the shape check for any size its config names: with net.head_channels=[20000, 128] an 8 kB
+    file made rotlearn.load allocate 3.2 GB."""
+    from rotlearn.nets import PointNet
+
+    def edit(c):
+        net = c["rotlearn_config"]["net"]
+        net["point_channels"][-1] = net["head_channels"][0] = 20_000
+        with torch.device("meta"):
+            built = PointNet(**{k: v for k, v in net.items() if k != "_target_"})
+        for name, want in built.state_dict().items():
+            c["state_dict"][f"net.{name}"] = torch.zeros(1, dtype=want.dtype).expand(want.shape)
+
+    path = crafted(edit)
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    with (
+        unchanged(tmp_path),
+        within(60),
+        pytest.raises(ValueError, match=r"its weights hold 16\d{8} bytes but store \d{2,3}:"),
+    ):
+        rotlearn.load(path)
+    assert (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024 < 500
+
+
+def test_weights_that_share_one_storage_are_refused(crafted, tmp_path):
+    """Names that view one storage would each be built from it: a file of one weight's bytes
+    for a model of many."""
+
+    def edit(c):
+        weights = {k: v for k, v in c["state_dict"].items() if k.startswith("net.")}
+        shared = torch.zeros(max(v.numel() for v in weights.values()))
+        for name, weight in weights.items():
+            c["state_dict"][name] = shared[: weight.numel()].view(weight.shape)
+
+    path = crafted(edit)
+    with unchanged(tmp_path), pytest.raises(ValueError, match="names sharing storage") as info:
+        rotlearn.load(path)
+    assert path in str(info.value)
+
+
 @pytest.mark.parametrize("dtype", [torch.int64, torch.bool, torch.complex64])
 def test_weights_must_be_floating_point(crafted, tmp_path, dtype):
     def edit(c):

@@ -382,8 +382,10 @@ def check_weights(
 
     Raises:
         ValueError: naming `where` and the first names at fault: missing or unexpected names,
-            another shape, a floating tensor stored as integers or bools (or the reverse), or
-            a floating weight that is NaN or infinite in the module's dtype.
+            another shape, a floating tensor stored as integers or bools (or the reverse),
+            a floating weight that is NaN or infinite in the module's dtype, or weights that
+            hold more bytes than they store (a file of kilobytes whose views of one value
+            would make a model of gigabytes).
     """
     import torch
 
@@ -396,6 +398,15 @@ def check_weights(
         raise ValueError(
             f"{where}: the stored weights do not fit the saved config's model "
             f"({'; '.join(p for p in parts if p)})"
+        )
+    storages = {
+        t.untyped_storage().data_ptr(): t.untyped_storage().nbytes() for t in stored.values()
+    }
+    held = sum(t.numel() * t.element_size() for t in stored.values())
+    if held > sum(storages.values()):  # before anything is computed from or built for them
+        raise ValueError(
+            f"{where}: its weights hold {held} bytes but store {sum(storages.values())}: views "
+            "that repeat stored values (a stride of 0, names sharing storage) are refused"
         )
     for name, want in expected.items():
         have = stored[name]
