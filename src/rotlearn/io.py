@@ -205,7 +205,16 @@ _PICKLED_VALUES = {"INT", "BININT", "BININT1", "BININT2", "LONG", "LONG1", "LONG
                    "BINBYTES", "SHORT_BINBYTES", "BINBYTES8", "STRING", "BINSTRING",
                    "SHORT_BINSTRING"}  # fmt: skip
 _PICKLED_CONSTANTS = {"NONE": None, "NEWTRUE": True, "NEWFALSE": False}
-OPAQUE = type("Opaque", (), {"__repr__": lambda self: "<not plain data>"})()
+
+
+class _Opaque:
+    """What a pickle would build by calling code (`plain_pickle`): not read."""
+
+    def __repr__(self) -> str:
+        return "<not plain data>"
+
+
+OPAQUE = _Opaque()
 
 
 def plain_pickle(data: bytes) -> Any:
@@ -243,8 +252,10 @@ def plain_pickle(data: bytes) -> Any:
                 pairs = dict(zip(items[::2], items[1::2], strict=True)) if name == "DICT" else {}
                 stack.append({"TUPLE": tuple(items), "LIST": items, "DICT": pairs}[name])
             elif name in ("TUPLE1", "TUPLE2", "TUPLE3"):
-                items = tuple(stack[-int(name[-1]) :])
-                del stack[-len(items) :]
+                if (start := len(stack) - int(name[-1])) < 0:
+                    raise IndexError("stack underflow")
+                items = tuple(stack[start:])
+                del stack[start:]
                 stack.append(items)
             elif name in ("APPEND", "APPENDS", "SETITEM", "SETITEMS"):
                 items = since_mark() if name.endswith("S") else [stack.pop()]
