@@ -3,7 +3,10 @@
 A checkpoint is read with `torch.load(weights_only=True)` (tensors and plain data, never pickled
 code), and the run config it carries is checked against rotlearn's allowlist of buildable
 components (`rotlearn.trust`) before anything is built from it. `rotlearn.load`, `rotlearn-predict`,
-`rotlearn-eval` and the OOD evaluation's auto-encoder all load through `load_run`.
+`rotlearn-eval` and the OOD evaluation's auto-encoder all load through `load_run`. What the file
+holds is bounded (depth, values with shared references followed, and weights no larger than their
+storage) before anything walks it. `saved_config` reads only the run config, without torch (the
+pickle parsed as data), for a command's first look before torch loads.
 
 The OOD evaluation's calibrated threshold lives beside the checkpoints, in
 `<run>/checkpoints/ood_thresholds.json` ({"score": str, "threshold": number, "q": number,
