@@ -6,8 +6,10 @@ nothing below the test's folder (the crafted file and everything beside it: `unc
 
 from __future__ import annotations
 
+import pickle
 import resource
 import zipfile
+from pathlib import Path
 
 import pytest
 import torch
@@ -21,7 +23,7 @@ from rotlearn.checkpoint import (
     load_run,
     saved_config,
 )
-from rotlearn.io import MAX_BYTES
+from rotlearn.io import MAX_BYTES, MAX_NODES
 from tests.conftest import unchanged, within
 
 
@@ -272,35 +274,48 @@ def test_loggers_and_training_callbacks_of_a_saved_config_are_neither_checked_no
         load_run(run)
 
 
-def _shared(levels: int) -> list:
-    """A list of 2**levels leaves in a few hundred bytes of pickle: each level holds the one
-    below twice, and pickle's memo stores it once."""
-    tree: list = ["leaf"]
+def _shared(levels: int, kind: type = list) -> list | tuple:
+    """A list (or tuple) of 2**levels leaves in a few hundred bytes of pickle: each level holds
+    the one below twice, and pickle's memo stores it once."""
+    tree = kind(["leaf"])
     for _ in range(levels):
-        tree = [tree, tree]
+        tree = kind([tree, tree])
     return tree
 
 
-@pytest.mark.parametrize("place", ["rotlearn_config", "optimizer_states"])
+def _with_pickle(checkpoint: Path, data: bytes) -> None:
+    """Replace the pickle record of the torch checkpoint at `checkpoint` with `data`."""
+    with zipfile.ZipFile(checkpoint) as archive:
+        records = [(info, archive.read(info)) for info in archive.infolist()]
+    with zipfile.ZipFile(checkpoint, "w") as archive:
+        for info, record in records:
+            archive.writestr(info, data if info.filename.endswith("/data.pkl") else record)
+
+
+@pytest.mark.parametrize("place", ["rotlearn_config", "optimizer_states", "a key"])
 def test_a_checkpoint_whose_shared_references_expand_without_bound_is_refused(
     finished_run, tmp_path, capsys, place
 ):
     """A file of a few kilobytes whose config (or optimizer state, which Lightning's restore
-    walks) holds 2**40 values through pickle's memo: every loader refuses it at once, naming the
-    file, instead of walking it for ever."""
+    walks) holds 2**40 values through pickle's memo, or a pickle of 220 bytes whose one dict key
+    is such a tuple (torch's own unpickler hashed it for ever): every loader refuses it at once,
+    naming the file."""
     from rotlearn.cli.evaluate import _checked
     from rotlearn.cli.predict import main as predict_main
 
     checkpoint = torch.load(finished_run / "checkpoints" / "last.ckpt", weights_only=True)
     if place == "rotlearn_config":
         checkpoint["rotlearn_config"]["data"]["bomb"] = _shared(40)
-    else:
+    elif place == "optimizer_states":
         checkpoint["optimizer_states"] = [{"state": _shared(40)}]
     run = tmp_path / "run"
     (run / "checkpoints").mkdir(parents=True)
     torch.save(checkpoint, run / "checkpoints" / "last.ckpt")
+    if place == "a key":  # pickle [key] with the list's opcodes made a dict's: {key: 1}
+        data = pickle.dumps([_shared(40, tuple)], protocol=2)
+        _with_pickle(run / "checkpoints" / "last.ckpt", data[:2] + b"}" + data[3:-2] + b"K\x01s.")
     (run / "pairs.txt").write_text("0 0 1 0 0 1\n")
-    expected = "more than 4194304 values"
+    expected = f"more than {MAX_NODES} values"
     with unchanged(tmp_path), within(60):
         for load in (load_checkpoint, load_run, rotlearn.load):
             with pytest.raises(UnsafeCheckpointError, match=expected) as info:
@@ -322,5 +337,5 @@ def test_the_config_read_without_torch_is_the_one_torch_reads(finished_run, tmp_
     with pytest.raises(UnsafeCheckpointError, match="not a whole PyTorch checkpoint"):
         saved_config(broken)
     torch.save({"rotlearn_config": {"bomb": _shared(40)}}, broken)
-    with within(30), pytest.raises(UnsafeCheckpointError, match="more than 4194304 values"):
+    with within(30), pytest.raises(UnsafeCheckpointError, match=f"more than {MAX_NODES} values"):
         saved_config(broken)

@@ -226,33 +226,67 @@ def test_a_pickle_of_plain_data_reads_as_pickle_loads_it(value, protocol):
 
 
 def test_a_pickle_that_would_run_code_runs_nothing_and_reads_opaque(tmp_path):
-    """What unpickling builds by calling code is never called: a payload reads as OPAQUE, and
-    what would be put into an OrderedDict (a state_dict) is dropped; shared references stay
-    shared (`tree_problem` refuses to walk 2**40 of them)."""
+    """What unpickling builds by calling code is never called: a payload, a tensor, a set and
+    an OrderedDict (a state_dict) read as OPAQUE."""
     import collections
 
-    from rotlearn.io import OPAQUE, plain_pickle, tree_problem
+    from rotlearn.io import OPAQUE, plain_pickle
 
     marker = tmp_path / "pwned"
     payload = type("Payload", (), {"__reduce__": lambda self: (os.system, (f"touch {marker}",))})
-    data = {"run": payload(), "state_dict": collections.OrderedDict(w=torch.ones(2)), "n": 1}
+    data = {"run": payload(), "state_dict": collections.OrderedDict(w=torch.ones(2)), "n": 1,
+            "set": {1, 2}}  # fmt: skip
     assert plain_pickle(pickle.dumps(data, protocol=2)) == {
-        "run": OPAQUE, "state_dict": OPAQUE, "n": 1
+        "run": OPAQUE, "state_dict": OPAQUE, "n": 1, "set": OPAQUE
     }  # fmt: skip
     assert not marker.exists()
-    tree: list = ["leaf"]
-    for _ in range(40):
-        tree = [tree, tree]
-    shared = plain_pickle(pickle.dumps(tree, protocol=2))
-    assert shared[0] is shared[1]
-    with within(30):
-        assert tree_problem(shared) == "more than 4194304 values (shared references followed)"
+
+
+def _doubling(levels: int, kind: type) -> bytes:
+    """A pickle of a list or tuple of 2**levels leaves (each level holds the one below twice;
+    pickle's memo stores it once), a few hundred bytes."""
+    tree = kind(["leaf"])
+    for _ in range(levels):
+        tree = kind([tree, tree])
+    return pickle.dumps(tree, protocol=2)
+
+
+@pytest.mark.parametrize("where", ["the value", "a dict key", "a set", "an OrderedDict's keys"])
+def test_a_pickle_of_2_to_the_40_values_is_refused_before_anything_hashes_or_walks_them(where):
+    """A few hundred bytes whose shared references hold 2**40 values: as a value, walking it
+    never ends; as a key or in a set (torch's unpickler builds sets and OrderedDicts), hashing
+    it never ends. `plain_pickle` hashes nothing before `tree_problem` has counted it all."""
+    from rotlearn.io import MAX_NODES, plain_pickle
+
+    tree = _doubling(40, list if where == "the value" else tuple)
+    body = tree[2:-1]  # the tree's opcodes, without PROTO and STOP
+    wrapped = {
+        "the value": tree,
+        "a dict key": b"\x80\x02}" + body + b"K\x01s.",
+        "a set": b"\x80\x02cbuiltins\nset\n]" + body + b"a\x85R.",
+        "an OrderedDict's keys": b"\x80\x02ccollections\nOrderedDict\n)R" + body + b"K\x01s.",
+    }[where]
+    assert len(wrapped) < 400
+    with within(30), pytest.raises(ValueError, match=f"more than {MAX_NODES} values"):
+        plain_pickle(wrapped)
+
+
+def test_shared_references_come_out_as_copies_and_cycles_are_refused():
+    from rotlearn.io import plain_pickle, tree_problem
+
+    part = [1, 2]
+    read = plain_pickle(pickle.dumps({"a": part, "b": part}, protocol=2))
+    assert read == {"a": [1, 2], "b": [1, 2]} and read["a"] is not read["b"]
+    cycle: list = []
+    cycle.append(cycle)
+    with pytest.raises(ValueError, match="nested too deeply"):
+        plain_pickle(pickle.dumps(cycle, protocol=2))
     assert tree_problem([[[1]]]) is None
 
 
 @pytest.mark.parametrize(
     "data",
-    [b"", b"\x80\x02", pickle.dumps([1, 2])[:-1], b"\x80\x02a.", b"\x80\x02}q\x00(]h\x00u."],
+    [b"", b"\x80\x02", pickle.dumps([1, 2])[:-1], b"\x80\x02a.", b"\x80\x02}(]K\x01u."],
     ids=["empty", "no opcodes", "no STOP", "stack underflow", "a list as a key"],
 )
 def test_a_broken_pickle_is_refused(data):

@@ -43,7 +43,6 @@ from rotlearn.io import (
     plain_pickle,
     read_bytes,
     read_json,
-    tree_problem,
     write_bytes_atomic,
 )
 from rotlearn.paths import checkpoint_file
@@ -200,9 +199,11 @@ def load_checkpoint(path: str | os.PathLike, map_location: Any = "cpu") -> dict[
     Before torch reads it, the file must be a regular file of at most `MAX_BYTES["checkpoint"]`
     bytes and a whole zip archive whose records decompress to at most that many bytes (and at most
     a few times the file's size), so a truncated, huge or decompression-bomb file is refused at
-    once, naming it; what it holds must nest at most `MAX_DEPTH` levels and, its shared
-    references followed, hold at most `MAX_NODES` values (`rotlearn.io.tree_problem`), so no
-    walk of it (a config check, Lightning's restore) can be made to take forever.
+    once, naming it; what it holds, read first as data (`rotlearn.io.plain_pickle`), must nest
+    at most `MAX_DEPTH` levels and, its shared references followed and what each object would
+    be built from included, hold at most `MAX_NODES` values, so that neither torch's unpickler
+    (hashing a key) nor any walk of the result (a config check, Lightning's restore) can be made
+    to take forever by a file of a few hundred bytes.
 
     Raises:
         FileNotFoundError: no such checkpoint.
@@ -214,7 +215,7 @@ def load_checkpoint(path: str | os.PathLike, map_location: Any = "cpu") -> dict[
     import torch
 
     path = resolve_checkpoint(path)
-    _check_archive(path)
+    _plain_checkpoint(path)  # bounded before torch's unpickler hashes a key or anything walks it
     try:
         checkpoint = torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as exc:
@@ -239,9 +240,27 @@ def load_checkpoint(path: str | os.PathLike, map_location: Any = "cpu") -> dict[
         raise UnsafeCheckpointError(
             f"{path} is not a checkpoint: it holds a {type(checkpoint).__name__}, not a dict"
         )
-    if problem := tree_problem(checkpoint):  # before anything walks it
-        raise UnsafeCheckpointError(f"{path} is not a checkpoint rotlearn reads: {problem}")
     return checkpoint
+
+
+def _plain_checkpoint(path: Path) -> Any:
+    """What checkpoint file `path` holds, read as data without torch (`rotlearn.io.plain_pickle`:
+    tensors and other objects as OPAQUE) from the pickle torch would read, `<folder>/data.pkl`
+    where <folder> is the first record's; bounded as `load_checkpoint` says.
+
+    Raises:
+        UnsafeCheckpointError: naming the file: no whole zip archive, or a pickle that is not
+            one or is past the bounds.
+    """
+    _check_archive(path)
+    with zipfile.ZipFile(path) as archive:  # torch's layout: <folder>/data.pkl, the tensors
+        names = archive.namelist()
+        record = f"{names[0].split('/')[0]}/data.pkl" if names else ""
+        data = archive.read(record) if record in names else b""
+    try:
+        return plain_pickle(data)
+    except ValueError as exc:
+        raise UnsafeCheckpointError(f"{path} is not a checkpoint rotlearn reads: {exc}") from None
 
 
 def saved_config(path: Path) -> Any:
@@ -253,17 +272,7 @@ def saved_config(path: Path) -> Any:
     Raises:
         UnsafeCheckpointError: as `load_checkpoint`, naming the file.
     """
-    _check_archive(path)
-    with zipfile.ZipFile(path) as archive:  # torch's layout: <name>/data.pkl, then the tensors
-        records = [n for n in archive.namelist() if n.count("/") == 1 and n.endswith("/data.pkl")]
-        data = archive.read(records[0]) if len(records) == 1 else b""
-    try:
-        checkpoint = plain_pickle(data)
-    except ValueError as exc:
-        message = f"{path} is not a readable PyTorch checkpoint ({exc})"
-        raise UnsafeCheckpointError(message) from None
-    if problem := tree_problem(checkpoint):
-        raise UnsafeCheckpointError(f"{path} is not a checkpoint rotlearn reads: {problem}")
+    checkpoint = _plain_checkpoint(path)
     return checkpoint.get("rotlearn_config") if isinstance(checkpoint, dict) else None
 
 

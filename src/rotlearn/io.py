@@ -87,7 +87,7 @@ MAX_BYTES: dict[str, int] = {
     "TensorBoard events": 1 * _GIB,  # a run's tensorboard/ folder, all event files together
 }
 MAX_DEPTH = 64  # nesting of a JSON or YAML document (rotlearn's own files nest a few levels)
-MAX_NODES = 2**22  # values in one loaded document or checkpoint (a tensor counts as one)
+MAX_NODES = 2**20  # values in one loaded document or checkpoint (a tensor counts as one)
 
 
 class UnreadableFileError(ValueError):
@@ -217,15 +217,27 @@ class _Opaque:
 OPAQUE = _Opaque()
 
 
+class _Pairs(list):
+    """A dict as `plain_pickle` reads it: its (key, value) pairs, no key hashed yet."""
+
+
+class _Call(list):
+    """What unpickling would build by calling code (a global, a reduce, a persistent id, a set):
+    everything given to it, kept so that `tree_problem` counts what the call would hash."""
+
+
 def plain_pickle(data: bytes) -> Any:
     """What a pickle holds, read opcode by opcode (`pickletools.genops`) where it is plain data:
-    dicts, lists, tuples, strings, bytes, numbers, booleans, None. Nothing is imported, built or
-    called: a value that unpickling would make by calling code (a tensor, an OrderedDict, any
-    global) reads as `OPAQUE`, and what would be put into it is dropped. Shared references stay
-    shared (`tree_problem` bounds a walk of the result).
+    dicts, lists, tuples, strings, bytes, numbers, booleans, None. Nothing is imported, built,
+    called or hashed while reading: a value that unpickling would make by calling code (a tensor,
+    an OrderedDict, a set, any global) reads as `OPAQUE`. Before a key is hashed, the whole,
+    keys and what each call would be given included, must pass `tree_problem` (shared references
+    followed), so a pickle that would make an unpickler hash or walk without end (a key of
+    2**40 values in 200 bytes) is refused; shared references come out as copies.
 
     Raises:
-        ValueError: not a whole pickle, or one whose stack does not add up.
+        ValueError: not a whole pickle, one whose stack does not add up, one past
+            `tree_problem`'s bounds, or a key that cannot be one (a list).
     """
     stack: list[Any] = []
     marks: list[int] = []
@@ -236,37 +248,42 @@ def plain_pickle(data: bytes) -> Any:
         del stack[len(stack) - len(items) :]
         return items
 
+    def popped(count: int) -> list[Any]:
+        if (start := len(stack) - count) < 0:
+            raise IndexError("stack underflow")
+        items = stack[start:]
+        del stack[start:]
+        return items
+
     try:
         for op, arg, _ in pickletools.genops(data):
-            name, target = op.name, stack[-1] if stack else None
+            name = op.name
             if name in _PICKLED_VALUES:
                 stack.append(arg)
             elif name in _PICKLED_CONSTANTS:
                 stack.append(_PICKLED_CONSTANTS[name])
             elif name in ("EMPTY_DICT", "EMPTY_LIST", "EMPTY_TUPLE"):
-                stack.append({"EMPTY_DICT": {}, "EMPTY_LIST": [], "EMPTY_TUPLE": ()}[name])
+                stack.append({"EMPTY_DICT": _Pairs(), "EMPTY_LIST": [], "EMPTY_TUPLE": ()}[name])
             elif name == "MARK":
                 marks.append(len(stack))
-            elif name in ("TUPLE", "LIST", "DICT"):
+            elif name in ("TUPLE", "LIST"):
+                stack.append(tuple(since_mark()) if name == "TUPLE" else since_mark())
+            elif name == "DICT":
                 items = since_mark()
-                pairs = dict(zip(items[::2], items[1::2], strict=True)) if name == "DICT" else {}
-                stack.append({"TUPLE": tuple(items), "LIST": items, "DICT": pairs}[name])
+                stack.append(_Pairs(zip(items[::2], items[1::2], strict=True)))
             elif name in ("TUPLE1", "TUPLE2", "TUPLE3"):
-                if (start := len(stack) - int(name[-1])) < 0:
-                    raise IndexError("stack underflow")
-                items = tuple(stack[start:])
-                del stack[start:]
-                stack.append(items)
+                stack.append(tuple(popped(int(name[-1]))))
             elif name in ("APPEND", "APPENDS", "SETITEM", "SETITEMS"):
-                items = since_mark() if name.endswith("S") else [stack.pop()]
-                items = [stack.pop(), *items] if name == "SETITEM" else items
-                target = stack[-1]
-                if isinstance(target, list) and name.startswith("APPEND"):
-                    target.extend(items)
-                elif isinstance(target, dict) and name.startswith("SETITEM"):
-                    target.update(zip(items[::2], items[1::2], strict=True))
+                items = since_mark() if name.endswith("S") else popped(2 if "SET" in name else 1)
+                target, setting = stack[-1], name.startswith("SETITEM")
+                if setting:
+                    items = list(zip(items[::2], items[1::2], strict=True))
+                wanted = _Pairs if setting else list
+                if not isinstance(target, _Call) and type(target) is not wanted:
+                    raise ValueError(f"{name} into a {type(target).__name__}")
+                target.extend(items)  # a call's (an OrderedDict's) are counted, not kept
             elif name in ("PUT", "BINPUT", "LONG_BINPUT", "MEMOIZE"):
-                memo[len(memo) if name == "MEMOIZE" else arg] = target
+                memo[len(memo) if name == "MEMOIZE" else arg] = stack[-1]
             elif name in ("GET", "BINGET", "LONG_BINGET"):
                 stack.append(memo[arg])
             elif name == "POP":
@@ -277,17 +294,32 @@ def plain_pickle(data: bytes) -> Any:
                 stack.append(stack[-1])
             elif name == "STOP":  # the last opcode genops yields (it raises where there is none)
                 break
-            elif name not in ("PROTO", "FRAME"):  # what calls code: popped, OPAQUE pushed
+            elif name not in ("PROTO", "FRAME"):  # what calls code: a _Call of what it is given
                 before = op.stack_before
+                given = []
                 if pickletools.markobject in before:
-                    since_mark()
+                    given = since_mark()
                     before = before[: before.index(pickletools.markobject)]
-                if len(before) > len(stack):
-                    raise IndexError("stack underflow")
-                del stack[len(stack) - len(before) :]
-                stack.extend([OPAQUE] * len(op.stack_after))
-        return stack.pop()
-    except (IndexError, KeyError, TypeError, ValueError) as exc:
+                given = [*popped(len(before)), *given]
+                stack.extend([_Call(given) for _ in op.stack_after])
+        found = stack.pop()
+    except (IndexError, KeyError, ValueError) as exc:
+        raise ValueError(f"not a pickle of plain data ({exc})") from None
+    if problem := tree_problem(found):
+        raise ValueError(problem)
+
+    def plain(value: Any) -> Any:  # at most MAX_DEPTH deep and MAX_NODES values (tree_problem)
+        if isinstance(value, _Call):
+            return OPAQUE
+        if isinstance(value, _Pairs):
+            return {plain(key): plain(item) for key, item in value}
+        if isinstance(value, list | tuple):
+            return type(value)(map(plain, value))
+        return value
+
+    try:
+        return plain(found)
+    except TypeError as exc:  # a list as a key
         raise ValueError(f"not a pickle of plain data ({exc})") from None
 
 
