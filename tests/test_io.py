@@ -251,7 +251,9 @@ def _doubling(levels: int, kind: type) -> bytes:
     return pickle.dumps(tree, protocol=2)
 
 
-@pytest.mark.parametrize("where", ["the value", "a dict key", "a set", "an OrderedDict's keys"])
+@pytest.mark.parametrize(
+    "where", ["the value", "a dict key", "a set", "an OrderedDict's keys", "a dict thrown away"]
+)
 def test_a_pickle_of_2_to_the_40_values_is_refused_before_anything_hashes_or_walks_them(where):
     """A few hundred bytes whose shared references hold 2**40 values: as a value, walking it
     never ends; as a key or in a set (torch's unpickler builds sets and OrderedDicts), hashing
@@ -265,6 +267,7 @@ def test_a_pickle_of_2_to_the_40_values_is_refused_before_anything_hashes_or_wal
         "a dict key": b"\x80\x02}" + body + b"K\x01s.",
         "a set": b"\x80\x02cbuiltins\nset\n]" + body + b"a\x85R.",
         "an OrderedDict's keys": b"\x80\x02ccollections\nOrderedDict\n)R" + body + b"K\x01s.",
+        "a dict thrown away": b"\x80\x02}" + body + b"K\x01s0K\x01.",  # POP, then 1
     }[where]
     assert len(wrapped) < 400
     with within(30), pytest.raises(ValueError, match=f"more than {MAX_NODES} values"):

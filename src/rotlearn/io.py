@@ -230,10 +230,10 @@ def plain_pickle(data: bytes) -> Any:
     """What a pickle holds, read opcode by opcode (`pickletools.genops`) where it is plain data:
     dicts, lists, tuples, strings, bytes, numbers, booleans, None. Nothing is imported, built,
     called or hashed while reading: a value that unpickling would make by calling code (a tensor,
-    an OrderedDict, a set, any global) reads as `OPAQUE`. Before a key is hashed, the whole,
-    keys and what each call would be given included, must pass `tree_problem` (shared references
-    followed), so a pickle that would make an unpickler hash or walk without end (a key of
-    2**40 values in 200 bytes) is refused; shared references come out as copies.
+    an OrderedDict, a set, any global) reads as `OPAQUE`. Before a key is hashed, everything it
+    builds (keys, what each call would be given, what it throws away) must pass `tree_problem`
+    (shared references followed), so a pickle that would make an unpickler hash or walk without
+    end (a key of 2**40 values in 200 bytes) is refused; shared references come out as copies.
 
     Raises:
         ValueError: not a whole pickle, one whose stack does not add up, one past
@@ -242,6 +242,7 @@ def plain_pickle(data: bytes) -> Any:
     stack: list[Any] = []
     marks: list[int] = []
     memo: dict[int, Any] = {}
+    dropped: list[Any] = []  # built and thrown away: an unpickler hashed its keys all the same
 
     def since_mark() -> list[Any]:
         items = stack[marks.pop() :]
@@ -287,9 +288,9 @@ def plain_pickle(data: bytes) -> Any:
             elif name in ("GET", "BINGET", "LONG_BINGET"):
                 stack.append(memo[arg])
             elif name == "POP":
-                stack.pop()
+                dropped.append(stack.pop())
             elif name == "POP_MARK":
-                since_mark()
+                dropped.extend(since_mark())
             elif name == "DUP":
                 stack.append(stack[-1])
             elif name == "STOP":  # the last opcode genops yields (it raises where there is none)
@@ -305,7 +306,7 @@ def plain_pickle(data: bytes) -> Any:
         found = stack.pop()
     except (IndexError, KeyError, ValueError) as exc:
         raise ValueError(f"not a pickle of plain data ({exc})") from None
-    if problem := tree_problem(found):
+    if problem := tree_problem([found, stack, dropped]):  # everything it builds
         raise ValueError(problem)
 
     def plain(value: Any) -> Any:  # at most MAX_DEPTH deep and MAX_NODES values (tree_problem)
