@@ -8,6 +8,8 @@ import re
 import subprocess
 import sys
 
+import pytest
+
 from rotlearn.cli.train import usage
 from rotlearn.paths import config_dir
 
@@ -101,18 +103,24 @@ def test_a_refused_value_is_answered_before_torch_loads():
     ]
 
 
-def test_eval_refuses_a_run_it_cannot_use_before_torch_loads(tmp_path):
+@pytest.mark.parametrize("run_kind", ["synthetic data", "a pickle past the bounds"])
+def test_eval_refuses_a_run_it_cannot_use_before_torch_loads(tmp_path, run_kind):
     """rotlearn-eval reads a checkpoint's config without torch (`saved_config`), so OOD
-    callbacks on a synthetic run are refused in a second, not after torch's import (2 s on 2
-    cores), and nothing is written."""
+    callbacks on a synthetic run, or a file whose pickle holds 2**40 values through shared
+    references, are refused in a second or two, not after torch's import (2 s on 2 cores), and
+    nothing is written."""
     import torch
 
     from rotlearn.config import compose
     from rotlearn.config.checks import plain
+    from rotlearn.io import MAX_NODES
 
     run = tmp_path / "run"
     (run / "checkpoints").mkdir(parents=True)
     config = plain(compose(["data=tiny"], output_dir=run))
+    if run_kind == "a pickle past the bounds":
+        for _ in range(40):
+            config["data"] = [config["data"], config["data"]]  # one object, memoised once
     torch.save({"rotlearn_config": config, "state_dict": {}}, run / "checkpoints" / "last.ckpt")
     out, modules = _modules_after(
         "from rotlearn.cli.evaluate import _checked\n"
@@ -122,5 +130,10 @@ def test_eval_refuses_a_run_it_cannot_use_before_torch_loads(tmp_path):
         "    print(exc)"
     )
     assert "torch" not in modules and "lightning" not in modules
-    assert "config key callbacks.ood: needs an image-pair datamodule" in out
+    expected = {
+        "synthetic data": "config key callbacks.ood: needs an image-pair datamodule",
+        "a pickle past the bounds": f"config key ckpt: {run}: {run / 'checkpoints' / 'last.ckpt'} "
+        f"is not a checkpoint rotlearn reads: more than {MAX_NODES} values",
+    }[run_kind]
+    assert expected in out
     assert not (tmp_path / "eval").exists()

@@ -122,12 +122,13 @@ def evaluated_config(cfg: DictConfig, saved: SavedRun, members: int) -> DictConf
         return OmegaConf.merge(own, changed, {"evaluated": {"members": members}})
 
 
-def _saved_run(cfg: DictConfig) -> SavedRun:
-    """The run `cfg.ckpt` names, read through the one loader (`rotlearn.checkpoint.load_run`)."""
+def _saved_run(cfg: DictConfig, read: Any = None) -> SavedRun:
+    """The run `cfg.ckpt` names, read through the one loader (`rotlearn.checkpoint.load_run`),
+    or by `read` (a first look: its config alone)."""
     from rotlearn.checkpoint import load_run
 
     try:
-        return load_run(cfg.ckpt)
+        return (read or load_run)(cfg.ckpt)
     except (FileNotFoundError, ValueError) as exc:  # unsafe file, untrusted config, other task
         raise ConfigError("ckpt", f"{cfg.ckpt}: {exc}") from None
 
@@ -260,7 +261,9 @@ def _first_look(cfg: DictConfig) -> None:
     (`rotlearn.checkpoint.saved_config`); it is looked at only where every `_target_`
     is an allowlisted library class or a rotlearn component (its source marks it
     `@config_target`), and nothing is built or imported from it; `load_run` then checks it in
-    full (the allowlist by import). Anything else is left to those checks."""
+    full (the allowlist by import). A file that `load_run` would refuse unread (no whole archive,
+    a pickle past the bounds) is refused here, as `load_run` would say it. Anything else is left
+    to those checks."""
     from types import SimpleNamespace
 
     from rotlearn.checkpoint import rebuildable, saved_config, tested_checkpoint
@@ -268,9 +271,9 @@ def _first_look(cfg: DictConfig) -> None:
     from rotlearn.config.source import class_attribute, is_marked
     from rotlearn.trust import LIBRARY_TARGETS
 
-    try:
-        saved = rebuildable(saved_config(tested_checkpoint(cfg.ckpt)))
-    except (OSError, ValueError):
+    try:  # what load_run would refuse of the file (a pickle past the bounds) is said here
+        saved = rebuildable(_saved_run(cfg, lambda ckpt: saved_config(tested_checkpoint(ckpt))))
+    except OSError:
         return  # load_run says why
     try:  # a deep, odd or foreign config is left to load_run (RecursionError, TypeError, ...)
         named = [str(t) for t in _targets(saved) if t not in LIBRARY_TARGETS]
