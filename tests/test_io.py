@@ -274,6 +274,15 @@ def test_a_pickle_of_2_to_the_40_values_is_refused_before_anything_hashes_or_wal
         plain_pickle(wrapped)
 
 
+def test_a_pickle_of_opcodes_that_build_nothing_is_refused_in_seconds():
+    """Six million marks (6 MB) build nothing that `tree_problem` counts; reading them all would
+    take seconds per megabyte of a larger file. A few opcodes per value of the bound are read."""
+    from rotlearn.io import MAX_NODES, plain_pickle
+
+    with within(30), pytest.raises(ValueError, match=f"more than {5 * MAX_NODES} opcodes"):
+        plain_pickle(b"\x80\x02" + b"(" * 6_000_000 + b"N.")
+
+
 def test_shared_references_come_out_as_copies_and_cycles_are_refused():
     from rotlearn.io import plain_pickle, tree_problem
 

@@ -205,6 +205,7 @@ _PICKLED_VALUES = {"INT", "BININT", "BININT1", "BININT2", "LONG", "LONG1", "LONG
                    "BINBYTES", "SHORT_BINBYTES", "BINBYTES8", "STRING", "BINSTRING",
                    "SHORT_BINSTRING"}  # fmt: skip
 _PICKLED_CONSTANTS = {"NONE": None, "NEWTRUE": True, "NEWFALSE": False}
+_OPCODES_PER_VALUE = 5  # a value takes at most a push, a memo put, a mark and an append
 
 
 class _Opaque:
@@ -235,9 +236,12 @@ def plain_pickle(data: bytes) -> Any:
     (shared references followed), so a pickle that would make an unpickler hash or walk without
     end (a key of 2**40 values in 200 bytes) is refused; shared references come out as copies.
 
+    Reading stops after a few opcodes per value of that bound, so a large file of opcodes that
+    build nothing (marks, memo puts) is refused in seconds, not read for minutes.
+
     Raises:
         ValueError: not a whole pickle, one whose stack does not add up, one past
-            `tree_problem`'s bounds, or a key that cannot be one (a list).
+            `tree_problem`'s bounds or its opcode budget, or a key that cannot be one (a list).
     """
     stack: list[Any] = []
     marks: list[int] = []
@@ -257,7 +261,9 @@ def plain_pickle(data: bytes) -> Any:
         return items
 
     try:
-        for op, arg, _ in pickletools.genops(data):
+        for count, (op, arg, _) in enumerate(pickletools.genops(data)):
+            if count > _OPCODES_PER_VALUE * MAX_NODES:  # what passes needs fewer: stop reading
+                raise ValueError(f"more than {_OPCODES_PER_VALUE * MAX_NODES} opcodes")
             name = op.name
             if name in _PICKLED_VALUES:
                 stack.append(arg)
