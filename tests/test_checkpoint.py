@@ -327,6 +327,21 @@ def test_a_checkpoint_whose_shared_references_expand_without_bound_is_refused(
         assert expected in capsys.readouterr().err
 
 
+def test_a_damaged_pickle_record_is_refused_not_raised_as_a_zip_error(tmp_path):
+    """A byte flipped in the pickle record fails its CRC when read: refused like any damaged
+    archive (it once escaped the loaders as zipfile.BadZipFile, a traceback)."""
+    path = tmp_path / "last.ckpt"
+    torch.save({"rotlearn_config": {"a": 1}, "epoch": 0}, path)
+    with zipfile.ZipFile(path) as archive:
+        record = next(i for i in archive.infolist() if i.filename.endswith("/data.pkl"))
+    data = bytearray(path.read_bytes())
+    data[data.index(b"rotlearn_config", record.header_offset)] ^= 0xFF  # inside the record
+    path.write_bytes(data)
+    for read in (load_checkpoint, saved_config):
+        with unchanged(tmp_path), pytest.raises(UnsafeCheckpointError, match="Bad CRC-32"):
+            read(path)
+
+
 def test_the_config_read_without_torch_is_the_one_torch_reads(finished_run, tmp_path):
     """`saved_config` (the first look of rotlearn-eval, before torch loads) reads a checkpoint's
     config as `torch.load(weights_only=True)` does, and refuses what `load_checkpoint` refuses."""

@@ -161,11 +161,18 @@ def save_checkpoint(checkpoint: dict[str, Any], path: str | os.PathLike) -> Path
     return write_bytes_atomic(path, buffer.getbuffer())
 
 
-def _check_archive(path: Path) -> None:
-    """Refuse, before torch reads it, a checkpoint that is not a regular file, is larger than
-    `MAX_BYTES["checkpoint"]`, is not a whole zip archive (a truncated file has no central
-    directory), or whose records would decompress beyond the cap or `_MAX_INFLATION` times
-    the file's size."""
+def _plain_checkpoint(path: Path) -> Any:
+    """What checkpoint file `path` holds, read as data without torch (`rotlearn.io.plain_pickle`:
+    tensors and other objects as OPAQUE) from the pickle torch would read, `<folder>/data.pkl`
+    where <folder> is the first record's. Before that, from the one handle it reads: refuse a
+    file that is not a regular file, is larger than `MAX_BYTES["checkpoint"]`, is not a whole
+    zip archive (a truncated file has no central directory; a damaged record fails its CRC), or
+    whose records would decompress beyond the cap or `_MAX_INFLATION` times the file's size.
+
+    Raises:
+        UnsafeCheckpointError: naming the file and which of these it is, or a pickle that is not
+            one or is past `plain_pickle`'s bounds.
+    """
     cap = MAX_BYTES["checkpoint"]
     fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
     with os.fdopen(fd, "rb") as handle:
@@ -175,18 +182,27 @@ def _check_archive(path: Path) -> None:
         if info.st_size > cap:
             raise UnsafeCheckpointError(f"{path} is larger than a checkpoint may be ({cap} bytes)")
         try:
-            members = zipfile.ZipFile(handle).infolist()
+            archive = zipfile.ZipFile(handle)
+            members = archive.infolist()
+            inflated = sum(m.file_size for m in members)
+            bounded = inflated <= min(cap, _MAX_INFLATION * max(info.st_size, 1) + 2**20)
+            names = [m.filename for m in members]  # torch's layout: <folder>/data.pkl, tensors
+            record = f"{names[0].split('/')[0]}/data.pkl" if names else ""
+            data = archive.read(record) if bounded and record in names else b""
         except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
             raise UnsafeCheckpointError(
                 f"{path} is not a whole PyTorch checkpoint (a zip archive): truncated, damaged or "
                 f"another kind of file ({exc})"
             ) from None
-    inflated = sum(m.file_size for m in members)
-    if inflated > min(cap, _MAX_INFLATION * max(info.st_size, 1) + 2**20):
+    if not bounded:
         raise UnsafeCheckpointError(
             f"{path}: its records would decompress to {inflated} bytes from a file of "
             f"{info.st_size}; refusing it unread (a PyTorch checkpoint is stored uncompressed)"
         )
+    try:
+        return plain_pickle(data)
+    except ValueError as exc:
+        raise UnsafeCheckpointError(f"{path} is not a checkpoint rotlearn reads: {exc}") from None
 
 
 def load_checkpoint(path: str | os.PathLike, map_location: Any = "cpu") -> dict[str, Any]:
@@ -241,26 +257,6 @@ def load_checkpoint(path: str | os.PathLike, map_location: Any = "cpu") -> dict[
             f"{path} is not a checkpoint: it holds a {type(checkpoint).__name__}, not a dict"
         )
     return checkpoint
-
-
-def _plain_checkpoint(path: Path) -> Any:
-    """What checkpoint file `path` holds, read as data without torch (`rotlearn.io.plain_pickle`:
-    tensors and other objects as OPAQUE) from the pickle torch would read, `<folder>/data.pkl`
-    where <folder> is the first record's; bounded as `load_checkpoint` says.
-
-    Raises:
-        UnsafeCheckpointError: naming the file: no whole zip archive, or a pickle that is not
-            one or is past the bounds.
-    """
-    _check_archive(path)
-    with zipfile.ZipFile(path) as archive:  # torch's layout: <folder>/data.pkl, the tensors
-        names = archive.namelist()
-        record = f"{names[0].split('/')[0]}/data.pkl" if names else ""
-        data = archive.read(record) if record in names else b""
-    try:
-        return plain_pickle(data)
-    except ValueError as exc:
-        raise UnsafeCheckpointError(f"{path} is not a checkpoint rotlearn reads: {exc}") from None
 
 
 def saved_config(path: Path) -> Any:
