@@ -181,6 +181,16 @@ def unchanged(root: Path) -> Iterator[None]:
         assert tree_hashes(root) == before, f"the tree below {root} changed"
 
 
+def doubling(leaf: Any, levels: int = 40, kind: type = list) -> Any:
+    """`leaf` held twice per level, `levels` deep (a list or tuple per level): 2**levels leaves
+    as a tree, one object per level in memory and in a pickle (its memo stores each once), a few
+    hundred bytes for a hostile file."""
+    tree = leaf
+    for _ in range(levels):
+        tree = kind([tree, tree])
+    return tree
+
+
 @contextlib.contextmanager
 def within(seconds: float) -> Iterator[None]:
     """Fail the block with TimeoutError when it takes longer than `seconds` (SIGALRM: also a

@@ -24,7 +24,7 @@ from rotlearn.checkpoint import (
     saved_config,
 )
 from rotlearn.io import MAX_BYTES, MAX_NODES
-from tests.conftest import unchanged, within
+from tests.conftest import doubling, unchanged, within
 
 
 @pytest.fixture
@@ -274,15 +274,6 @@ def test_loggers_and_training_callbacks_of_a_saved_config_are_neither_checked_no
         load_run(run)
 
 
-def _shared(levels: int, kind: type = list) -> list | tuple:
-    """A list (or tuple) of 2**levels leaves in a few hundred bytes of pickle: each level holds
-    the one below twice, and pickle's memo stores it once."""
-    tree = kind(["leaf"])
-    for _ in range(levels):
-        tree = kind([tree, tree])
-    return tree
-
-
 def _with_pickle(checkpoint: Path, data: bytes) -> None:
     """Replace the pickle record of the torch checkpoint at `checkpoint` with `data`."""
     with zipfile.ZipFile(checkpoint) as archive:
@@ -305,14 +296,14 @@ def test_a_checkpoint_whose_shared_references_expand_without_bound_is_refused(
 
     checkpoint = torch.load(finished_run / "checkpoints" / "last.ckpt", weights_only=True)
     if place == "rotlearn_config":
-        checkpoint["rotlearn_config"]["data"]["bomb"] = _shared(40)
+        checkpoint["rotlearn_config"]["data"]["bomb"] = doubling(["leaf"])
     elif place == "optimizer_states":
-        checkpoint["optimizer_states"] = [{"state": _shared(40)}]
+        checkpoint["optimizer_states"] = [{"state": doubling(["leaf"])}]
     run = tmp_path / "run"
     (run / "checkpoints").mkdir(parents=True)
     torch.save(checkpoint, run / "checkpoints" / "last.ckpt")
     if place == "a key":  # pickle [key] with the list's opcodes made a dict's: {key: 1}
-        data = pickle.dumps([_shared(40, tuple)], protocol=2)
+        data = pickle.dumps([doubling(("leaf",), 40, tuple)], protocol=2)
         _with_pickle(run / "checkpoints" / "last.ckpt", data[:2] + b"}" + data[3:-2] + b"K\x01s.")
     (run / "pairs.txt").write_text("0 0 1 0 0 1\n")
     expected = f"more than {MAX_NODES} values"
@@ -351,6 +342,6 @@ def test_the_config_read_without_torch_is_the_one_torch_reads(finished_run, tmp_
     broken.write_bytes(ckpt.read_bytes()[:-100])
     with pytest.raises(UnsafeCheckpointError, match="not a whole PyTorch checkpoint"):
         saved_config(broken)
-    torch.save({"rotlearn_config": {"bomb": _shared(40)}}, broken)
+    torch.save({"rotlearn_config": {"bomb": doubling(["leaf"])}}, broken)
     with within(30), pytest.raises(UnsafeCheckpointError, match=f"more than {MAX_NODES} values"):
         saved_config(broken)

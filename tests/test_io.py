@@ -31,7 +31,7 @@ from rotlearn.io import (
     write_json_atomic,
     write_text_atomic,
 )
-from tests.conftest import within
+from tests.conftest import doubling, within
 
 
 def test_a_named_pipe_is_refused_at_once(tmp_path):
@@ -242,15 +242,6 @@ def test_a_pickle_that_would_run_code_runs_nothing_and_reads_opaque(tmp_path):
     assert not marker.exists()
 
 
-def _doubling(levels: int, kind: type) -> bytes:
-    """A pickle of a list or tuple of 2**levels leaves (each level holds the one below twice;
-    pickle's memo stores it once), a few hundred bytes."""
-    tree = kind(["leaf"])
-    for _ in range(levels):
-        tree = kind([tree, tree])
-    return pickle.dumps(tree, protocol=2)
-
-
 @pytest.mark.parametrize(
     "where", ["the value", "a dict key", "a set", "an OrderedDict's keys", "a dict thrown away"]
 )
@@ -260,7 +251,8 @@ def test_a_pickle_of_2_to_the_40_values_is_refused_before_anything_hashes_or_wal
     it never ends. `plain_pickle` hashes nothing before `tree_problem` has counted it all."""
     from rotlearn.io import MAX_NODES, plain_pickle
 
-    tree = _doubling(40, list if where == "the value" else tuple)
+    kind = list if where == "the value" else tuple
+    tree = pickle.dumps(doubling(kind(["leaf"]), 40, kind), protocol=2)
     body = tree[2:-1]  # the tree's opcodes, without PROTO and STOP
     wrapped = {
         "the value": tree,

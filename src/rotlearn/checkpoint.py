@@ -407,9 +407,7 @@ def check_weights(
             f"{where}: the stored weights do not fit the saved config's model "
             f"({'; '.join(p for p in parts if p)})"
         )
-    storages = {
-        t.untyped_storage().data_ptr(): t.untyped_storage().nbytes() for t in stored.values()
-    }
+    storages = {s.data_ptr(): s.nbytes() for s in (t.untyped_storage() for t in stored.values())}
     held = sum(t.numel() * t.element_size() for t in stored.values())
     if held > sum(storages.values()):  # before anything is computed from or built for them
         raise ValueError(

@@ -12,6 +12,7 @@ import pytest
 
 from rotlearn.cli.train import usage
 from rotlearn.paths import config_dir
+from tests.conftest import doubling
 
 
 def _modules_after(code: str) -> tuple[str, set[str]]:
@@ -119,8 +120,7 @@ def test_eval_refuses_a_run_it_cannot_use_before_torch_loads(tmp_path, run_kind)
     (run / "checkpoints").mkdir(parents=True)
     config = plain(compose(["data=tiny"], output_dir=run))
     if run_kind == "a pickle past the bounds":
-        for _ in range(40):
-            config["data"] = [config["data"], config["data"]]  # one object, memoised once
+        config["data"] = doubling(config["data"])  # one object per level, memoised once
     torch.save({"rotlearn_config": config, "state_dict": {}}, run / "checkpoints" / "last.ckpt")
     out, modules = _modules_after(
         "from rotlearn.cli.evaluate import _checked\n"

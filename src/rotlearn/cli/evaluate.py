@@ -14,10 +14,11 @@ applied (`temperature` in metrics.json); it is never refitted here.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import sys
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -122,15 +123,22 @@ def evaluated_config(cfg: DictConfig, saved: SavedRun, members: int) -> DictConf
         return OmegaConf.merge(own, changed, {"evaluated": {"members": members}})
 
 
-def _saved_run(cfg: DictConfig, read: Any = None) -> SavedRun:
-    """The run `cfg.ckpt` names, read through the one loader (`rotlearn.checkpoint.load_run`),
-    or by `read` (a first look: its config alone)."""
+@contextlib.contextmanager
+def _refused_on_ckpt(cfg: DictConfig) -> Iterator[None]:
+    """What a reader of `cfg.ckpt` refuses (no such file, an unsafe file, an untrusted config,
+    another task) as a `ConfigError` on `ckpt`, naming it."""
+    try:
+        yield
+    except (FileNotFoundError, ValueError) as exc:
+        raise ConfigError("ckpt", f"{cfg.ckpt}: {exc}") from None
+
+
+def _saved_run(cfg: DictConfig) -> SavedRun:
+    """The run `cfg.ckpt` names, read through the one loader (`rotlearn.checkpoint.load_run`)."""
     from rotlearn.checkpoint import load_run
 
-    try:
-        return (read or load_run)(cfg.ckpt)
-    except (FileNotFoundError, ValueError) as exc:  # unsafe file, untrusted config, other task
-        raise ConfigError("ckpt", f"{cfg.ckpt}: {exc}") from None
+    with _refused_on_ckpt(cfg):
+        return load_run(cfg.ckpt)
 
 
 def _ensemble(paths: list[str]) -> tuple[Any, Any, SavedRun]:
@@ -272,7 +280,8 @@ def _first_look(cfg: DictConfig) -> None:
     from rotlearn.trust import LIBRARY_TARGETS
 
     try:  # what load_run would refuse of the file (a pickle past the bounds) is said here
-        saved = rebuildable(_saved_run(cfg, lambda ckpt: saved_config(tested_checkpoint(ckpt))))
+        with _refused_on_ckpt(cfg):
+            saved = rebuildable(saved_config(tested_checkpoint(cfg.ckpt)))
     except OSError:
         return  # load_run says why
     try:  # a deep, odd or foreign config is left to load_run (RecursionError, TypeError, ...)
