@@ -51,6 +51,8 @@ CASES: dict[str, tuple[str, list[str]]] = {
     "value out of range": ("rotlearn-train", ["data.batch_size=0"]),
     "a value of the wrong type": ("rotlearn-train", ["optim.lr=abc"]),
     "a Trainer value out of range": ("rotlearn-train", ["trainer.max_epochs=0"]),
+    "null for a config group": ("rotlearn-train", ["logger=null"]),
+    "a group the config chooses none of": ("rotlearn-train", ["variant=a_bingham"]),
     "calibrate without a belief": ("rotlearn-train", ["rep=sixd", "calibrate=true"]),
     "likelihood loss without a belief": ("rotlearn-train", ["rep=sixd", "loss=bingham"]),
     "eval without ckpt": ("rotlearn-eval", []),
@@ -59,6 +61,8 @@ CASES: dict[str, tuple[str, list[str]]] = {
     "eval of a folder that is no run": ("rotlearn-eval", ["ckpt={not_a_run}"]),
     "eval of a sweep directory": ("rotlearn-eval", ["ckpt={sweep}"]),
     "eval with OOD on synthetic data": ("rotlearn-eval", ["ckpt={synthetic_run}"]),
+    "eval with a dataset option": ("rotlearn-eval", ["ckpt={synthetic_run}", "data=kitti"]),
+    "eval with no mapping for ood": ("rotlearn-eval", ["ckpt={synthetic_run}", "ood=null"]),
     "predict with a folder that is no run": ("rotlearn-predict", ["{not_a_run}", "pairs.txt"]),
     "predict with a sweep directory": ("rotlearn-predict", ["{sweep}", "pairs.txt"]),
 }

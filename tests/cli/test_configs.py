@@ -14,7 +14,7 @@ from lightning.pytorch.loggers import Logger
 from omegaconf import OmegaConf
 
 from rotlearn.cli.train import build
-from rotlearn.config import ConfigError, register_schemas, schema, validate
+from rotlearn.config import ConfigError, compose, register_schemas, schema, validate
 from rotlearn.config.source import marked
 from rotlearn.heads import HEADS, RotationHead
 from tests.conftest import CONFIG_DIR, config_options, demo_overrides
@@ -218,6 +218,44 @@ def test_an_unknown_option_of_hydras_groups_lists_its_plugins_options(make_cfg):
     with pytest.raises(ConfigError, match=r"no option 'optuan'; did you mean "
                        r"hydra/sweeper=optuna\?; options: basic, optuna$"):  # fmt: skip
         make_cfg(["hydra/sweeper=optuan"])
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("logger=null", r"^config key logger: takes one of its options \(csv, none, tensorboard\), "
+                        r"not null; leave logger= out for the config's own choice$"),
+        ("scheduler=null", r"^config key scheduler: takes one of its options \(cosine, step\), "),
+        ("data=[kitti,mav]", r"^config key data: takes one of its options \(kitti, .*\), not a "
+                             r"list; one run each: -m data=kitti,mav$"),
+        ("variant=a_bingham", r"^config key variant: conf/train\.yaml chooses no variant; "
+                              r"experiment=beliefs chooses one \(e\.g\. experiment=beliefs "
+                              r"variant=a_bingham\)$"),
+        ("paths=3", r"^config key paths: holds keys to set one by one, paths\.<key>=value "
+                    r"\(output_dir\), not paths=3$"),
+    ],
+)  # fmt: skip
+def test_a_config_group_or_node_hydra_would_misread_is_named(make_cfg, override, message):
+    """Hydra answered `logger=null` with a ValueError traceback ("Config group override must be
+    a string or a list"), `variant=a_bingham` with its advice to append it, `data=[kitti,mav]`
+    by merging both options, and `paths=3` ended in an AttributeError; `experiment=beliefs
+    variant=fisher_nll`, the way a variant is chosen, still composes."""
+    with pytest.raises(ConfigError, match=message):
+        make_cfg([override])
+    assert make_cfg(["experiment=beliefs", "variant=fisher_nll"]).loss.rep == "fisher"
+    assert set(make_cfg(["logger=[tensorboard,csv]"]).logger) == {"tensorboard", "csv"}
+
+
+def test_rotlearn_evals_nodes_of_keys_take_no_option(make_cfg):
+    """conf/eval.yaml's `data`, `trainer` and `ood` hold keys for the run's saved config:
+    `data=kitti` got Hydra's advice to append it, `ood=kitti` and `ood=null` a ValueError."""
+    for override, keys in [("data=kitti", "root, num_workers, eval_batch_size, corrupt_fraction"),
+                           ("ood=null", "quantiles, thresholds_from, "),
+                           ("trainer=gpu", "accelerator, devices")]:  # fmt: skip
+        with pytest.raises(ConfigError, match=rf"^config key {override.split('=')[0]}: holds keys "
+                           rf"to set one by one, \w+\.<key>=value \({keys}"):  # fmt: skip
+            compose(["ckpt=run", override], config_name="eval", check=False)
+    assert compose(["ckpt=run", "data.root=here"], config_name="eval", check=False).data.root
 
 
 @pytest.mark.parametrize(

@@ -68,6 +68,12 @@ EXPECTED = {
     "a Trainer value out of range": (1, r"^rotlearn-train: config key trainer\.max_epochs: must "
                                      r"be a positive integer \(Lightning reads -1 as 'train "
                                      r"forever', 0 as no training\), got 0 \(nothing was"),
+    "null for a config group": (1, r"^rotlearn-train: config key logger: takes one of its "
+                                r"options \(csv, none, tensorboard\), not null; leave logger= "
+                                r"out for the config's own choice \(nothing was written\)$"),
+    "a group the config chooses none of": (1, r"^rotlearn-train: config key variant: conf/train"
+                                           r"\.yaml chooses no variant; experiment=beliefs "
+                                           r"chooses one \(e\.g\. experiment=beliefs variant="),
     "calibrate without a belief": (1, r"^rotlearn-train: config key calibrate: fits the "
                                    r"temperature of a belief; rep=sixd has none"),
     "likelihood loss without a belief": (1, r"^rotlearn-train: config key loss\.rep: "
@@ -84,6 +90,11 @@ EXPECTED = {
                                   r"one run: pass one of its jobs, .*sweep/0, .*sweep/1 \("),
     "eval with OOD on synthetic data": (1, r"^rotlearn-eval: config key callbacks\.ood: needs an "
                                         r"image-pair datamodule .*SyntheticWahbaDataModule"),
+    "eval with a dataset option": (1, r"^rotlearn-eval: config key data: holds keys to set "
+                                   r"one by one, data\.<key>=value \(root, num_workers, "
+                                   r"eval_batch_size, corrupt_fraction\), not data=kitti \("),
+    "eval with no mapping for ood": (1, r"^rotlearn-eval: config key ood: holds keys to set one "
+                                     r"by one, ood\.<key>=value \(quantiles, .*\), not ood=null"),
     "predict with a folder that is no run": (2, r"^rotlearn-predict: .*not_a_run is not a "
                                              r"rotlearn run"),
     "predict with a sweep directory": (2, r"^rotlearn-predict: .*sweep is a sweep directory, not "

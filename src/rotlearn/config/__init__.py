@@ -43,6 +43,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict  # noqa: E402
 
 from rotlearn.config import resolvers  # noqa: E402, F401  (registers `${rl.*:...}`)
 from rotlearn.config.checks import (  # noqa: E402
+    COLLECTIONS,
     arguments,
     check_keys,
     check_values,
@@ -163,6 +164,56 @@ def _refuse_deletions(name: str, taken: list[str], parsed: list[Any]) -> None:
                               f"at that value; ~{key} deletes it whatever it is")  # fmt: skip
 
 
+def _refuse_misread(name: str, parsed: list[Any], root: Path) -> None:
+    """`ConfigError` for an override Hydra would misread: no mapping for a node of keys of
+    conf/<name>.yaml (rotlearn-eval's `ood=kitti`, `data=kitti`), null for a config group
+    (`logger=null`), a list for one that takes one option (`data=[kitti,mav]`; a list of
+    loggers or callbacks is theirs)."""
+    from hydra.core.override_parser.types import OverrideType
+
+    primary = OmegaConf.load(path) if (path := root / f"{name}.yaml").is_file() else {}
+    for o in parsed:
+        key, value = o.key_or_group, o.value()
+        if o.type != OverrideType.CHANGE or o.is_sweep_override() or is_hydra_key(key):
+            continue
+        if isinstance(node := primary.get(key), DictConfig) and not isinstance(value, dict):
+            raise ConfigError(key, f"holds keys to set one by one, {key}.<key>=value "
+                              f"({', '.join(map(str, node))}), not {o.input_line}")  # fmt: skip
+        several = isinstance(value, list) and key not in COLLECTIONS  # logger=[tensorboard,csv]
+        if (value is None or several) and (options := list(_options(key, root))):
+            what, how = ("null", f"leave {key}= out for the config's own choice") if value is None \
+                else ("a list", f"one run each: -m {key}={','.join(map(str, value))}")  # fmt: skip
+            raise ConfigError(key, f"takes one of its options ({', '.join(options)}), not {what};"
+                              f" {how}")  # fmt: skip
+
+
+def _refuse_unchosen_group(name: str, taken: list[str], parsed: list[Any], root: Path) -> None:
+    """`ConfigError` for `group=option` where conf/<name>.yaml chooses no option of that group
+    (Hydra: "No match in the defaults list"; train's `variant=`), naming the configs whose
+    defaults list chooses one."""
+    from hydra import compose
+    from hydra.core.override_parser.types import OverrideType
+
+    for i, o in enumerate(parsed):
+        group = o.key_or_group
+        if o.type != OverrideType.CHANGE or not _options(group, root):
+            continue
+        try:
+            cfg = compose(name, taken[:i] + taken[i + 1 :], return_hydra_config=True)
+        except Exception:  # another override is at fault
+            continue
+        if group in cfg.hydra.runtime.choices:
+            continue
+        users = [f"{folder.name}={file.stem}" for folder in sorted(root.iterdir())
+                 for file in sorted(folder.glob("*.yaml"))
+                 if any(str(k).split()[-1].strip("/") == group for entry in
+                        OmegaConf.load(file).get("defaults") or [] if isinstance(entry, DictConfig)
+                        for k in entry)]  # fmt: skip
+        how = f"; {' and '.join(users)} chooses one (e.g. {users[0]} {o.input_line})" if users \
+            else ""  # fmt: skip
+        raise ConfigError(group, f"conf/{name}.yaml chooses no {group}{how}")
+
+
 def _compose(
     name: str, overrides: list[str], root: Path, appendable: Sequence[str] | None = None
 ) -> tuple[DictConfig, list[str]]:
@@ -174,6 +225,7 @@ def _compose(
 
     register_schemas()
     parsed, taken = _parse(overrides), list(overrides)
+    _refuse_misread(name, parsed, root)
     with initialize_config_dir(config_dir=str(root), version_base="1.3"):
         try:
             while True:
@@ -187,6 +239,7 @@ def _compose(
                               and (o.key_or_group + ".").startswith(f"{key}.")]  # fmt: skip
                     if isinstance(exc, MissingConfigException) or not absent:
                         _refuse_deletions(name, taken, parsed)
+                        _refuse_unchosen_group(name, taken, parsed, root)
                         parent = getattr(exc.__cause__, "parent_node", None)
                         node, _, leaf = str(key).rpartition(".")  # Hydra's advice: append it
                         if isinstance(parent, DictConfig) and leaf not in parent:  # data={a: 1}
