@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from rotlearn.data import KittiOdometryDataModule
-from rotlearn.data.image_header import MAX_PIXELS, image_size
+from rotlearn.data.image_header import MAX_PIXELS, check_frame, image_size
 from rotlearn.data.images import read_frame, read_image
 from tests.conftest import unchanged, within, write_kitti, yaw_sequence
 
@@ -161,6 +161,12 @@ HEADERS = {
     "jpeg 60000 x 60000": (_jpeg_header(60000, 60000), "jpg"),
     "bmp 20000 x -20000": (_bmp_header(20000, -20000), "bmp"),
     "pgm 50000 x 50000": (b"P5\n# a comment\n50000 50000\n255\n", "pgm"),
+    # OpenCV ends a comment at "\r" too: not 1 x 1 (the "\n" line after the comment)
+    "pgm 9000 x 9000, comment ended by CR": (b"P5\n#\r9000 9000 255\n1 1\n", "pgm"),
+    # OpenCV takes the byte after a number with it, "#" too: not 9000 x 1 (the next line)
+    "pgm 9000 x 9000, width ended by #": (b"P5\n9000#9000\n1\n", "pgm"),
+    # the height runs past the header's first 64 bytes: not 9000 x 9
+    "pgm 9000 x 9000, height past byte 64": (b"P5\n" + b" " * 55 + b"9000 9000 255\n", "pgm"),
     "webp 16383 x 16383": (b"RIFF\0\0\0\0WEBPVP8X" + bytes(8) + b"\xfe\x3f\0\xfe\x3f\0", "webp"),
 }
 
@@ -196,6 +202,135 @@ def test_headers_of_every_format_give_the_size(tmp_path):
     for ext in ("png", "jpg", "bmp", "ppm", "pgm", "webp", "tiff"):
         image = COLOUR[..., 0] if ext == "pgm" else COLOUR
         assert image_size(_written(tmp_path, f"f.{ext}", image))[:2] == (20, 12), ext
+
+
+PNM_LAYOUTS = {  # headers of a 20 x 12 PGM, each read by OpenCV as 20 x 12
+    "plain": b"P5\n20 12\n255\n",
+    "comment ended by CR": b"P5\n#\r20 12 255\n",
+    "comments ended by LF and CR": b"P5 20 12 #x\n#y\r255 ",
+    "width ended by #": b"P5\n20#12\n255\n",
+    "width ended by x": b"P5 20x12 255 ",
+    "VT, FF and CR as spaces": b"P5\n20\x0b12\x0c255\r",
+    "height past byte 64": b"P5\n" + b" " * 55 + b"20 12 255\n",
+}
+
+
+@pytest.mark.parametrize("layout", sorted(PNM_LAYOUTS))
+def test_a_pnm_header_gives_the_size_opencv_decodes(tmp_path, layout):
+    path = tmp_path / "f.pgm"
+    path.write_bytes(PNM_LAYOUTS[layout] + bytes(range(240)))
+    assert cv2.imread(str(path), cv2.IMREAD_UNCHANGED).shape == (12, 20)
+    assert image_size(path) == (20, 12, "PNM")
+
+
+def test_pnm_files_opencv_writes_give_their_size(tmp_path):
+    gray16 = COLOUR[..., 0].astype(np.uint16) * 257
+    for name, image in (("f.pbm", COLOUR[..., 0]), ("f.pgm", gray16), ("f.ppm", COLOUR)):
+        assert image_size(_written(tmp_path, name, image)) == (20, 12, "PNM"), name
+
+
+def _tiff(entries: list[tuple[int, int, int, bytes]], order: str = "<", tail: bytes = b"") -> bytes:
+    """A classic TIFF: its header, one IFD of (tag, type, count, value field) entries, `tail`."""
+    magic = b"II*\x00" if order == "<" else b"MM\x00*"
+    ifd = struct.pack(order + "H", len(entries)) + b"".join(
+        struct.pack(order + "HHI", tag, kind, count) + value.ljust(4, b"\x00")
+        for tag, kind, count, value in entries
+    )
+    return magic + struct.pack(order + "I", 8) + ifd + bytes(4) + tail
+
+
+Field = tuple[int, int, bytes]  # a TIFF IFD entry's type, count and value field
+
+
+def _gray_tiff(
+    width: list[Field], height: list[Field], order: str = "<", extra: bytes = b""
+) -> bytes:
+    """An 8-bit gray TIFF of 20 x 12 pixels: its ImageWidth and ImageLength entries `width` and
+    `height` (in that order, then 7 others), after the IFD `extra`, then the pixels' strip."""
+    long, short = (lambda v: struct.pack(order + "I", v)), (lambda v: struct.pack(order + "H", v))
+    rest = [(258, 3, 1, short(8)), (259, 3, 1, short(1)), (262, 3, 1, short(1))]
+    rest += [(273, 4, 1, b""), (277, 3, 1, short(1)), (278, 4, 1, long(12)), (279, 4, 1, long(240))]
+    entries = [(256, *e) for e in width] + [(257, *e) for e in height] + rest
+    strip = len(_tiff(entries, order)) + len(extra)
+    entries[len(width) + len(height) + 3] = (273, 4, 1, long(strip))
+    return _tiff(entries, order, extra + bytes(range(240)))
+
+
+@pytest.mark.parametrize("order", ["<", ">"])
+def test_tiff_sizes_as_one_short_or_long_are_read(tmp_path, order):
+    short, long = (lambda v: struct.pack(order + "H", v)), (lambda v: struct.pack(order + "I", v))
+    for kinds in ((3, 3), (4, 4), (3, 4)):
+        path = tmp_path / "f.tiff"
+        value = {3: short, 4: long}
+        width, height = (kinds[0], 1, value[kinds[0]](20)), (kinds[1], 1, value[kinds[1]](12))
+        path.write_bytes(_gray_tiff([width], [height], order))
+        assert cv2.imread(str(path), cv2.IMREAD_UNCHANGED).shape == (12, 20), kinds
+        assert image_size(path) == (20, 12, "TIFF"), kinds
+    for depth, image in (("16-bit gray", COLOUR[..., 0].astype(np.uint16) * 257), ("rgb", COLOUR)):
+        assert image_size(_written(tmp_path, "w.tiff", image)) == (20, 12, "TIFF"), depth
+
+
+@pytest.mark.parametrize("order", ["<", ">"])
+def test_a_tiff_naming_its_size_twice_is_refused(tmp_path, order):
+    long = lambda v: struct.pack(order + "I", v)  # noqa: E731
+    # libtiff (OpenCV) decodes the first, 9000 x 9000; the last says 16 x 16
+    path = tmp_path / "000000.tiff"
+    twice = [(4, 1, long(9000)), (4, 1, long(16))]
+    path.write_bytes(_gray_tiff(twice, twice, order))
+    with (
+        unchanged(tmp_path),
+        within(5),
+        pytest.raises(
+            ValueError, match=r"000000\.tiff: a TIFF header naming its ImageWidth \(256\) twice"
+        ),
+    ):
+        read_image(path)
+    path.write_bytes(_gray_tiff([(4, 1, long(20))], [(4, 1, long(9000)), (4, 1, long(12))], order))
+    with pytest.raises(ValueError, match=r"naming its ImageLength \(257\) twice.*; not decoded"):
+        check_frame(path)
+
+
+EXTRA = struct.pack("<I", 8 + 2 + 9 * 12 + 4)  # where `_gray_tiff`'s `extra` is, 1 size each
+BAD_SIZE_FIELDS = {  # (type, count, value field, what follows the IFD) of ImageWidth
+    # LONG8: libtiff reads 9000 from the 8 bytes at `EXTRA`; a 4-byte read took `EXTRA` (122)
+    "LONG8": (16, 1, EXTRA, struct.pack("<Q", 9000)),
+    "two LONGs": (4, 2, EXTRA, struct.pack("<II", 9000, 9000)),
+    "no SHORT": (3, 0, struct.pack("<H", 16), b""),
+    "BYTE": (1, 1, bytes([16]), b""),
+    "SLONG": (9, 1, struct.pack("<i", 16), b""),
+    "RATIONAL": (5, 1, EXTRA, struct.pack("<II", 9000, 1)),
+}
+
+
+@pytest.mark.parametrize("name", sorted(BAD_SIZE_FIELDS))
+def test_a_tiff_size_not_one_short_or_long_is_refused(tmp_path, name):
+    kind, count, value, extra = BAD_SIZE_FIELDS[name]
+    path = tmp_path / "000000.tiff"
+    path.write_bytes(
+        _gray_tiff([(kind, count, value)], [(4, 1, struct.pack("<I", 12))], "<", extra)
+    )
+    with (
+        unchanged(tmp_path),
+        within(5),
+        pytest.raises(
+            ValueError,
+            match=rf"000000\.tiff: a TIFF header whose ImageWidth \(256\) is {count} value\(s\) "
+            rf"of type {kind}; a size must be one SHORT \(3\) or LONG \(4\); not decoded",
+        ),
+    ):
+        read_image(path)
+
+
+def test_a_bigtiff_is_refused_naming_it(tmp_path):
+    path = tmp_path / "000000.tiff"
+    # BigTIFF: version 43, 8-byte offsets; one IFD of 20-byte entries: ImageWidth, ImageLength
+    entries = b"".join(struct.pack("<HHQQ", tag, 16, 1, 9000) for tag in (256, 257))
+    path.write_bytes(b"II+\x00" + struct.pack("<HHQ", 8, 0, 16) + struct.pack("<Q", 2) + entries)
+    with unchanged(tmp_path), pytest.raises(ValueError, match=r"000000\.tiff: a BigTIFF"):
+        read_image(path)
+    path.write_bytes(b"MM\x00+" + bytes(12))
+    with pytest.raises(ValueError, match=r"000000\.tiff: a BigTIFF .*; not decoded"):
+        check_frame(path)
 
 
 def test_an_unknown_format_a_named_pipe_or_a_directory_is_refused(tmp_path):

@@ -4,12 +4,14 @@ A frame of 30000 x 30000 pixels is under a megabyte as a PNG and several gigabyt
 every frame's width and height are read from its header first and checked against
 `MAX_PIXELS` (`check_frame`). The readers take a few bytes from the file's start (JPEG: they walk
 its segment headers, skipping each segment's body), from a regular file only. Formats:
-PNG, JPEG, BMP, PNM (PBM, PGM, PPM), WebP and TIFF; any other is refused, naming the file.
+PNG, JPEG, BMP, PNM (PBM, PGM, PPM), WebP and TIFF (not BigTIFF); any other is refused, naming the
+file, and so is a header OpenCV may read another size from (a TIFF naming its size twice).
 """
 
 from __future__ import annotations
 
 import os
+import re
 import stat
 import struct
 from pathlib import Path
@@ -20,6 +22,19 @@ __all__ = ["MAX_PIXELS", "check_frame", "image_size"]
 MAX_PIXELS = 2**26  # 67 Mpx: an 8K x 8K frame; 16-bit RGB, 400 MB decoded
 _JPEG_FRAMES = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
 _MAX_JPEG_SEGMENTS = 4096
+# PNM as OpenCV's PxM reader reads it: "P1".."P6", a whitespace byte, then width and height, each
+# a run of digits ended by one byte of any other kind (taken with it: "20x12" is 20 x 12), before
+# each any whitespace and "#" comments, which end at "\n" or "\r".
+_PNM_GAP = rb"(?:[ \t\n\v\f\r]|#[^\r\n]*[\r\n])*"
+_PNM_SIZE = re.compile(
+    rb"P[1-6](?=[ \t\n\v\f\r])" + _PNM_GAP + rb"(\d+)\D" + _PNM_GAP + rb"(\d+)\D"
+)
+_PNM_HEADER_BYTES = 4096  # a header longer than this (long comments) is refused, not guessed
+_TIFF_SIZE_TAGS = {256: "ImageWidth", 257: "ImageLength"}
+
+
+class _Refused(ValueError):
+    """A header that names a size other readers may not read the same way: refused, not guessed."""
 
 
 def _png(f: BinaryIO, head: bytes) -> tuple[int, int] | None:
@@ -69,15 +84,9 @@ def _bmp(f: BinaryIO, head: bytes) -> tuple[int, int] | None:
 def _pnm(f: BinaryIO, head: bytes) -> tuple[int, int] | None:
     if len(head) < 3 or head[0:1] != b"P" or head[1:2] not in b"123456":
         return None
-    words: list[bytes] = []
-    for line in head[2:].split(b"\n"):
-        words += line.split(b"#", 1)[0].split()
-        if len(words) >= 2:
-            break
-    try:
-        return int(words[0]), int(words[1])
-    except (IndexError, ValueError):
-        return None
+    f.seek(0)
+    match = _PNM_SIZE.match(f.read(_PNM_HEADER_BYTES))  # a number cut off at the end: no match
+    return (int(match[1]), int(match[2])) if match else None
 
 
 def _webp(f: BinaryIO, head: bytes) -> tuple[int, int] | None:
@@ -96,6 +105,8 @@ def _webp(f: BinaryIO, head: bytes) -> tuple[int, int] | None:
 
 
 def _tiff(f: BinaryIO, head: bytes) -> tuple[int, int] | None:
+    if head[:4] in (b"II+\x00", b"MM\x00+"):
+        raise _Refused("a BigTIFF (64-bit offsets), not read here: only classic TIFF headers are")
     order = {b"II*\x00": "<", b"MM\x00*": ">"}.get(head[:4])
     if order is None:
         return None
@@ -110,10 +121,19 @@ def _tiff(f: BinaryIO, head: bytes) -> tuple[int, int] | None:
         entry = f.read(12)
         if len(entry) < 12:
             break
-        tag, kind = struct.unpack(order + "HH", entry[:4])
-        if tag in (256, 257):
-            fmt = order + ("H" if kind == 3 else "I")
-            size[tag] = struct.unpack(fmt, entry[8:10] if kind == 3 else entry[8:12])[0]
+        tag, kind, n = struct.unpack(order + "HHI", entry[:8])
+        if tag not in _TIFF_SIZE_TAGS:
+            continue
+        name = f"{_TIFF_SIZE_TAGS[tag]} ({tag})"
+        if tag in size:  # libtiff takes the first, other readers the last
+            raise _Refused(f"a TIFF header naming its {name} twice: its size is ambiguous")
+        if kind not in (3, 4) or n != 1:  # libtiff also reads LONG8 (16), from another offset
+            raise _Refused(
+                f"a TIFF header whose {name} is {n} value(s) of type {kind}; "
+                "a size must be one SHORT (3) or LONG (4)"
+            )
+        fmt, value = (order + "H", entry[8:10]) if kind == 3 else (order + "I", entry[8:12])
+        size[tag] = struct.unpack(fmt, value)[0]
     if 256 in size and 257 in size:
         return size[256], size[257]
     return None
@@ -128,7 +148,8 @@ def image_size(path: str | os.PathLike) -> tuple[int, int, str]:
     Raises:
         FileNotFoundError: no such file.
         ValueError: naming the file: not a regular file, or not an image in one of the formats
-            read here (or a header too damaged to give a size).
+            read here (or a header too damaged to give a size), or a header whose size OpenCV may
+            read otherwise (a TIFF naming its size twice, or not as one SHORT or LONG; a BigTIFF).
     """
     path = Path(path)
     flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
@@ -145,6 +166,8 @@ def image_size(path: str | os.PathLike) -> tuple[int, int, str]:
             f.seek(0)
             try:
                 size = reader(f, head)
+            except _Refused as refused:
+                raise ValueError(f"{path}: {refused}; not decoded") from None
             except (struct.error, OSError, ValueError):
                 size = None
             if size is not None:
