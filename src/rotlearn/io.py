@@ -391,6 +391,9 @@ def read_cached_array(
         array = np.load(path, mmap_mode="r", allow_pickle=False)
     except (OSError, ValueError):
         return None
+    if not isinstance(array, np.ndarray):  # an .npz archive (np.load's NpzFile)
+        array.close()
+        return None
     fits = array.dtype == np.dtype(dtype) and array.ndim == len(shape)
     if not fits or any(n is not None and n != m for n, m in zip(shape, array.shape, strict=True)):
         return None
@@ -630,11 +633,15 @@ def strict_int(text: str, where: str) -> int:
     """`text` as an integer: optional sign and ASCII digits only (no "1.5", "1e9", "1_000").
 
     Raises:
-        ValueError: "<where>: not an integer: ...".
+        ValueError: "<where>: not an integer: ...", also for more digits than Python converts
+            (`sys.get_int_max_str_digits`, 4300), whose own error names no file.
     """
     if not _INT.fullmatch(text):
         raise ValueError(f"{where}: not an integer: {text!r}")
-    return int(text)
+    try:
+        return int(text)
+    except ValueError:
+        raise ValueError(f"{where}: not an integer: {len(text)} digits, too many") from None
 
 
 def parse_number_rows(

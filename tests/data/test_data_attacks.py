@@ -9,6 +9,7 @@ and line (or frame, or the config key), and that nothing was written outside the
 from __future__ import annotations
 
 import math
+import re
 import shutil
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -188,6 +189,35 @@ def test_kitti_symlinked_frame_outside_the_root_is_refused(demo_data, tmp_path):
     refuses(lambda: kitti(root, cache), tmp_path, cache, ValueError, pattern)
 
 
+@pytest.mark.parametrize(
+    ("rename", "first"),
+    [
+        ({f"{i:06d}.png": f"{i}.png" for i in range(10)}, "0.png"),  # sorted: 0, 1, 10, 2, ...
+        ({"000004.png": None, "000009.png": "000010.png"}, "000010.png"),  # 000004 missing
+        ({"000003.png": "000003 (copy).png"}, "000003 (copy).png"),
+        ({"000002.png": "0000002.png"}, "0000002.png"),
+    ],
+    ids=["unpadded", "gap", "copy", "seven-digits"],
+)
+def test_kitti_frames_must_be_named_by_their_zero_padded_index(demo_data, tmp_path, rename, first):
+    """Frames are paired with pose lines in name order: 0.png ... 11.png used to sort as 0, 1,
+    10, 11, 2, ... and silently take the wrong poses."""
+    root, cache = copy_demo(demo_data, "kitti", tmp_path), tmp_path / "cache"
+    folder = root / "sequences" / "00" / "image_2"
+    for old, new in rename.items():
+        if new is None:
+            (folder / old).unlink()
+        else:
+            (folder / old).rename(folder / new)
+    count = len(list(folder.glob("*.png")))
+    poses = root / "poses" / "00.txt"
+    poses.write_text("\n".join(poses.read_text().splitlines()[:count]) + "\n")  # one per frame
+    pattern = rf"sequence 00: .*image_2/{re.escape(first)} is not named as a frame: "
+    message = str(refuses(lambda: kitti(root, cache), tmp_path, cache, ValueError, pattern))
+    assert f"{folder / first} is not named" in message
+    assert f"must be 000000.png to {count - 1:06d}.png" in message
+
+
 # ---- MAV ----------------------------------------------------------------------------------------
 
 
@@ -277,6 +307,54 @@ def test_mav_non_integer_pair_index_names_the_line(demo_data, tmp_path):
     refuses(lambda: mav(root, cache), tmp_path, cache, ValueError, pattern)
 
 
+BEYOND_INT64 = "99999999999999999999"  # > 2^63 - 1: numpy's int64 used to raise OverflowError
+
+
+@pytest.mark.parametrize(
+    ("file", "lineno", "make_line", "pattern"),
+    [
+        ("flea3/data.csv", 3, lambda line: f"{BEYOND_INT64},{line.split(',')[1]}",
+         rf"time stamp {BEYOND_INT64} is out of range"),
+        ("pose/data.csv", 6, lambda line: BEYOND_INT64 + line[line.index(","):],
+         rf"time stamp {BEYOND_INT64} is out of range"),
+        ("pose/data.csv", 2, lambda line: f"{-(2**63)}" + line[line.index(","):],
+         rf"time stamp {-(2**63)} is out of range \(integer ns since the epoch"),
+        ("flea3/data.csv", 3, lambda line: f"-1,{line.split(',')[1]}",
+         r"time stamp -1 is out of range"),
+        ("pose/data.csv", 4, lambda line: "9" * 5000 + line[line.index(","):],
+         r"not an integer: 5000 digits"),  # past Python's int(str) limit (4300 digits)
+        ("pairs/outdoor.csv", 2, lambda line: f"0,{BEYOND_INT64}",
+         rf"frame {BEYOND_INT64} does not exist \(flea3/data\.csv lists 40 frames"),
+        ("pairs/outdoor.csv", 2, lambda line: f"-{BEYOND_INT64},1",
+         rf"frame -{BEYOND_INT64} does not exist"),
+    ],
+    ids=["frame-beyond-int64", "pose-beyond-int64", "pose-int64-min", "negative-frame",
+         "5000-digits", "pair-beyond-int64", "pair-below-int64"],
+)  # fmt: skip
+def test_mav_integers_out_of_range_name_the_file_and_line(
+    demo_data, tmp_path, file, lineno, make_line, pattern
+):
+    """Time stamps are ns since the epoch, 0 to 2^63 - 1; pair indices name frames."""
+    root, cache = copy_demo(demo_data, "mav", tmp_path), tmp_path / "cache"
+    path = root / file
+    set_line(path, lineno, make_line(path.read_text().splitlines()[lineno - 1]))
+    error = refuses(lambda: mav(root, cache), tmp_path, cache, ValueError, pattern)
+    assert str(error).startswith(f"{path}:{lineno}: ")
+
+
+def test_mav_a_pose_292_years_away_is_not_within_the_tolerance():
+    """|0 - (-2^63)| wrapped around in int64 to -2^63 ns, "within 30 ms": a planted pose won."""
+    from rotlearn.data import match_poses
+
+    lowest, highest = -(2**63), 2**63 - 1
+    poses = np.array([lowest, 900_000_000], dtype=np.int64)
+    nearest, gaps = match_poses(np.array([0, lowest], dtype=np.int64), poses)
+    assert nearest.tolist() == [1, 0] and gaps.tolist() == [900_000_000, 0]
+    nearest, gaps = match_poses(np.array([highest], dtype=np.int64), poses[:1])
+    assert nearest.tolist() == [0] and gaps.tolist() == [highest]  # 2^64 - 1 ns, saturated
+    assert gaps.dtype == np.int64
+
+
 @pytest.mark.parametrize("key", ["train_scenes", "test_scenes"])
 def test_mav_scene_names_cannot_leave_the_root(demo_data, tmp_path, key):
     root, cache = copy_demo(demo_data, "mav", tmp_path), tmp_path / "cache"
@@ -345,8 +423,19 @@ CUBE_VERTICES = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n"
         (b"v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n", r": the mesh's total area is 0\.0"),
         (b"v 0 0 0\nv 1 0 0\n# x\nv nan 1 0\nf 1 2 3\n", r":4: not finite \(v x y z\)"),
         (b"v 0 0 0\nv 1 0 0\nv 0 1e999 0\nf 1 2 3\n", r":3: not finite \(v x y z\)"),
+        # finite in float64, sampled into float32 clouds of inf points
+        (b"v 0 0 0\nv 1 0 0\nv 0 1e39 0\nf 1 2 3\n", r":3: not finite \(v x y z\).*float32"),
     ],
-    ids=["binary", "text", "no-faces", "bad-index", "zero-area", "nan-vertex", "inf-vertex"],
+    ids=[
+        "binary",
+        "text",
+        "no-faces",
+        "bad-index",
+        "zero-area",
+        "nan-vertex",
+        "inf-vertex",
+        "float32-overflow-vertex",
+    ],
 )
 def test_bad_meshes_are_refused_naming_the_file(demo_data, tmp_path, content, pattern):
     root, cache = copy_demo(demo_data, "mesh", tmp_path), tmp_path / "cache"

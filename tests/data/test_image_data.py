@@ -134,6 +134,43 @@ def test_a_changed_frame_rebuilds_the_cache(tmp_path):
     assert not np.load(dm.sets["test"].index.caches[0])[1].any()
 
 
+@pytest.mark.parametrize("shipped", ["frames of another size", "an npz archive"])
+def test_a_shipped_cache_that_does_not_hold_the_recipes_frames_is_rebuilt(tmp_path, shipped):
+    """A cache whose manifest matches was reused if its frames were square, of any size (a
+    sparse file of 6000 x 6000 frames beside image_size=8 made one batch 432 MB), and an `.npz`
+    in its place raised a bare AttributeError."""
+    root = write_kitti(tmp_path, {"00": yaw_sequence(4, 1.0), "01": yaw_sequence(3, 1.0)})
+    kitti_module(root).setup()
+    npy = root / ".rotlearn_cache" / "00_image_2_8.npy"
+    genuine = np.load(npy).copy()
+    with npy.open("wb") as f:
+        if shipped == "an npz archive":
+            np.savez(f, frames=genuine)
+        else:
+            np.save(f, np.zeros((len(genuine), 3, 16, 16), np.uint8))
+    dm = kitti_module(root)
+    dm.setup()
+    assert dm.pair_shape() == (6, 8, 8)
+    np.testing.assert_array_equal(np.load(npy), genuine)
+
+
+def test_a_thin_frame_is_refused_before_it_is_resized(tmp_path, monkeypatch):
+    """MAV's resize scales the shorter side up to `resize` before cropping: frames of 1 x 8000
+    pixels (8 kB each) took 1.5 GB and 25 s for 12 frames, and one of 1 x 1,000,000 a raw
+    cv2.error. A resized frame over the pixel budget is refused, naming the file."""
+    from rotlearn.data import images
+
+    monkeypatch.setattr(images, "MAX_PIXELS", 10_000)  # the same rule at a test's scale
+    root = write_mav(tmp_path)
+    for frame in (root / "flea3" / "data").glob("*.png"):
+        cv2.imwrite(str(frame), np.zeros((1, 400), np.uint8))
+    with pytest.raises(ValueError, match=r"data/\d+\.png: frame 0: a 400x1 frame resized to "
+                       r"4000x10 is over the pixel budget \(10000 pixels\)$"):  # fmt: skip
+        mav_module(root).setup()
+    assert not list((root / ".rotlearn_cache").glob("*.npy"))
+    assert images.resize_center_crop(np.zeros((20, 26), np.uint8), 10, 8).shape == (8, 8)
+
+
 # -- KITTI bad input ---------------------------------------------------------------------------
 
 

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rotlearn.data.image_header import check_frame
+from rotlearn.data.image_header import MAX_PIXELS, check_frame
 from rotlearn.extras import import_extra
 from rotlearn.io import atomic_write, read_cached_array, read_manifest, write_text_atomic
 
@@ -106,12 +106,16 @@ def resize_square(image: np.ndarray, size: int) -> np.ndarray:
 
 def resize_center_crop(image: np.ndarray, resize: int, crop: int) -> np.ndarray:
     """MAV (paper section VI-D): the shorter side to `resize` (aspect kept), then the central
-    crop x crop window, as torchvision's Resize(resize) -> CenterCrop(crop)."""
+    crop x crop window, as torchvision's Resize(resize) -> CenterCrop(crop). ValueError where
+    the resized frame would be over `MAX_PIXELS` (a thin frame, its shorter side scaled up)."""
     cv2 = import_extra("cv2", "reading and resizing images")
 
     height, width = image.shape[:2]
     scale = resize / min(height, width)
     new_w, new_h = max(crop, round(width * scale)), max(crop, round(height * scale))
+    if new_w * new_h > MAX_PIXELS:  # a thin frame: its shorter side scaled up
+        raise ValueError(f"a {width}x{height} frame resized to {new_w}x{new_h} is over the pixel "
+                         f"budget ({MAX_PIXELS} pixels)")  # fmt: skip
     resized = cv2.resize(image, (new_w, new_h), interpolation=cv2.INTER_AREA)
     top, left = round((new_h - crop) / 2), round((new_w - crop) / 2)
     return resized[top : top + crop, left : left + crop]
@@ -155,6 +159,7 @@ def frame_cache(
     cache: Path,
     preprocess: Preprocess,
     recipe: dict,
+    size: int,
     gray: bool = False,
     desc: str = "caching frames",
 ) -> np.ndarray:
@@ -163,7 +168,9 @@ def frame_cache(
     Args:
         files: image files, in order.
         cache: path stem of the cache; `.npy` and `.json` are added.
-        preprocess: (H, W[, 3]) uint8 -> (S, S[, 3]) uint8, the same S for every frame.
+        preprocess: (H, W[, 3]) uint8 -> (S, S[, 3]) uint8.
+        size: S, the side of every preprocessed frame (a cache of frames of another size is
+            rebuilt, whatever its manifest says).
         recipe: JSON-able description of `preprocess` (a different recipe rebuilds the cache).
         gray: decode as one channel (C = 1) instead of RGB (C = 3).
         desc: the progress bar's label.
@@ -177,8 +184,8 @@ def frame_cache(
     array_path, manifest_path = cache.with_suffix(".npy"), cache.with_suffix(".json")
     manifest = _manifest(files, {**recipe, "gray": gray, "decoder": DECODER})
     if read_manifest(manifest_path) == manifest:
-        cached = read_cached_array(array_path, np.uint8, (len(files), 1 if gray else 3, None, None))
-        if cached is not None and cached.shape[2] == cached.shape[3]:
+        cached = read_cached_array(array_path, np.uint8, (len(files), 1 if gray else 3, size, size))
+        if cached is not None:
             return cached
     from tqdm import tqdm
 
@@ -194,7 +201,10 @@ def frame_cache(
                     f"{path}: frame {i} holds {kind}, but frame 0 ({files[0].name}) holds "
                     f"{depth}: the frames of one sequence must share one bit depth"
                 )
-            frame = preprocess(image)
+            try:
+                frame = preprocess(image)
+            except ValueError as exc:
+                raise ValueError(f"{path}: frame {i}: {exc}") from None
             frame = frame[None] if gray else frame.transpose(2, 0, 1)
             if out is None:
                 out = np.lib.format.open_memmap(

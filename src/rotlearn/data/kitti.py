@@ -2,7 +2,8 @@
 
 Layout: `<root>/sequences/<XX>/image_2/<frame>.png` (left colour camera; `image_0` is the left gray
 one, read as three equal channels) and `<root>/poses/<XX>.txt`, one line per frame holding the
-row-major 3x4 camera-to-world matrix [R | t] (12 numbers).
+row-major 3x4 camera-to-world matrix [R | t] (12 numbers). The frames are named as KITTI's are,
+by their 6-digit zero-padded index, 000000.png to (N - 1); frame i takes line i + 1 of the poses.
 
 The pair (i, i + delta) has the target C_21 = R_{i+delta}^T R_i, the rotation part of
 T_21 = T_w(i+delta)^-1 T_wi: it maps camera-i coordinates to camera-(i+delta) coordinates
@@ -166,17 +167,35 @@ class KittiOdometryDataModule(ImagePairDataModule):
         return path
 
     def frames(self, sequence: str) -> list[Path]:
-        """The image files of a sequence, in order, each checked to lie inside data.root."""
+        """The image files of a sequence, in order, each checked to lie inside data.root.
+
+        Raises:
+            FileNotFoundError: no such folder, or no .png file in it.
+            ValueError: naming the folder and the first file whose name is not a frame index,
+                when the N .png files are not exactly 000000.png to (N - 1): a name sorted as
+                text (0.png, 1.png, 10.png, 2.png, ...) or a missing frame would pair frames
+                with the wrong pose lines.
+        """
         folder = self._inside(self.root / "sequences" / sequence / self.camera, sequence)
         if not folder.is_dir():
             raise FileNotFoundError(
                 f"sequence {sequence}: no directory {folder} (data.root={self.root}, "
                 f"data.camera={self.camera}; see data/README.md)"
             )
-        files = sorted(folder.glob("*.png"))
-        if not files:
+        names = {f.name for f in folder.glob("*.png")}
+        if not names:
             raise FileNotFoundError(f"sequence {sequence}: no .png frames in {folder}")
-        return [self._inside(f, sequence) for f in files]
+        expected = [f"{i:06d}.png" for i in range(len(names))]
+        odd = sorted(names.difference(expected))
+        if odd:
+            missing = next(name for name in expected if name not in names)
+            raise ValueError(
+                f"sequence {sequence}: {folder / odd[0]} is not named as a frame: the "
+                f"{len(names)} .png files of {folder} must be 000000.png to {expected[-1]} "
+                f"(KITTI's zero-padded frame indices, frame i for pose line i + 1; "
+                f"{missing} is missing); {len(odd)} such file(s) in all"
+            )
+        return [self._inside(folder / name, sequence) for name in expected]
 
     def sequence_pairs(self, sequence: str, deltas: Sequence[int] | None = None) -> PairIndex:
         """The pairs (i, i + d) of one sequence for each d of `deltas` (None: `delta`), in that
@@ -207,6 +226,7 @@ class KittiOdometryDataModule(ImagePairDataModule):
             cache,
             self.preprocess,
             {"resize_square": self.image_size},
+            self.image_size,
             desc=f"caching KITTI {sequence}/{self.camera}",
         )
         first = np.concatenate([np.arange(len(files) - d) for d in deltas])

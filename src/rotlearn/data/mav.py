@@ -9,7 +9,9 @@ Layout (EuRoC-like):
 - `<root>/pairs/<scene>.csv`: headerless `id1,id2` rows, 0-based indices into the frame rows of
   `flea3/data.csv`; scenes `outdoor`, `indoor`, `transition`.
 
-Each frame takes the pose nearest in time, which must lie within `pose_tolerance_ms` (30 ms).
+Time stamps are integer nanoseconds since the epoch, as EuRoC's: 0 to 2^63 - 1 (int64), so that
+no difference of two wraps around. Each frame takes the pose nearest in time, which must lie within
+`pose_tolerance_ms` (30 ms).
 A pair's target is C_21 = R_2^T R_1, as for KITTI (`rotlearn.geometry.relative_rotation`). Frames
 go through Resize(256) -> CenterCrop(224) (cached once as uint8) and Normalize(0.45, 0.25); the
 two gray frames of a pair are stacked as 2 channels. A seeded random `test_fraction` of each
@@ -47,6 +49,29 @@ if TYPE_CHECKING:  # constraints of the config values, checked by rotlearn.confi
 
 __all__ = ["MAVDataModule", "match_poses", "read_frame_list", "read_pair_file", "read_pose_file"]
 
+INT64_MAX = int(np.iinfo(np.int64).max)  # 2^63 - 1: the largest time stamp or frame index read
+
+
+def _shown(text: str) -> str:
+    """`text` for a message, cut to 24 characters (an integer field can be thousands of digits)."""
+    return text if len(text) <= 24 else f"{text[:20]}... ({len(text)} characters)"
+
+
+def _time_stamp(text: str, where: str) -> int:
+    """`text` as a time stamp: integer nanoseconds since the epoch, 0 to 2^63 - 1.
+
+    Raises:
+        ValueError: "<where>: ..." for a word that is not an integer (`strict_int`) or is out of
+            that range: a negative stamp, or one beyond int64 (whose differences would wrap).
+    """
+    stamp = strict_int(text, where)
+    if not 0 <= stamp <= INT64_MAX:
+        raise ValueError(
+            f"{where}: time stamp {_shown(text)} is out of range (integer ns since the epoch, "
+            "0 to 2^63 - 1)"
+        )
+    return stamp
+
 
 def _rows(path: Path, columns: int | None = None, min_columns: int = 1):
     """(line number, fields) of a CSV file's rows, skipping blank lines and `#` comments; the
@@ -70,14 +95,14 @@ def read_frame_list(path: str | Path) -> tuple[np.ndarray, list[str], np.ndarray
     """Frames of `flea3/data.csv`: timestamps (N,) int64 ns, file names, and line numbers (N,).
 
     Raises:
-        ValueError: naming the file and line of a row that is not "integer,filename", or whose
-            file name is not a plain name (a path separator, "." or "..": it could leave
-            `flea3/data`).
+        ValueError: naming the file and line of a row that is not "integer,filename", whose
+            time stamp is negative or beyond int64, or whose file name is not a plain name (a
+            path separator, "." or "..": it could leave `flea3/data`).
     """
     path = Path(path)
     stamps, names, lines = [], [], []
     for lineno, (stamp, name) in _rows(path, columns=2):
-        stamps.append(strict_int(stamp, f"{path}:{lineno}"))
+        stamps.append(_time_stamp(stamp, f"{path}:{lineno}"))
         names.append(plain_name(name, f"{path}:{lineno}"))
         lines.append(lineno)
     if not stamps:
@@ -90,15 +115,15 @@ def read_pose_file(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     converted to rotlearn's (x, y, z, w) from the file's trailing qw, qx, qy, qz columns.
 
     Raises:
-        ValueError: naming the file and line of a row whose time stamp is not an integer, whose
-            quaternion is not four finite numbers or is not unit (to 10 %), or whose time stamp
-            repeats another row's with another orientation (a repeat of the same pose is kept
-            once).
+        ValueError: naming the file and line of a row whose time stamp is not an integer from 0
+            to 2^63 - 1, whose quaternion is not four finite numbers or is not unit (to 10 %),
+            or whose time stamp repeats another row's with another orientation (a repeat of the
+            same pose is kept once).
     """
     path = Path(path)
     stamps, quats, lines = [], [], []
     for lineno, fields in _rows(path, min_columns=5):
-        stamps.append(strict_int(fields[0], f"{path}:{lineno}"))
+        stamps.append(_time_stamp(fields[0], f"{path}:{lineno}"))
         try:
             quats.append([float(f) for f in fields[-4:]])
         except ValueError:
@@ -146,16 +171,27 @@ def match_poses(frame_stamps: np.ndarray, pose_stamps: np.ndarray) -> tuple[np.n
         pose_stamps: (M,) int64 ns, sorted.
 
     Returns:
-        (N,) int64 pose indices and (N,) int64 absolute gaps |t_pose - t_frame|.
+        (N,) int64 pose indices and (N,) int64 absolute gaps |t_pose - t_frame|, exact (never
+        wrapped around, as a plain int64 difference of stamps 2^63 apart is), those beyond
+        2^63 - 1 ns (292 years) saturated to 2^63 - 1.
     """
+    frame_stamps = np.asarray(frame_stamps, dtype=np.int64)
+    pose_stamps = np.asarray(pose_stamps, dtype=np.int64)
     right = np.searchsorted(pose_stamps, frame_stamps).clip(1, len(pose_stamps) - 1)
     left = right - 1
     if len(pose_stamps) == 1:
         left = right = np.zeros_like(frame_stamps)
-    gap_left = np.abs(frame_stamps - pose_stamps[left])
-    gap_right = np.abs(pose_stamps[right] - frame_stamps)
+    gap_left = _abs_difference(frame_stamps, pose_stamps[left])
+    gap_right = _abs_difference(pose_stamps[right], frame_stamps)
     nearest = np.where(gap_right < gap_left, right, left)
-    return nearest, np.minimum(gap_left, gap_right)
+    gaps = np.minimum(np.minimum(gap_left, gap_right), np.uint64(INT64_MAX))
+    return nearest, gaps.astype(np.int64)
+
+
+def _abs_difference(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """|a - b| of int64 arrays as uint64, exact: the larger minus the smaller, each taken modulo
+    2^64, is the true difference (0 to 2^64 - 1), which an int64 subtraction can wrap."""
+    return np.maximum(a, b).astype(np.uint64) - np.minimum(a, b).astype(np.uint64)
 
 
 def read_pair_file(
@@ -164,12 +200,20 @@ def read_pair_file(
     """Pairs of a headerless `id1,id2` file as (P, 2) int64.
 
     Raises:
-        ValueError: naming the file and line of a pair that refers to a frame that does not exist.
+        ValueError: naming the file and line of a pair that refers to a frame that does not exist
+            (also an index beyond int64: refused as it is read).
     """
     path = Path(path)
     pairs, lines = [], []
     for lineno, fields in _rows(path, columns=2):
-        pairs.append([strict_int(f, f"{path}:{lineno}") for f in fields])
+        pair = [strict_int(f, f"{path}:{lineno}") for f in fields]
+        for text, i in zip(fields, pair, strict=True):
+            if not -INT64_MAX - 1 <= i <= INT64_MAX:
+                raise ValueError(
+                    f"{path}:{lineno}: frame {_shown(text)} does not exist ({frame_list} lists "
+                    f"{num_frames} frames, 0 to {num_frames - 1})"
+                )
+        pairs.append(pair)
         lines.append(lineno)
     if not pairs:
         raise ValueError(f"{path}: no pairs")
@@ -280,6 +324,7 @@ class MAVDataModule(ImagePairDataModule):
                 cache,
                 self.preprocess,
                 {"resize": self.resize, "center_crop": self.image_size},
+                self.image_size,
                 gray=True,
                 desc="caching MAV frames",
             )

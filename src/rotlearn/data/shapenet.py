@@ -75,12 +75,13 @@ def read_point_file(path: str | os.PathLike) -> np.ndarray:
 
 
 def _obj_vertices(path: Path, text: str) -> np.ndarray:
-    """The "v x y z" rows of an OBJ file's `text`, (V, 3) float64, checked to be finite numbers
-    (`rotlearn.io.parse_number_rows` names the line at fault); the lines are read a block at a
+    """The "v x y z" rows of an OBJ file's `text`, (V, 3) float32 (the clouds' dtype), checked to
+    be finite there (`rotlearn.io.parse_number_rows` names the line at fault: a vertex of 1e39
+    is finite in float64 and sampled into inf points); the lines are read a block at a
     time and each row's words dropped once parsed (`rotlearn.io.word_rows`), so a file of short
     lines costs a few times its size, not a string per line."""
     rows = ((lineno, words[1:]) for lineno, words in word_rows(text) if words[0] == "v")
-    return parse_number_rows(rows, str(path), 3, "v x y z", extra_ok=True)
+    return parse_number_rows(rows, str(path), 3, "v x y z", extra_ok=True, dtype=np.float32)
 
 
 def _parse_obj(path: Path, text: str):
@@ -108,9 +109,9 @@ def _parse_obj(path: Path, text: str):
 def read_mesh(path: str | os.PathLike):
     """A mesh file (OBJ, UTF-8 text) as a trimesh.Trimesh, checked for sampling.
 
-    Checked: UTF-8 text; every "v" line three finite numbers; trimesh parses it to a triangle
-    mesh; at least one face, every face index a vertex; every vertex finite; a positive, finite
-    total area.
+    Checked: UTF-8 text; every "v" line three numbers, finite in float32; trimesh parses it to a
+    triangle mesh; at least one face, every face index a vertex; every vertex finite; a
+    positive, finite total area.
 
     Raises:
         FileNotFoundError: no such file.
