@@ -90,15 +90,20 @@ with torch.no_grad():
     q = layer()
     torch.set_num_threads(1)
     q_ref = layer()
-_, V = torch.linalg.eigh(a_from_vec(theta).double().cpu())
-d = torch.linalg.matrix_norm(quat_to_rotmat(q.double().cpu()) - quat_to_rotmat(V[..., 0]))
+L, V = torch.linalg.eigh(a_from_vec(theta).double().cpu())
+separated = (L[:, 1] - L[:, 0]) >= 0.01 * (L[:, 3] - L[:, 0])  # where the bound is documented
+q_sep = q.cpu()[separated]
+d = torch.linalg.matrix_norm(quat_to_rotmat(q_sep.double()) - quat_to_rotmat(V[separated][..., 0]))
 deg = torch.rad2deg(2 * torch.asin((d / (2 * math.sqrt(2))).clamp(max=1)))
 print(json.dumps({"bitwise": bool(torch.equal(q, q_ref)), "max_deg": deg.max().item(),
                   "over_1e-3": int((deg > 1e-3).sum())}))
 """
 PROCESSES = 12
-# sym4_eigh_min's documented angle bound (float32, well-separated spectra; these Gaussian matrices'
-# worst case is 6e-4 deg for float32 eigh); float64 is far below it.
+# sym4_eigh_min's documented angle bound (float32, spectra with l2 - l1 >= 0.01 (l4 - l1): 4095 of
+# these 4096 Gaussian matrices, worst case 6e-4 deg on the eigh path, 9e-4 deg for float32
+# torch.linalg.eigh; the other one has l2 - l1 = 4e-3 (l4 - l1), where q's error, ~eps (l4 - l1) /
+# (l2 - l1), may exceed the bound: with seeds 8 and 9, up to 3e-3 deg on the eigh path, 6e-3 deg
+# for torch.linalg.eigh itself); float64 is far below it.
 BOUND_DEG = 1e-3
 
 

@@ -53,6 +53,7 @@ def _constants(dtype: torch.dtype, device: torch.device) -> dict[str, Tensor]:
         "tiny": torch.tensor(torch.finfo(dtype).tiny, dtype=dtype, device=device),
         "zero": torch.zeros((), dtype=dtype, device=device),
         "one": torch.ones((), dtype=dtype, device=device),
+        "eye": torch.eye(4, dtype=dtype, device=device),
         "sign_weights": torch.tensor([[8.0, 4.0, 2.0, 16.0]], dtype=dtype, device=device),
         "upper": torch.tensor(UPPER, device=device),
         "first_entries": torch.tensor([0, 12, 6, 18, 1, 13, 5, 17], device=device),
@@ -166,20 +167,48 @@ def canonical_sign(q: Tensor) -> Tensor:
     return torch.sign(key)
 
 
+def _pow2(k: Tensor, dtype: torch.dtype) -> Tensor:
+    """2^k for integer k (int32) in the normal range of dtype, exactly (built from its bits)."""
+    if dtype == torch.float64:
+        return k.to(torch.int64).add_(1023).bitwise_left_shift_(52).view(torch.float64)
+    return k.add(127).bitwise_left_shift_(23).view(torch.float32)
+
+
+def _scale(S: Tensor) -> tuple[Tensor, Tensor]:
+    """Scale S (10, b) in place by the power of two that puts each column's largest |entry| in
+    [0.5, 1) (exact; as the C kernel's `scale`), and return the two factors (b,) that undo it, to
+    be applied in turn (the second first).
+
+    The factor 2^k is applied as 2^k1 2^k2, both normal numbers: 2^k itself overflows for a
+    subnormal largest entry (k > BIAS - 1), and 2^-k is no normal number for a huge one.
+    """
+    bias = 1023 if S.dtype == torch.float64 else 127  # the exponent bias
+    _, e = torch.frexp(S.abs().amax(0))  # max = f 2^e, f in [0.5, 1); e = 0 for max = 0
+    k = e.neg_()
+    k1 = k.clamp(1 - bias, bias - 1)
+    k2 = k.sub(bias - 1).clamp_(min=0)
+    S.mul_(_pow2(k1, S.dtype)).mul_(_pow2(k2, S.dtype))
+    return _pow2(k1.neg_(), S.dtype), _pow2(k2.neg_(), S.dtype)
+
+
 def _solve(A: Tensor, W: Tensor, rounds: int) -> None:
     """Eigen-decompose A (b, 4, 4) into W (4 columns, 5 rows, b), zero on entry.
 
     On return column j of W holds (v_j, l_j), sorted by l_j ascending, v_0 with canonical sign.
+    As the fused kernels: scale (exact), subtract the mean diagonal c = trace / 4 (the
+    eigenvectors stay, the eigenvalues move by c, and the rounding of the rotations becomes
+    relative to the spread of the eigenvalues), scale again, rotate, sort, and undo it all.
     """
     b = A.shape[0]
     S = A.reshape(b, 16).t().index_select(0, _constants(A.dtype, A.device)["upper"])
-    # Scale by a power of two 2^e >= max |entry| (exact; 1 for the zero matrix).
-    _, e = torch.frexp(S.abs().amax(0))
-    e = e.to(A.dtype)
-    S.mul_(torch.exp2(e.neg()))
+    back0, back1 = _scale(S)
+    D = S[:4]
+    shift = torch.add(D[0], D[1]).add_(torch.add(D[2], D[3])).mul_(0.25)
+    D.sub_(shift)
+    back2, back3 = _scale(S)
     _jacobi(S, W, rounds)
     _sort(W)
-    W[:, 4].mul_(torch.exp2(e))
+    W[:, 4].mul_(back3).mul_(back2).add_(shift).mul_(back1).mul_(back0)
     W[0, :4].mul_(canonical_sign(W[0, :4]))
 
 
@@ -195,11 +224,23 @@ def jacobi_forward(A: Tensor, rounds: int) -> tuple[Tensor, Tensor, Tensor]:
 
 
 def eigh_forward(A: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """torch.linalg.eigh (LAPACK on CPU, cuSOLVER on CUDA) with q's sign made canonical."""
+    """torch.linalg.eigh (LAPACK on CPU, cuSOLVER on CUDA) with q's sign made canonical.
+
+    As the Jacobi paths, eigh solves A - cI (c added back to the eigenvalues), so that its
+    rounding is relative to the spread of the eigenvalues rather than to ||A||_2; here c is the
+    midpoint of A's diagonal, (min + max) / 2, rather than trace / 4 (as good: the diagonal lies
+    within [l1, l4]): A - cI cannot overflow for any finite A, where A - (trace / 4) I can
+    (the Jacobi paths subtract after a power-of-two scaling), and it takes fewer operations.
+    """
+    low, high = torch.aminmax(A.diagonal(dim1=-2, dim2=-1), dim=-1, keepdim=True)
+    shift = low.mul_(0.5).add_(high, alpha=0.5)  # no overflow
+    eye = _constants(A.dtype, A.device)["eye"]
+    A = torch.addcmul(A, shift.unsqueeze(-1), eye, value=-1.0)  # off the diagonal: exact
     eigenvalues, V = linalg.eigh(A, UPLO="U")
     q = V[..., 0]  # (B, 4) view: canonical sign in place, so V keeps q as its column 0
     q.mul_(canonical_sign(q.t()).t())
-    return eigenvalues, q.clone(), V.contiguous()  # row-major, as every path (LAPACK's is not)
+    # row-major, as every path (LAPACK's is not)
+    return eigenvalues.add_(shift), q.clone(), V.contiguous()
 
 
 def backward(
@@ -211,8 +252,8 @@ def backward(
     addcmul_)."""
     G = None  # the gradient before symmetrisation, (B, 4, 4)
     if grad_q is not None:
-        norm = eigenvalues.abs().amax(-1, keepdim=True)  # ||A||_2, (B, 1)
-        floor = torch.add(torch.eq(norm, 0).to(V.dtype), norm, alpha=gap_eps)
+        spread = eigenvalues[:, 3:] - eigenvalues[:, :1]  # l4 - l1, (B, 1)
+        floor = torch.add(torch.eq(spread, 0).to(V.dtype), spread, alpha=gap_eps)
         gaps = torch.maximum(eigenvalues[:, 1:] - eigenvalues[:, :1], floor)  # (B, 3)
         upper = V[..., 1:]  # v2, v3, v4 as columns, (B, 4, 3)
         coef = torch.matmul(grad_q.unsqueeze(-2), upper).div(gaps.unsqueeze(-2))  # (B, 1, 3)

@@ -93,6 +93,24 @@ def _shift(m, IS64: tl.constexpr):
 
 
 @triton.jit
+def _scale(a00, a01, a02, a03, a11, a12, a13, a22, a23, a33, IS64: tl.constexpr):
+    """The upper triangle scaled by the power of two that puts its largest entry in [0.5, 1)
+    (exact), and the exponents (k1, k2) of `_shift` that undo it."""
+    m = tl.maximum(tl.maximum(tl.abs(a00), tl.abs(a01)), tl.maximum(tl.abs(a02), tl.abs(a03)))
+    m = tl.maximum(m, tl.maximum(tl.maximum(tl.abs(a11), tl.abs(a12)), tl.abs(a13)))
+    m = tl.maximum(m, tl.maximum(tl.maximum(tl.abs(a22), tl.abs(a23)), tl.abs(a33)))
+    k1, k2 = _shift(m, IS64)
+    # One factor after the other, as the C kernel: 2^(k1 + k2) itself overflows for a subnormal m
+    s1, s2 = _pow2(k1, IS64), _pow2(k2, IS64)
+    return (
+        a00 * s1 * s2, a01 * s1 * s2, a02 * s1 * s2, a03 * s1 * s2,
+        a11 * s1 * s2, a12 * s1 * s2, a13 * s1 * s2,
+        a22 * s1 * s2, a23 * s1 * s2, a33 * s1 * s2,
+        k1, k2,
+    )  # fmt: skip
+
+
+@triton.jit
 def _angle(app, aqq, apq, tiny, IS64: tl.constexpr):
     """cos and tan of the rotation zeroing apq (|tan| <= 1, the stable small-angle root)."""
     d = aqq - app
@@ -176,17 +194,17 @@ def _forward_kernel(
     a22 = tl.load(base + 2 * sr + 2 * sc, mask=mask, other=0.0)
     a23 = tl.load(base + 2 * sr + 3 * sc, mask=mask, other=0.0)
     a33 = tl.load(base + 3 * sr + 3 * sc, mask=mask, other=0.0)
-    # Scale by the power of two that puts the largest entry in [0.5, 1) (exact).
-    m = tl.maximum(tl.maximum(tl.abs(a00), tl.abs(a01)), tl.maximum(tl.abs(a02), tl.abs(a03)))
-    m = tl.maximum(m, tl.maximum(tl.maximum(tl.abs(a11), tl.abs(a12)), tl.abs(a13)))
-    m = tl.maximum(m, tl.maximum(tl.maximum(tl.abs(a22), tl.abs(a23)), tl.abs(a33)))
-    k1, k2 = _shift(m, IS64)
+    # Scale (exact), subtract the mean diagonal c (the eigenvectors stay, the eigenvalues move by
+    # c, the rounding becomes relative to their spread), scale again; as the C kernel's `load`.
+    a00, a01, a02, a03, a11, a12, a13, a22, a23, a33, k1, k2 = _scale(
+        a00, a01, a02, a03, a11, a12, a13, a22, a23, a33, IS64
+    )
+    shift = ((a00 + a11) + (a22 + a33)) * 0.25
+    a00, a11, a22, a33 = a00 - shift, a11 - shift, a22 - shift, a33 - shift
+    a00, a01, a02, a03, a11, a12, a13, a22, a23, a33, k3, k4 = _scale(
+        a00, a01, a02, a03, a11, a12, a13, a22, a23, a33, IS64
+    )
     tiny = _tiny(k1, IS64)
-    # One factor after the other, as the C kernel: 2^(k1 + k2) itself overflows for a subnormal m
-    s1, s2 = _pow2(k1, IS64), _pow2(k2, IS64)
-    a00, a01, a02, a03 = a00 * s1 * s2, a01 * s1 * s2, a02 * s1 * s2, a03 * s1 * s2
-    a11, a12, a13 = a11 * s1 * s2, a12 * s1 * s2, a13 * s1 * s2
-    a22, a23, a33 = a22 * s1 * s2, a23 * s1 * s2, a33 * s1 * s2
     one = tl.full(a00.shape, 1.0, a00.dtype)
     zero = tl.full(a00.shape, 0.0, a00.dtype)
     v00, v01, v02, v03 = one, zero, zero, zero  # v_ij: component i of eigenvector j
@@ -242,12 +260,14 @@ def _forward_kernel(
     key = 8.0 * _sign(v30) + 4.0 * _sign(v00) + 2.0 * _sign(v10) + _sign(v20)
     sign = tl.where(key < 0, -1.0, 1.0).to(v00.dtype)
     v00, v10, v20, v30 = v00 * sign, v10 * sign, v20 * sign, v30 * sign
-    b2, b1 = _pow2(-k2, IS64), _pow2(-k1, IS64)  # applied in turn: 2^-(k1 + k2) may underflow
+    # Undo the second scaling, add c back, undo the first (each pair of factors in turn:
+    # 2^-(k1 + k2) may underflow).
+    b4, b3, b2, b1 = _pow2(-k4, IS64), _pow2(-k3, IS64), _pow2(-k2, IS64), _pow2(-k1, IS64)
     lbase = L + offs * 4
-    tl.store(lbase, l0 * b2 * b1, mask=mask)
-    tl.store(lbase + 1, l1 * b2 * b1, mask=mask)
-    tl.store(lbase + 2, l2 * b2 * b1, mask=mask)
-    tl.store(lbase + 3, l3 * b2 * b1, mask=mask)
+    tl.store(lbase, (l0 * b4 * b3 + shift) * b2 * b1, mask=mask)
+    tl.store(lbase + 1, (l1 * b4 * b3 + shift) * b2 * b1, mask=mask)
+    tl.store(lbase + 2, (l2 * b4 * b3 + shift) * b2 * b1, mask=mask)
+    tl.store(lbase + 3, (l3 * b4 * b3 + shift) * b2 * b1, mask=mask)
     qbase = Q + offs * 4
     tl.store(qbase, v00, mask=mask)
     tl.store(qbase + 1, v10, mask=mask)
@@ -332,8 +352,8 @@ def _backward_kernel(
         h3 = tl.load(gqb + 3, mask=mask, other=0.0)
     else:
         h0, h1, h2, h3 = zero, zero, zero, zero
-    norm = _max_nan(tl.abs(l0), _max_nan(tl.abs(l1), _max_nan(tl.abs(l2), tl.abs(l3))))
-    clamp = (norm == 0).to(l0.dtype) + GAP_EPS * norm  # gap_eps ||A||_2, 1 for A = 0
+    spread = l3 - l0  # l4 - l1: as the gaps, free of A's trace
+    clamp = (spread == 0).to(l0.dtype) + GAP_EPS * spread  # 1 for A = cI
     c1 = _gap_coef(l1, l0, clamp, v01, v11, v21, v31, h0, h1, h2, h3, IS64)
     c2 = _gap_coef(l2, l0, clamp, v02, v12, v22, v32, h0, h1, h2, h3, IS64)
     c3 = _gap_coef(l3, l0, clamp, v03, v13, v23, v33, h0, h1, h2, h3, IS64)

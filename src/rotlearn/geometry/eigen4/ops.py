@@ -200,12 +200,15 @@ def _setup_context(ctx, inputs: tuple, output: tuple[Tensor, Tensor, Tensor]) ->
 def _backward(ctx, grad_eigenvalues: Tensor | None, grad_q: Tensor | None, _grad_V=None):
     """With l1 <= ... <= l4 and orthonormal eigenvectors v1 = q, v2, v3, v4:
         grad_A = sym(-u q^T + sum_i g_li v_i v_i^T),   u = sum_{i>=2} v_i (v_i . g_q) / gap_i,
-        gap_i = max(l_i - l1, gap_eps ||A||_2)  (gap_i = 1 for A = 0),   sym(X) = (X + X^T) / 2.
+        gap_i = max(l_i - l1, gap_eps (l4 - l1))  (gap_i = 1 for l1 = l4, A = cI),
+        sym(X) = (X + X^T) / 2.
     The first term is dq = -(A - l1 I)^+ dA q (paper eq. 9), the second dl_i = v_i^T dA v_i.
     Only the projector onto each eigenspace above l1 enters u, so repeated l2 = l3 = l4 is
-    harmless; the clamp keeps l1 = l2 (and A = cI) finite. grad_A is exactly symmetric: the
-    gradient along symmetric perturbations, so that a mirrored A (a_from_vec) gets the right
-    gradient in both triangles. First order only: the gradient is not itself differentiable."""
+    harmless; the clamp keeps l1 = l2 (and A = cI) finite. The clamp is relative to the spread
+    l4 - l1, as the gaps and q: the gradient of A + cI is that of A for any c. grad_A is exactly
+    symmetric: the gradient along symmetric perturbations, so that a mirrored A (a_from_vec) gets
+    the right gradient in both triangles. First order only: the gradient is not itself
+    differentiable."""
     eigenvalues, V = ctx.saved_tensors
     if grad_eigenvalues is None and grad_q is None:
         return None, None, None, None, None

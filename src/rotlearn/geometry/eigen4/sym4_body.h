@@ -13,7 +13,8 @@
 typedef struct {
     REAL a[4][4][LANES]; /* upper triangle (i <= j) used; the diagonal ends as the eigenvalues */
     REAL v[4][4][LANES]; /* v[i][j]: component i of eigenvector j */
-    REAL back[2][LANES]; /* the two power-of-two factors that undo the scaling */
+    REAL back[4][LANES]; /* the power-of-two factors that undo the two scalings, in pairs */
+    REAL shift[LANES];   /* the mean diagonal, subtracted between the two scalings */
 } NAME(block);
 
 static INLINE REAL NAME(pow2)(INT k) { /* 2^k for 1 - BIAS <= k <= BIAS, exact */
@@ -37,23 +38,10 @@ static INLINE INT NAME(frexp_shift)(REAL m) {
     return m == 0 ? 0 : k;
 }
 
-/* Load the upper triangles of matrices [start, start + count) (count <= LANES; the other lanes
- * get the zero matrix) and scale each by the power of two that puts its largest entry in
- * [0.5, 1) (exact: squares then neither overflow nor underflow); V = I. */
-static INLINE void NAME(load)(NAME(block) *blk, const REAL *A, int64_t start, int64_t count,
-                              int64_t sb, int64_t sr, int64_t sc) {
-    const REAL *base = A + start * sb;
-    for (int i = 0; i < 4; ++i)
-        for (int j = i; j < 4; ++j) {
-            const REAL *entry = base + i * sr + j * sc;
-            if (count == LANES)
-                for (int l = 0; l < LANES; ++l) blk->a[i][j][l] = entry[l * sb];
-            else
-                for (int l = 0; l < LANES; ++l) blk->a[i][j][l] = l < count ? entry[l * sb] : 0;
-        }
-    for (int i = 0; i < 4; ++i)
-        for (int j = 0; j < 4; ++j)
-            for (int l = 0; l < LANES; ++l) blk->v[i][j][l] = (REAL)(i == j);
+/* Scale each matrix of the block by the power of two that puts its largest entry in [0.5, 1)
+ * (exact: squares then neither overflow nor underflow); back0, back1 get the two factors that
+ * undo it (for back1 first). */
+static INLINE void NAME(scale)(NAME(block) *blk, REAL *back0, REAL *back1) {
     REAL m[LANES];
     for (int l = 0; l < LANES; ++l) m[l] = 0;
     for (int i = 0; i < 4; ++i)
@@ -70,11 +58,41 @@ static INLINE void NAME(load)(NAME(block) *blk, const REAL *A, int64_t start, in
         INT k1 = k < 1 - BIAS ? 1 - BIAS : (k > BIAS - 1 ? BIAS - 1 : k);
         INT k2 = k > BIAS - 1 ? k - (BIAS - 1) : 0; /* > 0 only for a subnormal largest entry */
         REAL s1 = NAME(pow2)(k1), s2 = NAME(pow2)(k2);
-        blk->back[0][l] = NAME(pow2)(-k1);
-        blk->back[1][l] = NAME(pow2)(-k2);
+        back0[l] = NAME(pow2)(-k1);
+        back1[l] = NAME(pow2)(-k2);
         for (int i = 0; i < 4; ++i)
             for (int j = i; j < 4; ++j) blk->a[i][j][l] = blk->a[i][j][l] * s1 * s2;
     }
+}
+
+/* Load the upper triangles of matrices [start, start + count) (count <= LANES; the other lanes
+ * get the zero matrix); scale each (`scale`), subtract its mean diagonal c = trace / 4 (no
+ * overflow: the entries are below 4 now; the eigenvectors are those of A, the eigenvalues move
+ * by c, and the rounding of the rotations is relative to the spread of the eigenvalues instead
+ * of the largest entry), and scale again (a spread far below the largest entry would underflow
+ * in the squares); V = I. */
+static INLINE void NAME(load)(NAME(block) *blk, const REAL *A, int64_t start, int64_t count,
+                              int64_t sb, int64_t sr, int64_t sc) {
+    const REAL *base = A + start * sb;
+    for (int i = 0; i < 4; ++i)
+        for (int j = i; j < 4; ++j) {
+            const REAL *entry = base + i * sr + j * sc;
+            if (count == LANES)
+                for (int l = 0; l < LANES; ++l) blk->a[i][j][l] = entry[l * sb];
+            else
+                for (int l = 0; l < LANES; ++l) blk->a[i][j][l] = l < count ? entry[l * sb] : 0;
+        }
+    for (int i = 0; i < 4; ++i)
+        for (int j = 0; j < 4; ++j)
+            for (int l = 0; l < LANES; ++l) blk->v[i][j][l] = (REAL)(i == j);
+    NAME(scale)(blk, blk->back[0], blk->back[1]);
+    for (int l = 0; l < LANES; ++l) {
+        REAL c = ((blk->a[0][0][l] + blk->a[1][1][l]) + (blk->a[2][2][l] + blk->a[3][3][l]))
+                 * (REAL)0.25;
+        blk->shift[l] = c;
+        for (int i = 0; i < 4; ++i) blk->a[i][i][l] = blk->a[i][i][l] - c;
+    }
+    NAME(scale)(blk, blk->back[2], blk->back[3]);
 }
 
 #define UP(i, j) blk->a[(i) < (j) ? (i) : (j)][(i) < (j) ? (j) : (i)]
@@ -142,7 +160,7 @@ static INLINE void NAME(jacobi)(NAME(block) *blk, int rounds) {
 /* Sort the eigenpairs (network (0,1)(2,3) | (0,2)(1,3) | (1,2) on the eigenvalues, ascending;
  * ties and NaN keep their order: only the column order is sorted, as a permutation per lane),
  * give column 0 the canonical sign (the first nonzero of w, x, y, z positive: quat_canonical's
- * rule), undo the scaling, store. */
+ * rule), undo the second scaling, add the mean diagonal back, undo the first scaling, store. */
 static INLINE void NAME(store)(const NAME(block) *blk, int64_t start, int64_t count, REAL *L,
                                REAL *q, REAL *V) {
     static const int network[5][2] = {{0, 1}, {2, 3}, {0, 2}, {1, 3}, {1, 2}};
@@ -150,7 +168,7 @@ static INLINE void NAME(store)(const NAME(block) *blk, int64_t start, int64_t co
     INT col[4][LANES];
     for (int j = 0; j < 4; ++j)
         for (int l = 0; l < LANES; ++l) {
-            lam[j][l] = blk->a[j][j][l] * blk->back[1][l] * blk->back[0][l];
+            lam[j][l] = blk->a[j][j][l]; /* sorted before c is added (which can round to ties) */
             col[j][l] = j;
         }
     for (int k = 0; k < 5; ++k) {
@@ -175,7 +193,10 @@ static INLINE void NAME(store)(const NAME(block) *blk, int64_t start, int64_t co
         int key = 8 * ((w > 0) - (w < 0)) + 4 * ((x > 0) - (x < 0)) + 2 * ((y > 0) - (y < 0))
                   + ((z > 0) - (z < 0));
         REAL s = key < 0 ? (REAL)-1 : (REAL)1;
-        for (int j = 0; j < 4; ++j) L[4 * b + j] = lam[j][l];
+        for (int j = 0; j < 4; ++j) {
+            REAL x = lam[j][l] * blk->back[3][l] * blk->back[2][l] + blk->shift[l];
+            L[4 * b + j] = x * blk->back[1][l] * blk->back[0][l];
+        }
         for (int i = 0; i < 4; ++i) {
             REAL q_i = s * blk->v[i][c0][l];
             q[4 * b + i] = q_i;
@@ -197,8 +218,8 @@ HOT static void NAME(forward_range)(const REAL *A, int64_t begin, int64_t end, i
 }
 
 /* grad_A = sym(-u q^T + sum_i g_li v_i v_i^T), u = sum_{i>=1} v_i (v_i . g_q) / gap_i,
- * gap_i = max(l_i - l_0, gap_eps ||A||_2) (1 for A = 0); sym(X) = (X + X^T) / 2, exactly
- * symmetric. gl / gq may be NULL (that output had no gradient). */
+ * gap_i = max(l_i - l_0, gap_eps (l_3 - l_0)) (1 for l_0 = l_3: A = cI); sym(X) = (X + X^T) / 2,
+ * exactly symmetric. gl / gq may be NULL (that output had no gradient). */
 HOT static void NAME(backward_range)(const REAL *gl, const REAL *gq, const REAL *L, const REAL *V,
                                      REAL gap_eps, int64_t begin, int64_t end, REAL *G) {
     REAL lam[4][LANES], v[4][4][LANES], g_l[4][LANES], g_q[4][LANES], out[4][4][LANES];
@@ -220,12 +241,8 @@ HOT static void NAME(backward_range)(const REAL *gl, const REAL *gq, const REAL 
             }
         }
         for (int l = 0; l < LANES; ++l) {
-            REAL norm = 0;
-            for (int j = 0; j < 4; ++j) {
-                REAL x = lam[j][l] < 0 ? -lam[j][l] : lam[j][l];
-                norm = (x > norm || x != x) ? x : norm;
-            }
-            clamp[l] = (REAL)(norm == 0) + gap_eps * norm;
+            REAL spread = lam[3][l] - lam[0][l]; /* l4 - l1: as the gaps, free of A's trace */
+            clamp[l] = (REAL)(spread == 0) + gap_eps * spread;
         }
         for (int i = 0; i < 4; ++i)
             for (int l = 0; l < LANES; ++l) u[i][l] = 0;
