@@ -227,6 +227,11 @@ def test_unchecked_likelihoods_equal_the_checked_ones_in_range(dtype, shape):
     symmetric = lambda a: bingham.nll(a + a.transpose(-1, -2), q, check=False)  # noqa: E731
     assert torch.autograd.gradcheck(symmetric, (A.requires_grad_(),))
     assert torch.autograd.gradcheck(lambda f: fisher.nll(f, R, check=False), (F.requires_grad_(),))
+    # the gradient in q is that of the value, off the sphere too, whatever multiple of I A holds
+    for c in (0.0, 100.0):
+        shifted = (A + A.transpose(-1, -2) + c * torch.eye(4, dtype=F64)).detach()
+        nll = lambda x, a=shifted: bingham.nll(a, x)  # noqa: E731
+        assert torch.autograd.gradcheck(nll, (q.requires_grad_(),))
 
 
 def test_a_belief_sharper_than_the_supported_range_is_not_sharpened_further():

@@ -244,9 +244,12 @@ def _fit(S: Tensor, q: Tensor, l1: Tensor, mode: Tensor) -> Tensor:
     Rayleigh quotient of the solver's mode: in S's dtype, q^T S q and l1 are each of the size
     of A's entries and cancel, so float32 would leave some 1e-7 (l4 - l1) nats of rounding
     (0.16 nats at a spread of 1e6, ~10 at 1e8); r is exact to second order in the mode's
-    error. The gradient is the exact one of q^T S q - l1 (q q^T - v1 v1^T), taken in S's dtype.
+    error. The gradient is the exact one of q^T S q - l1 |q|^2 (for A: q q^T - v1 v1^T; for q:
+    2 (S - l1 I) q), taken in S's dtype: the function the value is, also off the unit sphere
+    (with - l1 alone, the q-gradient had a radial part 2 l1 q that the value lacks, which moved
+    under A + cI).
     """
-    fit = _quad_form(S, q) - l1
+    fit = _quad_form(S, q) - l1 * (q * q).sum(-1)
     with torch.no_grad():
         S64, m64 = S.double(), mode.double()
         r = _quad_form(S64, m64) / (m64 * m64).sum(-1)
