@@ -204,14 +204,25 @@ def _refuse_unchosen_group(name: str, taken: list[str], parsed: list[Any], root:
             continue
         if group in cfg.hydra.runtime.choices:
             continue
-        users = [f"{folder.name}={file.stem}" for folder in sorted(root.iterdir())
-                 for file in sorted(folder.glob("*.yaml"))
-                 if any(str(k).split()[-1].strip("/") == group for entry in
-                        OmegaConf.load(file).get("defaults") or [] if isinstance(entry, DictConfig)
-                        for k in entry)]  # fmt: skip
+        groups = sorted(path.name for path in root.iterdir() if path.is_dir())
+        users = [
+            f"{g}={option}"
+            for g in groups
+            for option, config in _options(g, root).items()
+            if _chooses(config, group)
+        ]
         how = f"; {' and '.join(users)} chooses one (e.g. {users[0]} {o.input_line})" if users \
             else ""  # fmt: skip
         raise ConfigError(group, f"conf/{name}.yaml chooses no {group}{how}")
+
+
+def _chooses(config: Any, group: str) -> bool:
+    """Whether an option's config (a YAML file, or a ConfigStore node) lists config group
+    `group` in its defaults (`- /variant: a_bingham`, `- override /data: ...`)."""
+    node = OmegaConf.load(config) if isinstance(config, Path) else config
+    entries = node.get("defaults") if isinstance(node, DictConfig) else None
+    keys = [str(k) for entry in entries or [] if isinstance(entry, DictConfig) for k in entry]
+    return any(key.split()[-1].strip("/") == group for key in keys)
 
 
 def _compose(
