@@ -204,15 +204,17 @@ def read_pair_file(
             (also an index beyond int64: refused as it is read).
     """
     path = Path(path)
+
+    def missing(lineno: int, frame: str) -> str:
+        return (f"{path}:{lineno}: frame {frame} does not exist ({frame_list} lists {num_frames} "
+                f"frames, 0 to {num_frames - 1})")  # fmt: skip
+
     pairs, lines = [], []
     for lineno, fields in _rows(path, columns=2):
         pair = [strict_int(f, f"{path}:{lineno}") for f in fields]
         for text, i in zip(fields, pair, strict=True):
             if not -INT64_MAX - 1 <= i <= INT64_MAX:
-                raise ValueError(
-                    f"{path}:{lineno}: frame {_shown(text)} does not exist ({frame_list} lists "
-                    f"{num_frames} frames, 0 to {num_frames - 1})"
-                )
+                raise ValueError(missing(lineno, _shown(text)))
         pairs.append(pair)
         lines.append(lineno)
     if not pairs:
@@ -222,10 +224,7 @@ def read_pair_file(
     if len(bad):
         row = pairs[bad[0]]
         i = int(row[(row < 0) | (row >= num_frames)][0])
-        raise ValueError(
-            f"{path}:{lines[bad[0]]}: frame {i} does not exist ({frame_list} lists {num_frames} "
-            f"frames, 0 to {num_frames - 1}); {len(bad)} such pair(s) in all"
-        )
+        raise ValueError(f"{missing(lines[bad[0]], str(i))}; {len(bad)} such pair(s) in all")
     return pairs
 
 
