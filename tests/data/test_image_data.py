@@ -365,17 +365,29 @@ def test_corrupted_test_batches_are_erased_and_flagged(tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1])
-def test_the_kitti_demo_learner_beats_half_the_identity_error(tmp_path, make_cfg, seed):
+@pytest.mark.parametrize(
+    ("loss", "street_camera"),
+    [("chordal", False), ("bingham", True)],
+    ids=["chordal-without-camera", "bingham-with-camera"],
+)
+def test_the_kitti_demo_learner_beats_half_the_identity_error(
+    tmp_path, make_cfg, seed, loss, street_camera
+):
     """The demo recipe (experiment=kitti_ood_demo: the correlation pair network, A head) trained on
     the KITTI-format demo written here reaches under half the error of "predict identity" on the
-    held-out sequence, for the model and data seeds 0 and 1 (issue 15; docs/results.md)."""
+    held-out sequence, for the model and data seeds 0 and 1 (docs/results.md, "The slow test"):
+    with the paper's chordal loss on the world of issue 15 (no street camera; 0.42x and 0.40x when
+    last measured), and with the Bingham NLL on the default world with its street camera (0.26x
+    and 0.29x). The chordal loss on the camera world is at 0.59-0.61x, so that pair is not
+    claimed."""
     from rotlearn.cli.train import train
     from rotlearn.data.demo.kitti import write_kitti_demo
 
-    root = write_kitti_demo(tmp_path)
+    root = write_kitti_demo(tmp_path, street_camera=street_camera)
     overrides = [
         "experiment=kitti_ood_demo",
         "rep=a",
+        f"loss={loss}",
         "~callbacks.ood",  # the rotation error only
         f"data.root={root}",
         f"seed={seed}",
