@@ -15,6 +15,8 @@
   (bench/kitti_loader.py).
 - cli_errors: seconds until a command line's mistake is refused (unknown key or option, missing
   data, a folder that is no run, ...), each in a fresh process (bench/cli_errors.py; issue 23).
+- text_readers: peak memory per byte of the dataset text readers (MAV CSVs, KITTI poses) on the
+  shortest rows each accepts, as a hostile dataset would write them (bench/text_readers.py).
 - predictor: peak memory (RSS) and seconds of `rotlearn.inference.Predictor` on 10k and 100k
   samples of 10 point pairs (PointNet + A head), each in a fresh process: chunking bounds memory.
 - paper: the paper's synthetic experiment (lr 5e-4, 50 epochs, phi_max 180) over 3 seeds per
@@ -218,6 +220,7 @@ SCRIPTS = {
     "rep_layers": "rep_layers.py",
     "kitti_loader": "kitti_loader.py",
     "cli_errors": "cli_errors.py",
+    "text_readers": "text_readers.py",
 }  # benchmarks with their own CLI
 DEVICE_SCRIPTS = ("a_layer", "rep_layers")  # those that take --device (the others run on CPU)
 

@@ -8,6 +8,15 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+# Source of `peak_rss()` for a benchmark's child process (`python -c PEAK_RSS + code`): its own
+# peak resident memory in bytes. `ru_maxrss` would not do: a child started by subprocess carries
+# its parent's peak over exec (a parent at 800 MiB makes any child report at least 800 MiB).
+PEAK_RSS = """
+def peak_rss():
+    with open("/proc/self/status") as status:  # VmHWM: this process's own high-water mark
+        return next(int(l.split()[1]) * 1024 for l in status if l.startswith("VmHWM:"))
+"""
+
 
 def median_seconds(fn: Callable[[], object], repeats: int = 5) -> float:
     """Median wall-clock seconds of `repeats` calls of `fn`, after one warm-up call."""

@@ -676,7 +676,7 @@ def parse_number_rows(
     if not lines:
         raise ValueError(f"{where}: no rows of numbers ({layout})")
     with np.errstate(over="ignore"):
-        numbers = np.frombuffer(values, np.float64).reshape(-1, width).astype(dtype)
+        numbers = np.frombuffer(values, np.float64).reshape(-1, width).astype(dtype, copy=False)
     return require_finite(numbers, np.frombuffer(lines, np.int64), where, layout)
 
 

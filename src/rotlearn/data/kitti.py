@@ -34,6 +34,7 @@ if TYPE_CHECKING:  # constraints of the config values, checked by rotlearn.confi
 __all__ = ["KittiOdometryDataModule", "read_kitti_poses", "sequence_name"]
 
 ORTHONORMAL_TOL = 1e-3  # KITTI's poses are printed with 6-7 significant digits
+_POSE_BLOCK = 2**16  # poses checked and projected a block at a time: a few MB of temporaries
 
 
 def sequence_name(sequence: int | str) -> str:
@@ -57,16 +58,17 @@ def read_kitti_poses(path: str | Path) -> np.ndarray:
     """
     path = Path(path)
     poses = read_number_rows(path, 12, "a row-major 3x4 [R|t]").reshape(-1, 3, 4)
-    R = poses[:, :, :3]
-    error = np.abs(R.transpose(0, 2, 1) @ R - np.eye(3)).max(axis=(1, 2))
-    bad = np.flatnonzero((error > ORTHONORMAL_TOL) | (np.linalg.det(R) < 0))
-    if len(bad):
-        i = int(bad[0])
-        raise ValueError(
-            f"{path}:{i + 1}: the rotation is not orthonormal with det +1 "
-            f"(max |R^T R - I| = {error[i]:.2e}, det = {np.linalg.det(R[i]):.4f})"
-        )
-    poses[:, :, :3] = special_orthogonalize(torch.from_numpy(R)).numpy()
+    for start in range(0, len(poses), _POSE_BLOCK):  # a block at a time: bounded temporaries
+        R = poses[start : start + _POSE_BLOCK, :, :3]
+        error = np.abs(R.transpose(0, 2, 1) @ R - np.eye(3)).max(axis=(1, 2))
+        bad = np.flatnonzero((error > ORTHONORMAL_TOL) | (np.linalg.det(R) < 0))
+        if len(bad):
+            i = int(bad[0])
+            raise ValueError(
+                f"{path}:{start + i + 1}: the rotation is not orthonormal with det +1 "
+                f"(max |R^T R - I| = {error[i]:.2e}, det = {np.linalg.det(R[i]):.4f})"
+            )
+        R[...] = special_orthogonalize(torch.from_numpy(R.copy())).numpy()
     return poses
 
 

@@ -21,6 +21,7 @@ any frame of a test pair (`rotlearn.data.splits.hold_out_tail`, `val_fraction`).
 
 from __future__ import annotations
 
+import array as pyarray
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Literal, NamedTuple
@@ -100,14 +101,14 @@ def read_frame_list(path: str | Path) -> tuple[np.ndarray, list[str], np.ndarray
             path separator, "." or "..": it could leave `flea3/data`).
     """
     path = Path(path)
-    stamps, names, lines = [], [], []
+    stamps, names, lines = pyarray.array("q"), [], pyarray.array("q")  # 8 bytes a number
     for lineno, (stamp, name) in _rows(path, columns=2):
         stamps.append(_time_stamp(stamp, f"{path}:{lineno}"))
         names.append(plain_name(name, f"{path}:{lineno}"))
         lines.append(lineno)
     if not stamps:
         raise ValueError(f"{path}: no frames")
-    return np.asarray(stamps, dtype=np.int64), names, np.asarray(lines)
+    return np.frombuffer(stamps, np.int64), names, np.frombuffer(lines, np.int64)
 
 
 def read_pose_file(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
@@ -121,36 +122,34 @@ def read_pose_file(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
             same pose is kept once).
     """
     path = Path(path)
-    stamps, quats, lines = [], [], []
-    for lineno, fields in _rows(path, min_columns=5):
+    stamps, quats, lines = pyarray.array("q"), pyarray.array("d"), pyarray.array("q")
+    for lineno, fields in _rows(path, min_columns=5):  # 8 bytes a number, not a Python object
         stamps.append(_time_stamp(fields[0], f"{path}:{lineno}"))
         try:
-            quats.append([float(f) for f in fields[-4:]])
+            quats.extend([float(f) for f in fields[-4:]])
         except ValueError:
             raise ValueError(f"{path}:{lineno}: not a number among {fields[-4:]}") from None
         lines.append(lineno)
     if not stamps:
         raise ValueError(f"{path}: no poses")
-    lines = np.asarray(lines)
-    wxyz = require_finite(np.asarray(quats, dtype=np.float64), lines, str(path), "qw qx qy qz")
-    norm = np.linalg.norm(wxyz, axis=1)
+    lines = np.frombuffer(lines, np.int64)
+    wxyz = np.frombuffer(quats, np.float64).reshape(-1, 4)
+    wxyz = require_finite(wxyz, lines, str(path), "qw qx qy qz")
+    norm = np.sqrt(np.einsum("ij,ij->i", wxyz, wxyz))  # no (M, 4) temporary
     bad = np.flatnonzero(~((norm > 0.9) & (norm < 1.1)))
     if len(bad):
         raise ValueError(
             f"{path}:{lines[bad[0]]}: the quaternion (qw, qx, qy, qz) is not unit "
             f"(norm {norm[bad[0]]:.4g}); {len(bad)} such row(s) in all"
         )
-    quats = wxyz[:, [1, 2, 3, 0]]
-    stamps = np.asarray(stamps, dtype=np.int64)
+    stamps = np.frombuffer(stamps, np.int64)
     order = np.argsort(stamps, kind="stable")
-    stamps, quats, lines, unit = (
-        stamps[order],
-        quats[order],
-        lines[order],
-        quats[order] / norm[order, None],
-    )
+    quats = wxyz[order[:, None], [1, 2, 3, 0]]  # sorted, (x, y, z, w): one copy
+    stamps, lines, norm = stamps[order], lines[order], norm[order]
+    del wxyz, order  # the rows as read: freed before the repeats are looked at
     same = np.flatnonzero(stamps[1:] == stamps[:-1])  # row i + 1 repeats row i's time stamp
-    agree = np.abs(np.sum(unit[same] * unit[same + 1], axis=1)) >= 1.0 - 1e-9  # q and -q agree
+    dot = np.abs(np.einsum("ij,ij->i", quats[same], quats[same + 1]))  # q and -q agree
+    agree = dot >= (1.0 - 1e-9) * norm[same] * norm[same + 1]
     if not agree.all():
         i = same[~agree][0]
         a, b = sorted((int(lines[i]), int(lines[i + 1])))
@@ -158,6 +157,8 @@ def read_pose_file(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
             f"{path}:{b}: time stamp {stamps[i]} repeats line {a} with another orientation; "
             f"{int((~agree).sum())} such conflict(s) in all (which pose is right is unknown)"
         )
+    if not len(same):
+        return stamps, quats
     keep = np.ones(len(stamps), dtype=bool)
     keep[same + 1] = False  # the same pose twice: one is kept
     return stamps[keep], quats[keep]
@@ -209,17 +210,17 @@ def read_pair_file(
         return (f"{path}:{lineno}: frame {frame} does not exist ({frame_list} lists {num_frames} "
                 f"frames, 0 to {num_frames - 1})")  # fmt: skip
 
-    pairs, lines = [], []
+    pairs, lines = pyarray.array("q"), pyarray.array("q")  # 8 bytes a number
     for lineno, fields in _rows(path, columns=2):
         pair = [strict_int(f, f"{path}:{lineno}") for f in fields]
         for text, i in zip(fields, pair, strict=True):
             if not -INT64_MAX - 1 <= i <= INT64_MAX:
                 raise ValueError(missing(lineno, _shown(text)))
-        pairs.append(pair)
+        pairs.extend(pair)
         lines.append(lineno)
     if not pairs:
         raise ValueError(f"{path}: no pairs")
-    pairs = np.asarray(pairs, dtype=np.int64)
+    pairs = np.frombuffer(pairs, np.int64).reshape(-1, 2)
     bad = np.flatnonzero(((pairs < 0) | (pairs >= num_frames)).any(axis=1))
     if len(bad):
         row = pairs[bad[0]]
