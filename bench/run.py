@@ -46,7 +46,7 @@ from rotlearn.cli.train import train
 from rotlearn.config import compose
 from rotlearn.heads import HEADS, make_head
 from rotlearn.io import write_json_atomic
-from timing import machine, median_seconds
+from timing import PEAK_RSS, machine, median_seconds
 
 RESULTS = Path(__file__).resolve().parent / "results"
 QUIET = ["trainer.enable_progress_bar=false", "trainer.enable_model_summary=false"]
@@ -118,8 +118,10 @@ def bench_heads(batch: int = 131072) -> dict:
     return {"batch": batch, "heads": rows}
 
 
-_PREDICTOR_RUN = """
-import resource, sys, time, torch
+_PREDICTOR_RUN = (
+    PEAK_RSS
+    + """
+import sys, time, torch
 from rotlearn.heads import make_head
 from rotlearn.inference import Predictor
 from rotlearn.nets import PointNet
@@ -129,8 +131,9 @@ x = torch.randn(int(sys.argv[1]), 10, 6)
 start = time.perf_counter()
 predictor(x)
 seconds = time.perf_counter() - start
-print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20, seconds)
+print(peak_rss() / 2**30, seconds)
 """
+)
 
 
 def bench_predictor(batches: tuple[int, ...] = (10_000, 100_000)) -> dict:
