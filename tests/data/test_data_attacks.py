@@ -283,6 +283,38 @@ def test_mav_frame_list_rows_are_checked(demo_data, tmp_path, line, pattern):
     refuses(lambda: mav(root, cache), tmp_path, cache, ValueError, pattern)
 
 
+def test_mav_frame_file_listed_twice_names_both_lines(demo_data, tmp_path):
+    """Rows naming one file would each be decoded and cached: 4000 rows naming a 1 x 1 PNG once
+    wrote a 201 MB cache."""
+    root, cache = copy_demo(demo_data, "mav", tmp_path), tmp_path / "cache"
+    listing = root / "flea3" / "data.csv"
+    lines = listing.read_text().splitlines()
+    name, stamp = lines[1].split(",")[1], lines[4].split(",")[0]
+    set_line(listing, 5, f"{stamp},{name}")
+    pattern = rf"data\.csv:5: frame file '{re.escape(name)}' is listed again \(line 2\)"
+    refuses(lambda: mav(root, cache), tmp_path, cache, ValueError, pattern)
+
+
+def test_a_frame_cache_its_disk_cannot_hold_is_refused_before_any_frame_is_read(
+    demo_data, tmp_path, monkeypatch
+):
+    """A dataset of many small frame files can ask for a cache thousands of times its size: the
+    disk's free space is checked before the first frame is decoded."""
+    import types
+
+    import cv2
+
+    root, cache = copy_demo(demo_data, "mav", tmp_path), tmp_path / "cache"
+    frames = len(list((root / "flea3" / "data").glob("*.png")))
+    free = 2**28 + frames * 8 * 8 - 1  # one byte short of the (frames, 1, 8, 8) cache + 256 MiB
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: types.SimpleNamespace(free=free))
+    monkeypatch.setattr(cv2, "imread", lambda *a, **k: pytest.fail("a frame was decoded"))
+    pattern = r"flea3_10_8\.npy: the frame cache takes 0\.00 GB, but its disk has 0\.27 GB free"
+    refuses(lambda: mav(root, cache), tmp_path, cache, ValueError, pattern)
+    monkeypatch.undo()
+    mav(root, cache)  # with room, the same dataset caches
+
+
 def test_mav_symlinked_frame_outside_the_root_names_the_line(demo_data, tmp_path):
     root, cache = copy_demo(demo_data, "mav", tmp_path), tmp_path / "cache"
     name = (root / "flea3" / "data.csv").read_text().splitlines()[4].split(",")[1]
@@ -408,6 +440,20 @@ def test_a_non_utf8_pts_file_names_the_line(demo_data, tmp_path):
     path.write_bytes(b"0 0 1\n1 2 3\n\xff\xfe 0 0\n")
     pattern = rf"{path.name}:3: not UTF-8 text"
     refuses(lambda: shapenet(root, cache), tmp_path, cache, ValueError, pattern)
+
+
+def test_a_cloud_of_more_points_than_a_draw_may_hold_is_refused(demo_data, tmp_path):
+    """Each draw holds a cloud's points 6 times a sample: 100k short lines once made a batch of
+    100 take 240 MB. The cap counts the points used (data.point_fraction of the file's)."""
+    from rotlearn.data.shapenet import MAX_CLOUD_POINTS
+
+    root, cache = copy_demo(demo_data, "pts", tmp_path), tmp_path / "cache"
+    path = sorted((root / "train").glob("*.pts"))[0]
+    path.write_text("0 0 1\n" * (2 * MAX_CLOUD_POINTS + 2))  # half used: one point over
+    pattern = rf"{path.name}: {MAX_CLOUD_POINTS + 1} points used \(data\.point_fraction=0\.5 of"
+    refuses(lambda: shapenet(root, cache), tmp_path, cache, ValueError, pattern)
+    path.write_text("0 0 1\n" * 2 * MAX_CLOUD_POINTS)  # at the cap: read
+    shapenet(root, cache)
 
 
 CUBE_VERTICES = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n"

@@ -44,6 +44,17 @@ def test_full_range_16_bit_frames_are_scaled_to_8_bits(tmp_path):
     np.testing.assert_array_equal(image, COLOUR[..., ::-1])
 
 
+def test_every_16_bit_value_rounds_to_the_nearest_8_bit_one(tmp_path):
+    """v -> round(v / 257) for all 65536 values (v / 257 is never a half), in any channel."""
+    values = np.arange(2**16, dtype=np.uint16).reshape(256, 256)
+    image, depth = read_frame(_written(tmp_path, "f.png", values), gray=True)
+    expected = np.floor(values / 257 + 0.5).astype(np.uint8)
+    assert depth == "16-bit"
+    np.testing.assert_array_equal(image, expected)
+    rgb, _ = read_frame(_written(tmp_path, "g.png", np.stack([values] * 3, axis=-1)))
+    np.testing.assert_array_equal(rgb, np.stack([expected] * 3, axis=-1))
+
+
 @pytest.mark.parametrize("ext", ["png", "jpg", "bmp", "ppm", "webp", "tiff"])
 def test_every_channel_count_becomes_rgb_or_gray(tmp_path, ext):
     lossless = ext not in ("jpg", "webp")

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -31,6 +32,7 @@ __all__ = [
 ]
 
 Preprocess = Callable[[np.ndarray], np.ndarray]
+_SPARE_BYTES = 2**28  # a frame cache leaves this much of its disk free (256 MiB)
 DECODER = 2  # in each cache's manifest: caches of an earlier decoder (16-bit frames read as black)
 # are rebuilt
 
@@ -65,7 +67,7 @@ def read_frame(path: Path, gray: bool = False) -> tuple[np.ndarray, str]:
         if int(image.max()) <= 255:
             image, depth = image.astype(np.uint8), "8-bit values in 16 bits"
         else:
-            image = ((image.astype(np.uint32) * 255 + 32767) // 65535).astype(np.uint8)
+            image = cv2.convertScaleAbs(image, alpha=1 / 257)  # round(v / 257), no uint32 copy
             depth = "16-bit"
     elif image.dtype == np.uint8:
         depth = "8-bit"
@@ -154,6 +156,21 @@ def _manifest(files: Sequence[Path], recipe: dict) -> dict:
     }
 
 
+def _require_space(path: Path, size: int) -> None:
+    """ValueError naming `path` unless its file system (that of its nearest existing folder)
+    has `size` bytes free and 256 MiB to spare."""
+    folder = path.parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    free = shutil.disk_usage(folder).free
+    if size + _SPARE_BYTES > free:
+        raise ValueError(
+            f"{path}: the frame cache takes {size / 1e9:.2f} GB, but its disk has "
+            f"{free / 1e9:.2f} GB free (and 256 MiB are kept spare); free space, or set "
+            "data.cache_dir to a folder with room"
+        )
+
+
 def frame_cache(
     files: Sequence[Path],
     cache: Path,
@@ -179,7 +196,9 @@ def frame_cache(
         FileNotFoundError: naming the first missing file (nothing is left in the cache).
         ValueError: naming the first file that cannot be decoded or is over the pixel budget,
             or whose size or bit depth differs from the first frame's (nothing is left in the
-            cache).
+            cache); naming the cache when its disk lacks the space the cache takes (checked
+            before anything is decoded: a dataset of many small files can ask for a cache
+            thousands of times its size).
     """
     array_path, manifest_path = cache.with_suffix(".npy"), cache.with_suffix(".json")
     manifest = _manifest(files, {**recipe, "gray": gray, "decoder": DECODER})
@@ -189,6 +208,7 @@ def frame_cache(
             return cached
     from tqdm import tqdm
 
+    _require_space(array_path, len(files) * (1 if gray else 3) * size * size)
     manifest_path.unlink(missing_ok=True)
     with atomic_write(array_path) as tmp:
         out = first = depth = None

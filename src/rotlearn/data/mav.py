@@ -97,8 +97,9 @@ def read_frame_list(path: str | Path) -> tuple[np.ndarray, list[str], np.ndarray
 
     Raises:
         ValueError: naming the file and line of a row that is not "integer,filename", whose
-            time stamp is negative or beyond int64, or whose file name is not a plain name (a
-            path separator, "." or "..": it could leave `flea3/data`).
+            time stamp is negative or beyond int64, whose file name is not a plain name (a
+            path separator, "." or "..": it could leave `flea3/data`), or names a file an
+            earlier row names (each would be decoded and cached again).
     """
     path = Path(path)
     stamps, names, lines = pyarray.array("q"), [], pyarray.array("q")  # 8 bytes a number
@@ -108,7 +109,17 @@ def read_frame_list(path: str | Path) -> tuple[np.ndarray, list[str], np.ndarray
         lines.append(lineno)
     if not stamps:
         raise ValueError(f"{path}: no frames")
-    return np.frombuffer(stamps, np.int64), names, np.frombuffer(lines, np.int64)
+    lines = np.frombuffer(lines, np.int64)
+    hashes = np.fromiter(map(hash, names), np.int64, len(names))  # 8 bytes a row, not a set
+    order = np.argsort(hashes, kind="stable")  # equal names sit together, in file order
+    for i in np.flatnonzero(hashes[order][1:] == hashes[order][:-1]):
+        first, again = order[i], order[i + 1]
+        if names[first] == names[again]:
+            raise ValueError(
+                f"{path}:{lines[again]}: frame file {names[again]!r} is listed again (line "
+                f"{lines[first]}); each row names its own frame"
+            )
+    return np.frombuffer(stamps, np.int64), names, lines
 
 
 def read_pose_file(path: str | Path) -> tuple[np.ndarray, np.ndarray]:

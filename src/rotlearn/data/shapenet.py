@@ -58,6 +58,9 @@ log = logging.getLogger("rotlearn")
 
 AIRPLANE_SYNSET = "02691156"
 POINT_SUFFIXES = (".pts", ".xyz")
+# Points a cloud may use (the 6D paper's have about 2.4k-2.9k, half used): every draw holds each
+# point 6 times a sample, so a file of 100k short lines made a batch of 100 take 240 MB.
+MAX_CLOUD_POINTS = 2**16
 # Every line break of `str.splitlines` (the vertex check's lines), as one pattern: written as
 # "\n" before trimesh parses the text, so that it reads the lines the check read.
 _LINE_BREAKS = re.compile(r"\r\n|[\r\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029]")
@@ -247,6 +250,12 @@ class ShapeNetDataModule(DrawDataModule):
         for path in files:
             points = read_point_file(resolve_inside(self.root, path, "data.root"))
             keep = max(1, int(len(points) * self.point_fraction))
+            if keep > MAX_CLOUD_POINTS:
+                raise ValueError(
+                    f"{path}: {keep} points used (data.point_fraction={self.point_fraction:g} of "
+                    f"{len(points)}), over the {MAX_CLOUD_POINTS} a cloud may use; subsample the "
+                    "file or lower data.point_fraction"
+                )
             clouds.append(torch.from_numpy(points[:keep]))
         return clouds
 
