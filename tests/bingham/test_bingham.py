@@ -517,3 +517,17 @@ def test_a_prediction_carries_the_uncertainty_of_its_belief():
     assert (prediction.dt <= 0).all() and (prediction.eigengap >= 0).all()
     plain = make_head("sixd")(torch.randn(5, 6))
     assert plain.dispersion is None and plain.dt is None and plain.eigengap is None
+
+
+@pytest.mark.parametrize("name", ["log_prob", "nll"])
+def test_a_float32_and_a_float64_argument_give_the_float64_result(name):
+    """A and q promote as torch's elementwise ops do (a matmul would refuse the pair)."""
+    g = torch.Generator().manual_seed(3)
+    A = torch.randn(6, 4, 4, generator=g, dtype=torch.float64)
+    A = (A + A.transpose(-1, -2)).float().double()  # values float32 holds exactly
+    q = torch.nn.functional.normalize(torch.randn(6, 4, generator=g, dtype=torch.float64), dim=-1)
+    q = q.float().double()
+    function = getattr(bh, name)
+    for got in (function(A.float(), q), function(A, q.float())):
+        assert got.dtype == torch.float64
+        torch.testing.assert_close(got, function(A, q), rtol=0, atol=0)

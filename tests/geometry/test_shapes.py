@@ -70,3 +70,16 @@ def test_a_wrong_trailing_shape_is_named(name):
             expected = ", ".join(["...", *map(str, trailing)])
             with pytest.raises(ValueError, match=rf"expected a tensor of shape \({expected}\)"):
                 function(*args)
+
+
+@pytest.mark.parametrize("name", sorted(n for n, shapes in TRAILING.items() if len(shapes) == 2))
+def test_a_map_of_two_tensors_promotes_float32_with_float64(name):
+    """As torch's elementwise ops do: float32 with float64 gives the float64 result of the same
+    (float32-rounded) values, whichever argument is the float32 one (a matmul would refuse)."""
+    function, shapes = getattr(geometry, name), TRAILING[name]
+    wide = [_good(s, (5,)).float().double() for s in shapes]
+    for narrow in range(2):
+        args = [a.float() if i == narrow else a for i, a in enumerate(wide)]
+        got = function(*args)
+        assert got.dtype == torch.float64
+        torch.testing.assert_close(got, function(*wide), rtol=0, atol=0)

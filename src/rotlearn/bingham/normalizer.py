@@ -24,6 +24,7 @@ from rotlearn.bingham.descriptors import (
     dispersion_from_eigenvalues,
 )
 from rotlearn.geometry.autocast import float32_under_autocast, valued_as
+from rotlearn.geometry.shapes import promoted
 
 __all__ = ["log_normalizer", "log_prob", "moments", "nll", "normalizer"]
 
@@ -274,7 +275,8 @@ def log_prob(A: Tensor, q: Tensor, check: bool = True) -> Tensor:
             taken at that bound (the loss then stops sharpening the belief).
 
     Returns:
-        (...,) log densities; exp integrates to 1 against the uniform probability measure
+        (...,) log densities, in the promoted dtype of A and q (float32 with float64 is
+        float64); exp integrates to 1 against the uniform probability measure
         (subtract `LOG_AREA_S3` for the surface measure). Invariant to q -> -q and A -> A + cI.
         Differentiable in A (through eigenvalues only, well defined at repeated ones) and q.
         Under autocast computed in float32 and returned in float32. The fit term q^T A q - l1
@@ -288,6 +290,7 @@ def log_prob(A: Tensor, q: Tensor, check: bool = True) -> Tensor:
     """
     _check_A(A, values=check)
     _check_q(q, values=check)
+    A, q = promoted(A, q)
     ev, mode = _decompose(A)
     if check:
         _check_spread(ev)

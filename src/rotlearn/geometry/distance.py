@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 
 from rotlearn.geometry.autocast import float32_under_autocast
-from rotlearn.geometry.shapes import require_shape
+from rotlearn.geometry.shapes import promoted, require_shape
 
 __all__ = ["angle", "angle_deg", "chordal_distance", "chordal_distance_sq", "quat_chordal_distance"]
 
@@ -30,11 +30,12 @@ def angle(R1: Tensor, R2: Tensor) -> Tensor:
         R2: (..., 3, 3) rotation matrices, broadcast against R1.
 
     Returns:
-        (...) angles in radians, in the inputs' dtype and on their device; float32 under
+        (...) angles in radians, in the inputs' (promoted) dtype and on their device; float32 under
         autocast (a bfloat16 R1^T R2 would put ~0.5 degree of rounding into small angles).
     """
     require_shape(R1, (3, 3), "R1")
     require_shape(R2, (3, 3), "R2")
+    R1, R2 = promoted(R1, R2)
     sin_half = torch.linalg.matrix_norm(R1 - R2) / _TWO_SQRT2
     rel = R1.transpose(-1, -2) @ R2
     trace = torch.diagonal(rel, dim1=-2, dim2=-1).sum(-1)

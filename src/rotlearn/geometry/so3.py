@@ -13,7 +13,7 @@ from torch import Tensor
 
 from rotlearn.geometry.autocast import float32_under_autocast
 from rotlearn.geometry.quaternion import quat_canonical, quat_to_rotmat, rotmat_to_quat
-from rotlearn.geometry.shapes import require_shape
+from rotlearn.geometry.shapes import promoted, require_shape
 
 __all__ = [
     "hat",
@@ -133,8 +133,9 @@ def relative_rotation(R_w1: Tensor, R_w2: Tensor) -> Tensor:
         R_w1, R_w2: (..., 3, 3) camera-to-world rotations of the first and second frame.
 
     Returns:
-        (..., 3, 3) C_21, in the inputs' dtype (float32 under autocast).
+        (..., 3, 3) C_21, in the inputs' (promoted) dtype (float32 under autocast).
     """
     require_shape(R_w1, (3, 3), "R_w1")
     require_shape(R_w2, (3, 3), "R_w2")
+    R_w1, R_w2 = promoted(R_w1, R_w2)
     return R_w2.transpose(-1, -2) @ R_w1
