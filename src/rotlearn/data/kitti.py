@@ -68,7 +68,7 @@ def read_kitti_poses(path: str | Path) -> np.ndarray:
                 f"{path}:{start + i + 1}: the rotation is not orthonormal with det +1 "
                 f"(max |R^T R - I| = {error[i]:.2e}, det = {np.linalg.det(R[i]):.4f})"
             )
-        R[...] = special_orthogonalize(torch.from_numpy(R.copy())).numpy()
+        R[...] = special_orthogonalize(torch.from_numpy(R)).numpy()
     return poses
 
 
