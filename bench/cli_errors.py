@@ -6,7 +6,7 @@ first (`scenario`): a folder that is no run, a sweep directory with two jobs, a 
 data (its checkpoint carries the config; no weights are needed to refuse it) and a KITTI folder
 with only sequence 00. Unknown keys, options, values, data folders and a run's data are decided
 from files alone (the sources, the checkpoint's config read without torch); the rules that span
-keys build the head and the loss (torch) or ask the calibration callback (Lightning).
+keys build the head and the loss (torch, not Lightning).
 `make bench ARGS=cli_errors`; tests/cli/test_errors.py runs the same cases.
 """
 

@@ -40,7 +40,7 @@ from rotlearn.bingham.descriptors import (
 )
 from rotlearn.bingham.normalizer import _log_normalizer3, moments
 
-__all__ = ["MIN_SPREAD_RATIO", "TemperatureFit", "fit_temperature"]
+__all__ = ["MIN_SPREAD_RATIO", "TemperatureFit", "fit_temperature", "temperature_refusal"]
 
 MIN_SPREAD_RATIO = 1e-6
 """The near-uniform end of the bracket: beta (l4 - l1) >= this for the widest-spread sample."""
@@ -159,3 +159,16 @@ def fit_temperature(
         num=int(energy.shape[0]),
         at_bound=at_bound,
     )
+
+
+def temperature_refusal(head: object, model: object = None) -> str | None:
+    """Why a model with `head` has no belief whose temperature can be fitted (None: the head
+    defines one, `defines_belief`). Asked for `calibrate: true` by `rotlearn.config` once the
+    head is built (before Lightning is imported) and by `rotlearn.lit.PostHocCalibration`;
+    `model` (its class, or its config node) is named when it has no head."""
+    if getattr(head, "defines_belief", False):
+        return None
+    if head is None:
+        name = model.get("_target_") if isinstance(model, dict) else type(model).__name__
+        return f"fits the temperature of a belief; the model {name} has no head"
+    return f"fits the temperature of a belief; rep={getattr(head, 'name', None)} has none"

@@ -11,7 +11,8 @@ read from the source where it names only typing constructs (a refusal before tor
 imported; then the rules that span keys, each declared by the component that needs it: a component's
 `config_needs` ((key, class, what), ...: the node at `key` defines that class's methods; read
 from the source by `check_keys`), the head and the loss are built (the head registry checks name
-and size, a likelihood loss its head), and `calibrate: true` asks `PostHocCalibration.refusal`.
+and size, a likelihood loss its head), and `calibrate: true` asks the temperature fit's
+`rotlearn.bingham.temperature.temperature_refusal` (before Lightning is imported).
 """
 
 from __future__ import annotations
@@ -331,8 +332,8 @@ def _check(key: str, value: Any, annotation: Any) -> None:
 
 def check_values(values: dict[str, Any]) -> None:
     """Pass 2, importing only what each check needs, the fastest first: the values whose
-    annotations their source tells, the head and the loss built, the values whose annotations
-    need their component imported, then the calibration rule."""
+    annotations their source tells, the head and the loss built, the calibration rule, then the
+    values whose annotations need their component imported."""
     from hydra.errors import InstantiationException
     from hydra.utils import instantiate
 
@@ -357,11 +358,10 @@ def check_values(values: dict[str, Any]) -> None:
             if isinstance(exc.__cause__, ConfigError):
                 raise exc.__cause__.within(key) from None
             raise
-    for key, value, p in later:  # these import Lightning (seconds)
-        _check(key, value, _imported_annotation(p.owner, p.name))
-    from rotlearn.lit.calibration import PostHocCalibration
+    from rotlearn.bingham.temperature import temperature_refusal  # the head's rule: no Lightning
 
     head = built["rep"] if "head" in values["model"] else None
-    why = PostHocCalibration.refusal(head, values["model"])
-    if values.get("calibrate") is True and why:
+    if values.get("calibrate") is True and (why := temperature_refusal(head, values["model"])):
         raise ConfigError("calibrate", why)
+    for key, value, p in later:  # these import Lightning (seconds)
+        _check(key, value, _imported_annotation(p.owner, p.name))

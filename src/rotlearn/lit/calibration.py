@@ -44,6 +44,7 @@ import lightning.pytorch as pl
 import torch
 
 from rotlearn.bingham import LevelMap, fit_level_map, fit_temperature, hpd_level
+from rotlearn.bingham.temperature import temperature_refusal
 from rotlearn.checkpoint import TEMPERATURE_FILE
 from rotlearn.errors import ConfigError
 from rotlearn.geometry import rotmat_to_quat
@@ -119,17 +120,7 @@ class PostHocCalibration(pl.Callback):
         self.required = bool(required)
         self.record: dict[str, Any] | None = None
 
-    @staticmethod
-    def refusal(head: Any, model: Any = None) -> str | None:
-        """Why a model with `head` has nothing to calibrate (None: its head defines a belief).
-        Asked by `rotlearn.config` for `calibrate: true`, before anything is built; `model` names
-        the model (its class or config) when it has no head."""
-        if getattr(head, "defines_belief", False):
-            return None
-        if head is None:
-            name = model.get("_target_") if isinstance(model, dict) else type(model).__name__
-            return f"fits the temperature of a belief; the model {name} has no head"
-        return f"fits the temperature of a belief; rep={head.name} has none"
+    refusal = staticmethod(temperature_refusal)  # None: the head defines a belief
 
     def setup(self, trainer: pl.Trainer, pl_module: pl.LightningModule, stage: str) -> None:
         why = self.refusal(getattr(pl_module, "head", None), pl_module)
