@@ -26,8 +26,9 @@ exclude_patterns = ["_build"]
 if importlib.util.find_spec("rotlearn.nn") is None:  # the drop-in layers are not in this tree yet
     exclude_patterns.append("api/nn.rst")
 
-# `name` in a docstring is a cross-reference when it names something documented, else code.
-default_role = "py:obj"
+# `name` in a docstring is a cross-reference when it names something documented, else code;
+# `.hydra/config.yaml` or `.npy` is a file name, shown with its dot (`_code_or_xref`).
+default_role = "code-or-xref"
 autodoc_default_options = {"members": True, "show-inheritance": True}
 autodoc_member_order = "bysource"
 autodoc_inherit_docstrings = False  # not Lightning's docstrings of the hooks rotlearn overrides
@@ -134,6 +135,19 @@ def _command_help_directive():
     return CommandHelp
 
 
+def _code_or_xref(name, rawtext, text, lineno, inliner, options=None, content=None):
+    """The docstrings' default role: Python's `obj` role, except for text that starts with a dot,
+    which is a file or folder name (`.hydra/config.yaml`, `.npy`) and is shown as written (the
+    Python role reads a leading dot as "search relatively" and drops it from the text)."""
+    from docutils import nodes
+
+    if text.startswith("."):
+        return [nodes.literal(rawtext, text)], []
+    role = inliner.document.settings.env.get_domain("py").role("obj")
+    return role(name, rawtext, text, lineno, inliner, options or {}, content or [])
+
+
 def setup(app) -> None:
+    app.add_role("code-or-xref", _code_or_xref)
     app.connect("autodoc-process-docstring", _plain_text_docstring, priority=400)  # before napoleon
     app.add_directive("command-help", _command_help_directive())

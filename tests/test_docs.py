@@ -128,3 +128,16 @@ def test_the_score_example_is_evaluated(cleanup):
     assert len(rows) == 1 and rows["kept_pct"].iloc[0] == pytest.approx(50.0, abs=2.0)
     assert SCORES["gap_ratio"].keep_below is False
     OODEvaluation(scores=["dt", "gap_ratio"])  # the callback accepts its name
+
+
+def test_a_file_name_in_a_docstring_keeps_its_leading_dot():
+    """The docstrings' default role (docs/conf.py) shows `.hydra/config.yaml` as written; with
+    Python's `obj` role the docs site read the dot as a relative lookup and showed
+    "hydra/config.yaml"."""
+    spec = importlib.util.spec_from_file_location("docs_conf", DOC.parent / "conf.py")
+    conf = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(conf)
+    assert conf.default_role == "code-or-xref"
+    text = ".hydra/config.yaml"
+    (node,), messages = conf._code_or_xref("", f"`{text}`", text, 1, None)
+    assert node.astext() == text and node.tagname == "literal" and messages == []
