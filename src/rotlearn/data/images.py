@@ -11,6 +11,7 @@ cache.
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 from collections.abc import Callable, Sequence
@@ -158,7 +159,7 @@ def _manifest(files: Sequence[Path], recipe: dict) -> dict:
 
 def _require_space(path: Path, size: int) -> None:
     """ValueError naming `path` unless its file system (that of its nearest existing folder)
-    has `size` bytes free and 256 MiB to spare."""
+    has `size` bytes free and `_SPARE_BYTES` to spare."""
     folder = path.parent
     while not folder.exists() and folder != folder.parent:
         folder = folder.parent
@@ -166,8 +167,8 @@ def _require_space(path: Path, size: int) -> None:
     if size + _SPARE_BYTES > free:
         raise ValueError(
             f"{path}: the frame cache takes {size / 1e9:.2f} GB, but its disk has "
-            f"{free / 1e9:.2f} GB free (and 256 MiB are kept spare); free space, or set "
-            "data.cache_dir to a folder with room"
+            f"{free / 1e9:.2f} GB free (and {_SPARE_BYTES >> 20} MiB are kept spare); free "
+            "space, or set data.cache_dir to a folder with room"
         )
 
 
@@ -201,14 +202,15 @@ def frame_cache(
             thousands of times its size).
     """
     array_path, manifest_path = cache.with_suffix(".npy"), cache.with_suffix(".json")
+    shape = (len(files), 1 if gray else 3, size, size)  # what the cache holds
     manifest = _manifest(files, {**recipe, "gray": gray, "decoder": DECODER})
     if read_manifest(manifest_path) == manifest:
-        cached = read_cached_array(array_path, np.uint8, (len(files), 1 if gray else 3, size, size))
+        cached = read_cached_array(array_path, np.uint8, shape)
         if cached is not None:
             return cached
     from tqdm import tqdm
 
-    _require_space(array_path, len(files) * (1 if gray else 3) * size * size)
+    _require_space(array_path, math.prod(shape))
     manifest_path.unlink(missing_ok=True)
     with atomic_write(array_path) as tmp:
         out = first = depth = None
