@@ -49,6 +49,15 @@ from tests.conftest import gen
 
 F32, F64 = torch.float32, torch.float64
 DTYPES = [F32, F64]
+
+
+def _upper_triangles(bound: float, width: int):
+    """Hypothesis: the 10 upper-triangle entries of a symmetric 4x4 (`a_from_vec`), each a
+    finite float of `width` bits in [-bound, bound]."""
+    entry = st.floats(min_value=-bound, max_value=bound, allow_nan=False, width=width)
+    return st.lists(entry, min_size=10, max_size=10)
+
+
 # The CPU paths: the fused kernel needs a C compiler (test_cpu_kernel_builds_where_a_compiler_is
 # fails where one exists and the build does not).
 NO_CPU_KERNEL = pytest.mark.skipif(not cpu_kernel.available(), reason="no CPU kernel here")
@@ -247,11 +256,7 @@ def test_accuracy_bounds_hold_for_a_large_multiple_of_the_identity(method, kerne
 
 @settings(max_examples=60, deadline=None)
 @given(
-    entries=st.lists(
-        st.floats(min_value=-1.0, max_value=1.0, allow_nan=False, width=32),
-        min_size=10,
-        max_size=10,
-    ),
+    entries=_upper_triangles(1.0, width=32),
     shift=st.floats(min_value=-1e6, max_value=1e6, allow_nan=False),
     dtype=st.sampled_from(DTYPES),
 )
@@ -726,11 +731,7 @@ def test_default_round_counts():
 
 @settings(max_examples=60, deadline=None)
 @given(
-    entries=st.lists(
-        st.floats(min_value=-1e3, max_value=1e3, allow_nan=False, width=64),
-        min_size=10,
-        max_size=10,
-    ),
+    entries=_upper_triangles(1e3, width=64),
     dtype=st.sampled_from(DTYPES),
 )
 @example(entries=[0.0] * 9 + [3.348262739711181e-43], dtype=F32)  # found by CI: a subnormal
