@@ -285,6 +285,13 @@ def test_a_damaged_overrides_file_does_not_resume_the_run_under_other_settings(
         (["rep=quat", "data.sigma=${oc.env:HOME}"], r"overrides\.yaml: override 'data\.sigma="
          r"\$\{oc\.env:HOME\}' reads \$\{oc\.env:\.\.\.\}: a saved override may use only the "
          r"resolvers that read the config"),
+        # a resolver whose name is built from another, and one that reads a string as config
+        (["rep=quat", "data.sigma='${oc.${oc.decode:env}:HOME}'"], r"overrides\.yaml: override "
+         r".data\.sigma=.*. reads \$\{oc\.\$\{oc\.decode:env\}:\.\.\.\}: a saved override"),
+        (["rep=quat", r"""data.sigma="${oc.decode:'\${oc.env:HOME}'}" """], r"overrides\.yaml: "
+         r"override .data\.sigma=.*. reads \$\{oc\.decode:\.\.\.\}: a saved override"),
+        (["rep=quat", "data.sigma='${oc.env:HOME'"], r"overrides\.yaml: override .data\.sigma="
+         r".*. holds '\$\{oc\.env:HOME', which OmegaConf cannot read$"),
     ],
 )  # fmt: skip
 def test_a_refusal_names_the_saved_override_the_user_did_not_type(tmp_path, saved, message):

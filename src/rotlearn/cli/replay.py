@@ -15,7 +15,9 @@ Hydra starts: nothing is written and nothing is built from a refused file. `quot
 from __future__ import annotations
 
 import re
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 from rotlearn.io import UnreadableFileError, read_yaml
 from rotlearn.paths import config_dir
@@ -27,11 +29,11 @@ __all__ = ["quoted", "replayed_config", "saved_overrides"]
 MAX_OVERRIDES = 1000  # one run's command line; a file with more is not a run's
 MAX_OVERRIDE_CHARS = 8192  # one override's text
 # The resolvers a saved override may name: those that read the config alone (and rotlearn's own,
-# `rl.*`); `${oc.env:...}` would read the environment of whoever resumes a received run into
-# its config, its folders and files.
-CONFIG_RESOLVERS = ("hydra", "now", "oc.select", "oc.decode", "oc.create", "oc.deprecated",
-                    "oc.dict.keys", "oc.dict.values")  # fmt: skip
-_RESOLVER = re.compile(r"(\\*)\$\{\s*([A-Za-z_][\w.-]*)\s*:")  # an unescaped ${name:
+# `rl.*`). `${oc.env:...}` would read the environment of whoever resumes a received run into
+# its config, its folders and files; `oc.decode` and `oc.create` read a string as config again,
+# so an escaped `\${oc.env:...}` in their argument would do the same.
+CONFIG_RESOLVERS = ("hydra", "now", "oc.select", "oc.deprecated", "oc.dict.keys",
+                    "oc.dict.values")  # fmt: skip
 
 
 def quoted(value: str) -> str:
@@ -66,15 +68,40 @@ def _parse(overrides: list[str], source: Path) -> None:
             raise UntrustedConfigError(
                 f"{source}: override {override.input_line!r} is a sweep, not one run's value"
             )
-        for found in _RESOLVER.finditer(override.input_line):
-            name = found[2]
-            if len(found[1]) % 2 or name in CONFIG_RESOLVERS or name.startswith("rl."):
-                continue
-            raise UntrustedConfigError(
-                f"{source}: override {override.input_line!r} reads ${{{name}:...}}: a saved "
-                "override may use only the resolvers that read the config (a received run "
-                "could read your environment this way); set that value on the command line"
-            )
+        for name in _resolvers(override.value(), override.input_line, source):
+            if name not in CONFIG_RESOLVERS and not name.startswith("rl."):
+                raise UntrustedConfigError(
+                    f"{source}: override {override.input_line!r} reads ${{{name}:...}}: a saved "
+                    "override may use only the resolvers that read the config (a received run "
+                    "could read your environment this way); set that value on the command line"
+                )
+
+
+def _resolvers(value: Any, line: str, source: Path) -> Iterator[str]:
+    """The names of the resolvers OmegaConf would call to resolve `value` (a parsed override's
+    value: a string, or lists and dicts of them), read with OmegaConf's own grammar; a name
+    built from an interpolation (`${oc.${x}:...}`) as written, `${` and all."""
+    from omegaconf.errors import GrammarParseError
+    from omegaconf.grammar.gen.OmegaConfGrammarParser import OmegaConfGrammarParser
+    from omegaconf.grammar_parser import parse
+
+    if isinstance(value, dict | list):
+        for item in value.values() if isinstance(value, dict) else value:
+            yield from _resolvers(item, line, source)
+        return
+    if not isinstance(value, str) or "${" not in value:
+        return
+    try:
+        nodes = [parse(value)]
+    except GrammarParseError:
+        raise UntrustedConfigError(
+            f"{source}: override {line!r} holds {value!r}, which OmegaConf cannot read"
+        ) from None
+    while nodes:
+        node = nodes.pop()
+        if isinstance(node, OmegaConfGrammarParser.ResolverNameContext):
+            yield node.getText()
+        nodes.extend(getattr(node, "children", None) or ())
 
 
 def saved_overrides(run_dir: str | Path) -> list[str]:
