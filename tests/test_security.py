@@ -307,7 +307,7 @@ OVERRIDE_PAYLOADS = {
     "+net.f._target_=builtins.open": "net.f._target_",
     "+payload={_target_:builtins.open,file:VICTIM,mode:w}": "payload._target_",
     "rep.solver='${oc.decode:\"{_target_: builtins.open, file: VICTIM, mode: w}\"}'": (
-        "rep.solver._target_"
+        "reads ${oc.decode:...}"  # a string read as config again: refused before composing
     ),
     "+hydra.callbacks.x._target_=builtins.exec": "hydra.callbacks.x._target_",
     "hydra.searchpath=[file:///tmp]": "hydra.searchpath",

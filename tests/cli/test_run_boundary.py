@@ -506,3 +506,27 @@ def test_weights_that_do_not_fit_the_run_are_refused_before_training(received, a
     received.snapshot()
     message = refused(received)
     assert expected in message and str(received.ckpt) in message
+
+
+def test_the_evaluation_never_opens_an_autoencoder_its_checkpoint_names(finished_run, tmp_path):
+    """A received run's callbacks.ood.autoencoder_ckpt named a checkpoint outside it, which
+    rotlearn-eval opened; only the evaluation's own ood.autoencoder_ckpt is used."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    from rotlearn.checkpoint import load_run
+    from rotlearn.cli.evaluate import evaluated_config, evaluation_config
+    from rotlearn.paths import config_dir
+
+    run = copy_run(finished_run, tmp_path / "run")
+    config = yaml.safe_load((run / ".hydra" / "config.yaml").read_text())
+    config["callbacks"] = {"ood": {"autoencoder_ckpt": "/elsewhere/ae"}}
+    (run / ".hydra" / "config.yaml").write_text(yaml.safe_dump(config))
+    saved = load_run(run)
+    OmegaConf.update(saved.config, "callbacks.ood.autoencoder_ckpt", "/elsewhere/ae", merge=True)
+    for given, used in (([], None), (["ood.autoencoder_ckpt=mine"], "mine")):
+        with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
+            cfg = compose("eval", [f"ckpt={run}", f"paths.output_dir={tmp_path}", *given])
+        assert evaluation_config(cfg, saved).callbacks.ood.get("autoencoder_ckpt") == used
+        recorded = evaluated_config(cfg, saved, members=1)["callbacks"]["ood"]
+        assert recorded.get("autoencoder_ckpt") == used

@@ -129,6 +129,9 @@ def test_extra_sets_are_checked_when_the_callback_is_built():
         OODEvaluation(extra_sets={"clean": {"test_scenes": ["indoor"]}})
     with pytest.raises(ConfigValueError, match=r"extra_sets\.indoor"):
         OODEvaluation(extra_sets={"indoor": {}})
+    for key in ("root", "cache_dir"):  # a received run's extra set wrote a cache anywhere
+        with pytest.raises(ConfigValueError, match=rf"extra_sets\.other\.{key}.*names no files"):
+            OODEvaluation(extra_sets={"other": {"test_scenes": ["indoor"], key: "/elsewhere"}})
 
 
 def test_a_tiny_mav_run_scores_its_extra_sets(tmp_path, make_cfg):

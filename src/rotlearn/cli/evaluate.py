@@ -51,9 +51,13 @@ def _set(node: DictConfig | None) -> dict[str, Any]:
 
 def _run_ood(callbacks: Any) -> Any:
     """A run's OOD callback node (`callbacks.ood`), else conf/callbacks/ood.yaml's (a run
-    trained without it)."""
+    trained without it), without its `autoencoder_ckpt`: a path outside the run, which an
+    evaluation never opens (its own command line's `ood.autoencoder_ckpt=` is used)."""
     ood = callbacks.get("ood") if isinstance(callbacks, Mapping) else None
-    return OmegaConf.to_container(OmegaConf.load(DEFAULT_OOD).ood) if ood is None else ood
+    ood = OmegaConf.load(DEFAULT_OOD).ood if ood is None else ood
+    ood = OmegaConf.to_container(ood) if isinstance(ood, DictConfig) else ood
+    return {k: v for k, v in ood.items() if k != "autoencoder_ckpt"} if isinstance(ood, dict) \
+        else ood  # fmt: skip
 
 
 def evaluation_config(cfg: DictConfig, saved: SavedRun) -> DictConfig:
@@ -185,6 +189,10 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
         net, head, saved = _ensemble(paths)
     ckpt = saved.path
     run = evaluation_config(cfg, saved)
+    if named := OmegaConf.select(saved.config, "callbacks.ood.autoencoder_ckpt"):
+        log.warning("%s: the run's callbacks.ood.autoencoder_ckpt (%s) is not opened (a file "
+                    "never names another to read); for the autoencoder score: "
+                    "ood.autoencoder_ckpt=<its run>", cfg.ckpt, named)  # fmt: skip
     try:  # the weights against the model the config describes, built on the meta device first
         saved.check_fits("model", prefix="")
     except ValueError as exc:

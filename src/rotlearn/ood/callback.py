@@ -53,6 +53,7 @@ __all__ = ["OODEvaluation", "extra_source"]
 
 log = logging.getLogger("rotlearn")
 RESERVED_SETS = ("train", "val", "clean", "corrupted", "noise")
+FILE_SETTINGS = ("root", "cache_dir")  # an extra set reads the run's own dataset and cache
 
 
 def check_settings(source: Any, name: str, overrides: dict[str, Any]) -> None:
@@ -182,6 +183,12 @@ class OODEvaluation(pl.Callback):
                     f"extra_sets.{name}",
                     f"needs a name other than {list(RESERVED_SETS)} and a non-empty mapping of "
                     f"datamodule settings (e.g. {{test_scenes: [indoor]}}), got {overrides!r}",
+                )
+            for key in (k for k in overrides if k in FILE_SETTINGS):
+                raise ConfigValueError(
+                    f"extra_sets.{name}.{key}",
+                    "an extra set tests other scenes or sequences of the run's own dataset and "
+                    "cache (data.root, data.cache_dir); it names no files",
                 )
         self.examples = int(examples)
         self.results: dict[str, float] = {}  # the run's one-shot results (RunRecords)
