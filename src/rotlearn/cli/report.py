@@ -45,7 +45,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         files = make_report(args.sweep_dir, args.out, group_by=args.group_by, pool=args.pool)
-    except (FileNotFoundError, FileExistsError, ValueError) as exc:  # ValueError: --group-by
+    except (OSError, ValueError) as exc:  # a failed write (a full disk); ValueError: --group-by
         print(f"rotlearn-report: {exc}", file=sys.stderr)
         return 2
     for name, path in files.items():

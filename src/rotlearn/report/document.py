@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from rotlearn.io import read_json, read_table, write_text_atomic
+from rotlearn.io import read_json, read_table, resolve_inside, write_text_atomic
 from rotlearn.report import figures, tables
 from rotlearn.report.runs import RUN_MARKS, collect_runs, label_without
 from rotlearn.report.tensorboard import read_curve
@@ -51,6 +51,16 @@ __all__ = ["CURVE_METRICS", "make_report"]
 
 log = logging.getLogger("rotlearn")
 CURVE_METRICS = ["train/err_mean", "val/err_mean"]
+OUTPUT_FILES = (
+    "summary.csv",
+    "report.md",
+    "reliability.png",
+    "ood_table.csv",
+    "ood_pr.png",
+    "ood_scatter.png",
+    "ood_box.png",
+    "ood_sets.png",
+)  # and the layout's plots
 
 
 def make_report(
@@ -65,6 +75,8 @@ def make_report(
 
     Raises:
         FileNotFoundError: `root` holds no run directories.
+        FileExistsError: a folder stands where a file of the report goes (nothing written).
+        ValueError: a run's `report` node is not a layout (`rotlearn.report.runs.layout_of`).
     """
     roots = [Path(r) for r in root] if isinstance(root, (list, tuple)) else [Path(root)]
     for folder in (r for r in roots if not r.is_dir()):
@@ -78,6 +90,10 @@ def make_report(
         where = ", ".join(str(r) for r in roots)
         marks = ", ".join(f"*/{m}" for m in RUN_MARKS)
         raise FileNotFoundError(f"no runs under {where} (no run directory: {marks})")
+    for name in (*OUTPUT_FILES, *(p["file"] for p in runs.attrs["layout"]["plots"] if "file" in p)):
+        if (out / name).is_dir() and not (out / name).is_symlink():
+            raise FileExistsError(f"{out / name}: a folder is where the report writes a file; "
+                                  "move it away or pass --out")  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
     files = {"summary": write_text_atomic(out / "summary.csv", runs.to_csv(index=False))}
     done, recon = (_having(runs, m) for m in ("test/err_mean", "test/recon_mean"))
@@ -153,8 +169,11 @@ def _curve(run: Path, key: str) -> np.ndarray | None:
             log.warning("%s (ignored)", exc)
             frame = pd.DataFrame()
         if key in frame and "epoch" in frame:
-            values = frame.dropna(subset=[key]).groupby("epoch")[key].last()
-            return values.to_numpy(dtype=float)
+            numeric = [c for c in ("epoch", key) if not pd.api.types.is_numeric_dtype(frame[c])]
+            if not numeric:
+                values = frame.dropna(subset=[key]).groupby("epoch")[key].last()
+                return values.to_numpy(dtype=float)
+            log.warning("%s: column %s is not numeric (ignored)", csv, numeric[0])
     return read_curve(run, key)
 
 
@@ -183,7 +202,7 @@ def _plots(done, runs, layout, out: Path, files: dict[str, Path]) -> list[str]:
         kind = plot.get("kind")
         if kind == "box" and plot.get("x") in done and done[plot["x"]].nunique() > 1:
             x, label = str(plot["x"]), _label(plot)
-            name = str(plot.get("file") or f"{label}_box.png")
+            name = plot["file"]  # a plain name (`rotlearn.report.runs.layout_of`)
             done = done[done[x].notna()]
             done = done.assign(series=label_without(runs.loc[done.index], [x]))
             rows, values = tables.setting_order(done, "series"), _sorted(done[x])
@@ -198,7 +217,7 @@ def _plots(done, runs, layout, out: Path, files: dict[str, Path]) -> list[str]:
                 files[Path(name).stem] = figures.save_figure(fig, out / name, dpi=110)
                 md += [f"![log10 test error per {label}]({name})", ""]
         elif kind == "curves":
-            name = str(plot.get("file") or "curves.png")
+            name = plot["file"]
             metrics = [str(t) for t in plot.get("metrics") or CURVE_METRICS]
             panels = {
                 _metric_title(metric): {
@@ -329,17 +348,50 @@ def _reliability_curves(done: pd.DataFrame) -> tuple[list[dict[str, Any]], list[
 # ---------------------------------------------------------------------------------- OOD
 
 
+OOD_COLUMNS = (
+    "score",
+    "set",
+    "in_table",
+    "q",
+    "kept_pct",
+    "err_mean_all",
+    "err_mean_kept",
+    "err_median_kept",
+    "precision",
+    "recall",
+    "auroc",
+)  # what the report reads (numbers from q on)
+
+
 def _ood_frames(done: pd.DataFrame) -> list[tuple[pd.Series, pd.DataFrame]]:
-    """(run row, its ood.csv) of every completed run that has a readable one."""
+    """(run row, its ood.csv) of every completed run that has a readable one: `OOD_COLUMNS`
+    (in_table true or false, the others from q on numbers; score and set read as text)."""
     frames = []
     for _, run in done.iterrows():
         path = Path(run["dir"]) / "ood.csv"
         if os.path.lexists(path):
             try:
-                frames.append((run, read_table(path, root=run["dir"])))
+                frames.append((run, _ood_table_file(path, run["dir"])))
             except (OSError, ValueError) as exc:
                 log.warning("report: %s unreadable (%s); skipped", path, exc)
     return frames
+
+
+def _ood_table_file(path: Path, run_dir: str) -> pd.DataFrame:
+    """A run's ood.csv, read bounded, its `OOD_COLUMNS` checked.
+
+    Raises:
+        ValueError: the columns missing, or the first one not of its kind.
+    """
+    frame = read_table(path, root=run_dir)
+    if missing := [c for c in OOD_COLUMNS if c not in frame]:
+        raise ValueError(f"not an OOD table (no column {', '.join(missing)})")
+    if not pd.api.types.is_bool_dtype(frame["in_table"]):
+        raise ValueError("column in_table is not true / false")
+    for column in OOD_COLUMNS[3:]:
+        if not pd.api.types.is_numeric_dtype(frame[column]):
+            raise ValueError(f"column {column} is not numeric")
+    return frame.astype({"score": str, "set": str})
 
 
 def _oracle_frame(run: pd.Series, frame: pd.DataFrame, sets: dict | None) -> pd.DataFrame:
@@ -398,7 +450,7 @@ OOD_NOTE = (
 
 def _ood_sections(frames, layout, out: Path, files: dict[str, Path]) -> list[str]:
     """Table I, the paper comparison, per-score and per-set tables and the OOD figures."""
-    samples = [_samples(run) for run, _ in frames]
+    samples = [_samples(run, frame) for run, frame in frames]
     ood = _ood_table(frames, samples)
     files["ood_table"] = write_text_atomic(out / "ood_table.csv", ood.to_csv(index=False))
     md = ["## OOD rejection (paper Table I)", "", OOD_NOTE, "",
@@ -438,20 +490,33 @@ def _ood_sections(frames, layout, out: Path, files: dict[str, Path]) -> list[str
     return md + _ood_figures(frames, samples, out, set_names, files)
 
 
-def _samples(run: pd.Series) -> dict[str, dict] | None:
-    """The sets of the run's `ood_samples.csv` (`rotlearn.ood.records.read_samples`); None
-    where it has none or it is unreadable (warned)."""
+def _samples(run: pd.Series, frame: pd.DataFrame) -> dict[str, dict] | None:
+    """The sets of the run's `ood_samples.csv` (`rotlearn.ood.records.read_samples`, a file
+    inside the run), if they are those its ood.csv (`frame`) was made from: the reference set
+    with a column for a score of the table, the test sets with their OOD flags (`ood`); None
+    where it has none or it is unreadable (warned, naming the file)."""
+    from rotlearn.ood.evaluation import TEST_SETS, reference_set
     from rotlearn.ood.records import SAMPLES_FILE, read_samples
+    from rotlearn.scores import SCORES
 
     path = Path(run["dir"]) / SAMPLES_FILE
-    if not path.is_file():
+    if not os.path.lexists(path):
         return None
+    reference = reference_set(frame)
     try:
-        return read_samples(path)
+        resolve_inside(run["dir"], path, SAMPLES_FILE)  # read_samples reads it unchecked
+        sets = read_samples(path)
+        if "corrupted" not in sets or any(
+            "corrupted" not in sets[s] for s in TEST_SETS if s in sets
+        ):
+            raise ValueError("no set corrupted, or a test set without its ood column")
+        if not any(n in SCORES and n in sets.get(reference, {}) for n in frame["score"]):
+            raise ValueError(f"no set {reference} with a column for a score of its ood.csv")
     except (ValueError, OSError, pd.errors.ParserError) as exc:
         log.warning("report: %s unreadable (%s); its oracle row and OOD figures are skipped",
                     path, exc)  # fmt: skip
         return None
+    return sets
 
 
 def _ood_samples(frames, samples: list) -> list[tuple[str, dict, list, dict]]:

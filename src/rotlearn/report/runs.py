@@ -1,11 +1,16 @@
 """Collect runs from their directories alone, and group them into settings.
 
 Each run's `.hydra/config.yaml` is read as plain YAML data: never resolved (a run directory is
-untrusted; an interpolation such as `${oc.env:...}` stays text). Runs are grouped by every
-config key whose value differs between them, except the trial keys: those the sweep or
-experiment declares (`report.trial_keys`; `sweep=lr` declares its trials, their seeds and the lr
-drawn for each) and the seeds. `group_by` replaces that rule (exactly those keys), `pool` adds
-trial keys; a key may name a config group (`rep`: every key below it) or one key (`optim.lr`).
+untrusted; an interpolation such as `${oc.env:...}` stays text); a job folder that leads out of
+its sweep (a symlink to a run elsewhere) is not read. The report layout, a run's `report` node,
+is checked once (`layout_of`): a value of the wrong kind is refused naming the file and key, and
+each plot is drawn into the report's folder under a plain `.png` name.
+
+Runs are grouped by every config key whose value differs between them, except the trial keys:
+those the sweep or experiment declares (`report.trial_keys`; `sweep=lr` declares its trials,
+their seeds and the lr drawn for each) and the seeds. `group_by` replaces that rule (exactly
+those keys), `pool` adds trial keys; a key may name a config group (`rep`: every key below it)
+or one key (`optim.lr`).
 
 A setting is labelled by the value of `report.lead` (the head's name), then each other grouping
 key as `group=option` where the config group's option differs between the runs (`loss=bingham`),
@@ -100,13 +105,25 @@ def is_run(folder: Path) -> bool:
 
 
 def run_dirs(root: Path) -> list[Path]:
-    """The run directories of a sweep directory (by job number), or `root` if it is a run."""
+    """The run directories of a sweep directory (by job number), or `root` if it is a run. A
+    job folder that leads out of the sweep (a symlink to a folder elsewhere) is not read: a
+    warning names it."""
     if is_run(root):
         return [root]
     folders = root.iterdir() if root.is_dir() else ()
+    jobs = []
+    for folder in folders:
+        if folder.name.startswith(".") or not folder.is_dir():
+            continue
+        try:
+            io.resolve_inside(root, folder, "job folder")
+        except ValueError as exc:
+            log.warning("%s; not read (a job folder must lie inside its sweep)", exc)
+            continue
+        if is_run(folder):
+            jobs.append(folder)
     return sorted(
-        (p for p in folders if not p.name.startswith(".") and p.is_dir() and is_run(p)),
-        key=lambda p: (not p.name.isdigit(), int(p.name) if p.name.isdigit() else 0, p.name),
+        jobs, key=lambda p: (not p.name.isdigit(), int(p.name) if p.name.isdigit() else 0, p.name)
     )
 
 
@@ -135,13 +152,84 @@ def _unused(cfg: Mapping[str, Any]) -> set[str]:
     return {*NOT_SETTINGS, *(p for p in MODEL_PARTS if p not in taken)}
 
 
-def layout_of(configs: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
-    """The report layout: the first run's `report` node over `DEFAULT_REPORT`."""
-    node = next((c["report"] for c in configs if isinstance(c.get("report"), dict)), {})
+def layout_of(
+    configs: Sequence[Mapping[str, Any]], sources: Sequence[str | Path] | None = None
+) -> dict[str, Any]:
+    """The report layout: the first run's `report` node over `DEFAULT_REPORT`, checked; each
+    plot's `file` filled in (`curves.png`, `<label>_box.png`).
+
+    Args:
+        configs: the runs' configs.
+        sources: the file each config was read from (for messages).
+
+    Raises:
+        ValueError: a value of the node that is not of its kind (`report.trial_keys` not a list
+            of keys, a plot file that is no plain `.png` name, which could be written outside
+            the report's folder), naming the config file and the key.
+    """
+    sources = list(sources) if sources is not None else [None] * len(configs)
+    node, where = next(((c["report"], s) for c, s in zip(configs, sources, strict=True)
+                        if isinstance(c.get("report"), dict)), ({}, None))  # fmt: skip
     layout = {**DEFAULT_REPORT, **node}
-    layout["plots"] = [p for p in layout.get("plots") or [] if isinstance(p, dict)]
-    layout["trial_keys"] = [str(k) for k in layout.get("trial_keys") or []]
+    return _checked_layout(layout, f"{where}: " if where is not None else "")
+
+
+def _refuse(where: str, key: str, value: Any, what: str) -> ValueError:
+    """The error of a report node's value: "<config file>: report.<key>: <value> is not ..."."""
+    shown = repr(value) if len(repr(value)) <= 80 else f"{repr(value)[:77]}..."
+    return ValueError(f"{where}report.{key}: {shown} is not {what}")
+
+
+def _of_kind(
+    node: Mapping[str, Any], key: str, where: str, kind: type | tuple, what: str, many: bool = False
+) -> Any:
+    """The value of `node` at the last part of `key` (its full key below `report`), if absent,
+    None, a `kind` or (`many`) a list of `kind`s; else a `_refuse` error that says `what`."""
+    value = node.get(key.rpartition(".")[2])
+    if value is None:
+        return None
+    items = value if many and isinstance(value, list) else [value]
+    if (many and not isinstance(value, list)) or not all(isinstance(v, kind) for v in items):
+        raise _refuse(where, key, value, what)
+    return value
+
+
+def _checked_layout(layout: dict[str, Any], where: str) -> dict[str, Any]:
+    """`layout` with its values checked (`layout_of`; `where`: "<config file>: ")."""
+    _of_kind(layout, "lead", where, str, "a config key")
+    layout["trial_keys"] = _of_kind(layout, "trial_keys", where, str, "a list of keys", True) or []
+    plots = _of_kind(layout, "plots", where, dict, "a list of mappings (kind, x, ...)", True)
+    layout["plots"] = [_checked_plot(p, f"plots[{i}]", where) for i, p in enumerate(plots or [])]
+    ood = _of_kind(layout, "ood", where, Mapping, "a mapping") or {}
+    _of_kind(ood, "ood.quantiles", where, (int, float), "a list of numbers", True)
+    _of_kind(ood, "ood.sets", where, Mapping, "a mapping")
+    paper = _of_kind(layout, "paper", where, Mapping, "a mapping") or {}
+    _of_kind(paper, "paper.where", where, Mapping, "a mapping")
+    _of_kind(paper, "paper.rows", where, object, "a list", True)  # rows of no kind: '-' cells
     return layout
+
+
+def _checked_plot(plot: dict[str, Any], key: str, where: str) -> dict[str, Any]:
+    """A plot of the layout, checked, with the file it is drawn into (`file`: a plain name of a
+    PNG file in the report's folder; by default `curves.png` or `<label>_box.png`)."""
+    for name in ("kind", "x", "label", "file"):
+        _of_kind(plot, f"{key}.{name}", where, str, "a string")
+    _of_kind(plot, f"{key}.metrics", where, str, "a list of metric names", True)
+    if plot.get("kind") == "box" and plot.get("x") and not plot.get("file"):
+        source = "label" if plot.get("label") else "x"
+        file = f"{plot.get('label') or plot['x'].split('.')[-1]}_box.png"
+    elif plot.get("kind") == "curves" or plot.get("file"):
+        source, file = "file", plot.get("file") or "curves.png"
+    else:
+        return plot
+    try:
+        plain = io.plain_name(file).endswith(".png")
+    except ValueError:
+        plain = False
+    if not plain:
+        what = "a plain file name ending in .png (the plot is written into the report's folder)"
+        raise _refuse(where, f"{key}.{source}", plot.get(source), what)
+    return {**plot, "file": file}
 
 
 def _roots(root: str | Path | Sequence[str | Path]) -> list[Path]:
@@ -178,10 +266,12 @@ def collect_runs(
             if (where := run.resolve()) not in seen:  # a run given twice: reported once
                 seen.add(where)
                 runs.append((sweep, run))
-    rows, configs, flats, choices = [], [], [], []
+    rows, configs, sources, flats, choices = [], [], [], [], []
     for sweep, run in runs:
         evaluated = read_yaml(run / EVALUATED_FILE, run=run)  # an evaluation: the run it evaluated
         cfg = evaluated if isinstance(evaluated, dict) else read_yaml(run / ".hydra/config.yaml")
+        evaluation = isinstance(evaluated, dict)
+        sources.append(run / EVALUATED_FILE if evaluation else run / ".hydra" / "config.yaml")
         if not isinstance(cfg, dict) or not cfg:  # missing, empty, refused or not a mapping
             log.warning("%s: missing, empty, refused or not a mapping; the run is reported as "
                         "'(config unreadable)'", run / ".hydra" / "config.yaml")  # fmt: skip
@@ -215,7 +305,7 @@ def collect_runs(
         else:
             chosen = run_choices(run, overrides)
         choices.append({k: v for k, v in chosen.items() if k not in unused})
-    layout = layout_of(configs)
+    layout = layout_of(configs, sources)
     grouping = _grouping_keys(flats, layout, group_by, pool)
     columns, labels, parts = _settings(flats, choices, layout, grouping, group_by is not None)
     for row, values, label, chosen in zip(rows, columns, labels, choices, strict=True):
@@ -356,18 +446,22 @@ def _unstarted_jobs(root: Path, seen: set[str]) -> list[dict[str, Any]]:
     summary = read_json(root / "jobs.json", root=root)
     jobs = summary.get("jobs", []) if isinstance(summary, dict) else []
     rows = []
-    for job in jobs if isinstance(jobs, list) else []:
+    for i, job in enumerate(jobs if isinstance(jobs, list) else []):
         if not isinstance(job, dict):
             continue
         name = Path(str(job["dir"])).name if job.get("dir") else str(job.get("num"))
         if name in seen:
             continue
         overrides = job.get("overrides") if isinstance(job.get("overrides"), list) else []
+        status = job.get("status", "PENDING")
+        if not isinstance(status, str):
+            log.warning("%s: jobs[%d].status is not a string; ignored", root / "jobs.json", i)
+            status = "PENDING"
         rows.append(
             {
                 "job": name,
-                "dir": job.get("dir"),
-                "status": job.get("status", "PENDING"),
+                "dir": str(job["dir"]) if job.get("dir") else None,
+                "status": status,
                 "error": job.get("error") or "never ran",
                 "overrides": " ".join(str(o) for o in overrides),
             }

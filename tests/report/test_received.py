@@ -1,0 +1,172 @@
+"""A sweep or run received from someone else is hostile data: rotlearn-report writes nothing
+outside its report folder, reads nothing outside the sweep, and answers a crafted file with one
+line that names it (a refused report writes nothing; a damaged file of one run is warned about
+and left out)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+from rotlearn.cli.report import main
+from rotlearn.ood import rejection_table
+from rotlearn.ood.records import write_samples
+from rotlearn.report import collect_runs, make_report
+from rotlearn.scores import SCORES
+
+
+def _run(run: Path, report: dict | None = None, seed: int = 0, error: float = 1.0) -> Path:
+    """A completed run directory: its config (with `report` as its report node), metrics and
+    status."""
+    (run / ".hydra").mkdir(parents=True)
+    config = {"rep": {"name": "a"}, "seed": seed, "report": report}
+    (run / ".hydra" / "config.yaml").write_text(yaml.safe_dump(config))
+    metrics = {"test/err_mean": error, "test/err_median": error}
+    (run / "metrics.json").write_text(json.dumps(metrics))
+    (run / "status.json").write_text(json.dumps({"status": "COMPLETED"}))
+    return run
+
+
+def _ood_run(run: Path) -> Path:
+    """A completed run with the ood.csv and ood_samples.csv of an OOD evaluation (DT only)."""
+    _run(run)
+    g = torch.Generator().manual_seed(0)
+    scores = torch.randn(20, generator=g, dtype=torch.float64)
+    ood = torch.arange(20) >= 10
+    error = torch.rand(20, generator=g, dtype=torch.float64) + 1
+    sets = {
+        "val": {"error": torch.ones(20, dtype=torch.float64), "dt": scores},
+        "clean": {"error": error, "dt": scores, "corrupted": torch.zeros(20, dtype=torch.bool)},
+        "corrupted": {"error": torch.where(ood, 4 * error, error), "dt": scores + 3.0 * ood,
+                      "corrupted": ood},
+    }  # fmt: skip
+    rejection_table(sets, [SCORES["dt"]], [0.5, 0.75], {"dt": 0.75}, "val").to_csv(
+        run / "ood.csv", index=False
+    )
+    write_samples(run, sets)
+    return run
+
+
+def _one_line(err: str, *parts: str) -> None:
+    assert err.count("\n") == 1 and err.startswith("rotlearn-report: "), err
+    assert "Traceback" not in err and all(p in err for p in parts), err
+
+
+@pytest.mark.parametrize(
+    ("plot", "key"),
+    [
+        ({"kind": "curves", "file": "{outside}/victim.txt"}, "report.plots[0].file"),
+        ({"kind": "curves", "file": "../outside/new_dir/dropped.png"}, "report.plots[0].file"),
+        ({"kind": "box", "x": "seed", "label": "../../outside/x"}, "report.plots[0].label"),
+        ({"kind": "curves", "file": "metrics.json"}, "report.plots[0].file"),
+    ],
+)
+def test_a_plot_file_a_received_config_names_stays_in_the_report_folder(
+    tmp_path, capsys, plot, key
+):
+    """`report.plots[].file` (or a box plot's label, which names its file) of a run's config was
+    joined to the report folder as it was: an absolute path or `../` overwrote any file and
+    made folders outside; a run's own records could be overwritten with a PNG. Now the report
+    is refused in one line naming the config file and the key, before anything is written."""
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (outside / "victim.txt").write_text("precious\n")
+    plot = {k: v.format(outside=outside) for k, v in plot.items()}
+    sweep = tmp_path / "sweep"
+    for seed in (0, 1):
+        _run(sweep / str(seed), report={"plots": [plot]}, seed=seed, error=1.0 + seed)
+    records = (sweep / "0" / "metrics.json").read_text()
+    assert main([str(sweep)]) == 2
+    _one_line(capsys.readouterr().err, str(sweep / "0" / ".hydra" / "config.yaml"), key)
+    assert (outside / "victim.txt").read_text() == "precious\n"
+    assert sorted(p.name for p in outside.iterdir()) == ["victim.txt"]
+    assert sorted(p.name for p in sweep.iterdir()) == ["0", "1"]  # no summary.csv, no PNG
+    assert (sweep / "0" / "metrics.json").read_text() == records
+
+
+def test_a_job_folder_or_file_that_leads_out_of_the_sweep_is_not_read(tmp_path, caplog):
+    """A received sweep's job folder that is a symlink to a run elsewhere (`sweep/1 -> victim`)
+    was read as one of its jobs: the other run's metrics were copied into summary.csv. So was an
+    ood_samples.csv that is a symlink out of its run. Now neither is read; a warning names it."""
+    victim = _ood_run(tmp_path / "victim")
+    metrics = json.loads((victim / "metrics.json").read_text())
+    (victim / "metrics.json").write_text(json.dumps({**metrics, "secret_value": 4242}))
+    sweep = tmp_path / "sweep"
+    _ood_run(sweep / "0")
+    (sweep / "1").symlink_to(victim, target_is_directory=True)
+    (sweep / "0" / "ood_samples.csv").unlink()
+    (sweep / "0" / "ood_samples.csv").symlink_to(victim / "ood_samples.csv")
+    with caplog.at_level("WARNING", logger="rotlearn"):
+        assert list(collect_runs(sweep)["job"]) == ["0"]
+        files = make_report(sweep)
+    summary = files["summary"].read_text()
+    assert "secret_value" not in summary and "4242" not in summary and "victim" not in summary
+    warnings = [r.getMessage() for r in caplog.records]
+    assert any(f"{sweep / '1'} resolves to {victim}" in w and "not read" in w for w in warnings)
+    assert any(str(sweep / "0" / "ood_samples.csv") in w and "outside" in w for w in warnings)
+    assert "ood_pr" not in files  # the samples (its figures) were not read
+
+
+def test_a_received_report_layout_of_the_wrong_kind_is_refused_in_one_line(tmp_path, capsys):
+    """`report: {trial_keys: 5}` failed with a TypeError traceback; now one line names the
+    config file and the key, and nothing is written."""
+    sweep = tmp_path / "sweep"
+    _run(sweep / "0", report={"trial_keys": 5})
+    assert main([str(sweep)]) == 2
+    _one_line(capsys.readouterr().err, str(sweep / "0" / ".hydra" / "config.yaml"),
+              "report.trial_keys: 5 is not a list")  # fmt: skip
+    assert sorted(p.name for p in sweep.iterdir()) == ["0"]
+
+
+def test_a_folder_where_the_report_goes_is_refused_before_anything_is_written(tmp_path, capsys):
+    """A received sweep holding a folder named report.md failed with a WriteError traceback
+    after summary.csv and the figures were written; now one line names it, nothing written."""
+    sweep = tmp_path / "sweep"
+    _run(sweep / "0")
+    (sweep / "report.md").mkdir()
+    assert main([str(sweep)]) == 2
+    _one_line(capsys.readouterr().err, str(sweep / "report.md"), "a folder")
+    assert sorted(p.name for p in sweep.iterdir()) == ["0", "report.md"]
+
+
+def _jobs_status(sweep: Path) -> str:
+    (sweep / "jobs.json").write_text(json.dumps({"jobs": [{"num": 1, "status": {"x": 1}}]}))
+    return f"{sweep / 'jobs.json'}: jobs[0].status is not a string"
+
+
+def _metrics_csv(sweep: Path) -> str:
+    (sweep / "0" / "csv").mkdir()
+    (sweep / "0" / "csv" / "metrics.csv").write_text("epoch,val/err_mean\n1,abc\n")
+    return f"{sweep / '0' / 'csv' / 'metrics.csv'}: column val/err_mean is not numeric"
+
+
+def _ood_csv(sweep: Path) -> str:
+    (sweep / "0" / "ood.csv").write_text("a,b\n1,2\n")
+    return f"{sweep / '0' / 'ood.csv'} unreadable (not an OOD table (no column score"
+
+
+def _ood_samples(sweep: Path) -> str:
+    _ood_run(sweep / "1")
+    (sweep / "1" / "ood_samples.csv").write_text("set,error\nclean,1\n")
+    return f"{sweep / '1' / 'ood_samples.csv'} unreadable (no set corrupted"
+
+
+@pytest.mark.parametrize("craft", [_jobs_status, _metrics_csv, _ood_csv, _ood_samples])
+def test_a_crafted_file_of_a_run_is_named_in_a_warning_and_left_out(tmp_path, capsys, caplog,
+                                                                    craft):  # fmt: skip
+    """A jobs.json whose status is a mapping (AttributeError), a metrics.csv with text for a
+    number, a foreign ood.csv (KeyError 'in_table'), an ood_samples.csv without the test sets
+    (a ValueError naming no file) crashed the report after summary.csv was written. Now the
+    file is named in one warning, with what is wrong, and the report is written without it."""
+    sweep = tmp_path / "sweep"
+    _run(sweep / "0")
+    warning = craft(sweep)
+    with caplog.at_level("WARNING", logger="rotlearn"):
+        assert main([str(sweep)]) == 0
+    assert "Traceback" not in capsys.readouterr().err
+    assert any(warning in r.getMessage() for r in caplog.records), caplog.text
+    assert (sweep / "report.md").is_file() and (sweep / "summary.csv").is_file()
