@@ -6,8 +6,10 @@ nothing below the test's folder (the crafted file and everything beside it: `unc
 
 from __future__ import annotations
 
+import io
 import pickle
 import resource
+import struct
 import zipfile
 from pathlib import Path
 
@@ -345,3 +347,103 @@ def test_the_config_read_without_torch_is_the_one_torch_reads(finished_run, tmp_
     torch.save({"rotlearn_config": {"bomb": doubling(["leaf"])}}, broken)
     with within(30), pytest.raises(UnsafeCheckpointError, match=f"more than {MAX_NODES} values"):
         saved_config(broken)
+
+
+def _zip(records: list[tuple[str, bytes]], start: int = 0) -> tuple[bytes, bytes]:
+    """A stored zip of `records` as (its records, its central directory), the records' offsets
+    counted from `start` (where the records will lie in the file)."""
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", zipfile.ZIP_STORED) as archive:
+        for name, data in records:
+            archive.writestr(name, data)
+    whole = buffer.getvalue()
+    size, offset = struct.unpack("<II", whole[-10:-2])
+    directory = bytearray(whole[offset : offset + size])
+    at = 0
+    while at < len(directory):  # each header: 46 bytes, then its name, extra and comment
+        lengths = struct.unpack("<3H", directory[at + 28 : at + 34])
+        (header,) = struct.unpack("<I", directory[at + 42 : at + 46])
+        directory[at + 42 : at + 46] = struct.pack("<I", header + start)
+        at += 46 + sum(lengths)
+    return whole[:offset], bytes(directory)
+
+
+def _zip64_record(count: int, directory: bytes, offset: int) -> bytes:
+    """A zip64 end record: `count` records in `directory`, which begins at `offset`."""
+    return struct.pack("<4sQ2H2I4Q", b"PK\x06\x06", 44, 45, 45, 0, 0, count, count,
+                       len(directory), offset)  # fmt: skip
+
+
+def _zip64_end(where: int) -> bytes:
+    """A zip64 locator naming the zip64 end record at `where`, then the end record deferring to
+    it, as torch writes them."""
+    return struct.pack("<4sIQI", b"PK\x06\x07", 0, where, 1) + struct.pack(
+        "<4s4H2IH", b"PK\x05\x06", 0, 0, 0xFFFF, 0xFFFF, 0xFFFFFFFF, 0xFFFFFFFF, 0
+    )
+
+
+def _two_readings(layout: str, genuine: dict[str, bytes], other: bytes) -> bytes:
+    """A checkpoint whose `<folder>/data.pkl` zipfile reads as `genuine`'s and torch (miniz) as
+    `other`, by `layout`."""
+    pkl = "archive/data.pkl"
+    rest = [(name, data) for name, data in genuine.items() if name != pkl]
+    if layout in ("one name twice", "a name in another case", "a name cut at a NUL"):
+        first = {"one name twice": pkl, "a name in another case": "archive/DATA.pkl",
+                 "a name cut at a NUL": pkl}[layout]  # fmt: skip
+        last = "archive/data.pkl#" if layout == "a name cut at a NUL" else pkl
+        records, directory = _zip([(first, other), *rest, (last, genuine[pkl])])
+        count = len(rest) + 2
+        data = records + directory + struct.pack("<4s4H2IH", b"PK\x05\x06", 0, 0, count, count,
+                                                 len(directory), len(records), 0)  # fmt: skip
+        return data.replace(b"data.pkl#", b"data.pkl\0")  # zipfile ends the name at the NUL
+    # miniz reads the central directory the end records name, zipfile the one just before them
+    count = len(rest) + 1
+    if layout == "data before the directory":  # zipfile adds its directory's start to offsets
+        theirs, their_directory = _zip([(pkl, other), *rest])
+        pad = b"\0" * max(0, len(their_directory) - len(theirs))
+        at = len(theirs) + len(pad) - len(their_directory)
+        ours, our_directory = _zip([(pkl, genuine[pkl]), *rest], start=at)
+        data = theirs + pad + ours + their_directory
+        end = struct.pack("<4s4H2IH", b"PK\x05\x06", 0, 0, count, count, len(our_directory),
+                          len(data) - len(their_directory), 0)  # fmt: skip
+        return data + our_directory + end
+    theirs, their_directory = _zip([(pkl, other), *rest])  # "a zip64 locator elsewhere"
+    ours, our_directory = _zip([(pkl, genuine[pkl]), *rest], start=len(theirs))
+    data = theirs + ours + their_directory
+    named = len(data)  # miniz reads the zip64 record the locator names, zipfile the last one
+    data += _zip64_record(count, their_directory, len(theirs) + len(ours)) + our_directory
+    return data + _zip64_record(count, our_directory, named + 56) + _zip64_end(named)
+
+
+@pytest.mark.filterwarnings("ignore:Duplicate name")
+@pytest.mark.parametrize(
+    "layout",
+    [
+        "one name twice",
+        "a name in another case",
+        "a name cut at a NUL",
+        "data before the directory",
+        "a zip64 locator elsewhere",
+    ],
+)
+def test_a_checkpoint_torch_would_read_otherwise_than_the_bounded_check_is_refused(
+    tmp_path, layout
+):
+    """Two `<folder>/data.pkl` records (torch's reader, miniz, reads the first, zipfile the last;
+    miniz ignores case, zipfile cuts a name at a NUL), or two central directories (miniz reads
+    the one the end records name, zipfile the one that ends before them): the bounded pre-check
+    read the genuine pickle while torch unpickled the other one, a 210-byte hash bomb that hung
+    every loader. Refused before torch reads it, naming the file; here the other record is
+    harmless, so that the check's absence fails the test instead of hanging it."""
+    buffer = io.BytesIO()
+    torch.save({"rotlearn_config": {"a": 1}, "epoch": 0}, buffer)  # records in archive/
+    with zipfile.ZipFile(buffer) as archive:
+        genuine = {info.filename: archive.read(info) for info in archive.infolist()}
+    path = tmp_path / "last.ckpt"
+    path.write_bytes(_two_readings(layout, genuine, pickle.dumps({"other": 1}, protocol=2)))
+    assert torch.load(path, weights_only=True) == {"other": 1}  # what torch reads
+    assert zipfile.ZipFile(path).read("archive/data.pkl") == genuine["archive/data.pkl"]
+    for read in (load_checkpoint, saved_config):
+        with unchanged(tmp_path), pytest.raises(UnsafeCheckpointError) as info:
+            read(path)
+        assert str(info.value).startswith(f"{path}: ") and "\n" not in str(info.value)

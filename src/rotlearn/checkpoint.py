@@ -29,6 +29,7 @@ import math
 import os
 import pickle
 import stat
+import struct
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -161,13 +162,70 @@ def save_checkpoint(checkpoint: dict[str, Any], path: str | os.PathLike) -> Path
     return write_bytes_atomic(path, buffer.getbuffer())
 
 
+def _one_reading(
+    path: Path, handle: Any, size: int, members: list[zipfile.ZipInfo]
+) -> zipfile.ZipInfo | None:
+    """The `<folder>/data.pkl` record (<folder>: the first record's) that torch's reader (miniz)
+    reads in the open zip archive `handle` of `size` bytes, listed by zipfile as `members`; None
+    if there is none. Refused where the two readers could read different bytes: end records not
+    at the file's end (miniz reads the central directory at the offset they give, zipfile where
+    it ends before them; miniz finds the zip64 record where the locator says, zipfile just before
+    it), another count of records, or record names not unique as miniz compares them (bytes,
+    ASCII case ignored: torch reads the first of two, zipfile the last) or holding a NUL (zipfile
+    cuts a name there).
+
+    Raises:
+        UnsafeCheckpointError: naming the file and which of these it is.
+    """
+    handle.seek(max(size - 98, 0))  # [zip64 record (56), zip64 locator (20),] end record (22)
+    tail = handle.read(98)
+    end, locator, record64 = tail[-22:], tail[-42:-22], tail[-98:-42]
+    if len(end) < 22 or end[:4] != b"PK\x05\x06" or end[20:] != b"\0\0":
+        raise UnsafeCheckpointError(
+            f"{path}: its zip end record is not at its end (a comment or data after it); not read"
+        )
+    count, directory, offset = struct.unpack("<H2I", end[10:20])
+    start = size - 22
+    if locator[:4] == b"PK\x06\x07":  # zip64: both readers take its record's values
+        if record64[:4] != b"PK\x06\x06" or struct.unpack("<Q", locator[8:16])[0] != size - 98:
+            raise UnsafeCheckpointError(
+                f"{path}: its zip64 locator does not point at the zip64 end record before it"
+            )
+        count, directory, offset = struct.unpack("<3Q", record64[32:56])
+        start = size - 98
+    if offset + directory != start or count != len(members):
+        raise UnsafeCheckpointError(
+            f"{path}: its zip central directory is not the {count} records that end where its "
+            "end record begins (data before or between them): zip readers would differ on what "
+            "it holds; not read"
+        )
+    raw = [m.orig_filename.encode("utf-8" if m.flag_bits & 0x800 else "cp437") for m in members]
+    keys = [name.lower() for name in raw]  # miniz ignores ASCII case
+    seen: set[bytes] = set()
+    for member, name, key in zip(members, raw, keys, strict=True):
+        if b"\0" in name:
+            raise UnsafeCheckpointError(
+                f"{path}: its zip record named {member.orig_filename!r} holds a NUL (zipfile reads "
+                "the name up to it, torch whole); not read"
+            )
+        if key in seen:
+            raise UnsafeCheckpointError(
+                f"{path}: two of its zip records are named {member.filename!r} (case ignored: "
+                "torch reads the first, zipfile the last); not read"
+            )
+        seen.add(key)
+    wanted = (raw[0].split(b"/")[0] + b"/data.pkl").lower() if raw else None
+    return next((m for m, key in zip(members, keys, strict=True) if key == wanted), None)
+
+
 def _plain_checkpoint(path: Path) -> Any:
     """What checkpoint file `path` holds, read as data without torch (`rotlearn.io.plain_pickle`:
     tensors and other objects as OPAQUE) from the pickle torch would read, `<folder>/data.pkl`
     where <folder> is the first record's. Before that, from the one handle it reads: refuse a
     file that is not a regular file, is larger than `MAX_BYTES["checkpoint"]`, is not a whole
     zip archive (a truncated file has no central directory; a damaged record fails its CRC), or
-    whose records would decompress beyond the cap or `_MAX_INFLATION` times the file's size.
+    whose records would decompress beyond the cap or `_MAX_INFLATION` times the file's size, or
+    that torch's reader (miniz) could read otherwise than Python's zipfile (`_one_reading`).
 
     Raises:
         UnsafeCheckpointError: naming the file and which of these it is, or a pickle that is not
@@ -186,10 +244,11 @@ def _plain_checkpoint(path: Path) -> Any:
             members = archive.infolist()
             inflated = sum(m.file_size for m in members)
             bounded = inflated <= min(cap, _MAX_INFLATION * max(info.st_size, 1) + 2**20)
-            names = [m.filename for m in members]  # torch's layout: <folder>/data.pkl, tensors
-            record = f"{names[0].split('/')[0]}/data.pkl" if names else ""
-            data = archive.read(record) if bounded and record in names else b""
-        except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
+            record = _one_reading(path, handle, info.st_size, members)
+            data = archive.read(record) if bounded and record is not None else b""
+        except UnsafeCheckpointError:
+            raise
+        except (zipfile.BadZipFile, OSError, ValueError, EOFError, struct.error) as exc:
             raise UnsafeCheckpointError(
                 f"{path} is not a whole PyTorch checkpoint (a zip archive): truncated, damaged or "
                 f"another kind of file ({exc})"
@@ -214,12 +273,14 @@ def load_checkpoint(path: str | os.PathLike, map_location: Any = "cpu") -> dict[
 
     Before torch reads it, the file must be a regular file of at most `MAX_BYTES["checkpoint"]`
     bytes and a whole zip archive whose records decompress to at most that many bytes (and at most
-    a few times the file's size), so a truncated, huge or decompression-bomb file is refused at
-    once, naming it; what it holds, read first as data (`rotlearn.io.plain_pickle`), must nest
-    at most `MAX_DEPTH` levels and, its shared references followed and what each object would
-    be built from included, hold at most `MAX_NODES` values, so that neither torch's unpickler
-    (hashing a key) nor any walk of the result (a config check, Lightning's restore) can be made
-    to take forever by a file of a few hundred bytes.
+    a few times the file's size) and that torch's zip reader reads as zipfile does (unique
+    record names, the central directory where its end records say), so a truncated, huge,
+    decompression-bomb or two-faced file is refused at once, naming it; what it holds, read
+    first as data (`rotlearn.io.plain_pickle`), must nest at most `MAX_DEPTH` levels and, its
+    shared references followed and what each object would be built from included, hold at most
+    `MAX_NODES` values, so that neither torch's unpickler (hashing a key) nor any walk of the
+    result (a config check, Lightning's restore) can be made to take forever by a file of a few
+    hundred bytes.
 
     Raises:
         FileNotFoundError: no such checkpoint.
