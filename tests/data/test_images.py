@@ -166,11 +166,21 @@ def _bmp_header(width: int, height: int) -> bytes:
     return b"BM" + bytes(16) + struct.pack("<ii", width, height) + bytes(28)
 
 
+def _os2_bmp(width: int, height: int, pixels: bytes = bytes(64)) -> bytes:
+    """A BMP with an OS/2 core header (12 bytes: 16-bit width and height), 1 bit per pixel,
+    as the auditor's 100-byte file that OpenCV read as 64513 x 65535 (and the header check once
+    as 1023 x 65536: 32-bit fields at the offsets of the Windows header)."""
+    core = struct.pack("<IHHHH", 12, width, height, 1, 1)
+    palette = b"\0\0\0\xff\xff\xff"  # two BGR entries, 3 bytes each in an OS/2 BMP
+    return b"BM" + struct.pack("<IHHI", 0, 0, 0, 26 + len(palette)) + core + palette + pixels
+
+
 HEADERS = {
     "png 30000 x 30000": (_png_header(30000, 30000), "png"),
     "png 40000 x 40000": (_png_header(40000, 40000), "png"),
     "jpeg 60000 x 60000": (_jpeg_header(60000, 60000), "jpg"),
     "bmp 20000 x -20000": (_bmp_header(20000, -20000), "bmp"),
+    "bmp 64513 x 65535, OS/2 core header": (_os2_bmp(64513, 65535), "bmp"),
     "pgm 50000 x 50000": (b"P5\n# a comment\n50000 50000\n255\n", "pgm"),
     # OpenCV ends a comment at "\r" too: not 1 x 1 (the "\n" line after the comment)
     "pgm 9000 x 9000, comment ended by CR": (b"P5\n#\r9000 9000 255\n1 1\n", "pgm"),
@@ -194,16 +204,24 @@ def test_a_frame_over_the_pixel_budget_is_refused_before_decoding(tmp_path, name
     assert str(path) in str(info.value) and f"{width} x {height} pixels" in str(info.value)
 
 
-def test_a_kitti_frame_over_the_budget_names_the_frame(tmp_path):
+@pytest.mark.parametrize(
+    ("content", "size"),
+    [
+        (_png_header(30000, 30000), "a PNG of 30000 x 30000"),
+        (_os2_bmp(64513, 65535), "a BMP of 64513 x 65535"),
+    ],
+    ids=["png", "os2 bmp"],
+)
+def test_a_kitti_frame_over_the_budget_names_the_frame(tmp_path, content, size):
     root = write_kitti(tmp_path, {"00": yaw_sequence(4, 1.0), "01": yaw_sequence(3, 1.0)})
     frame = root / "sequences" / "00" / "image_2" / "000001.png"
-    frame.write_bytes(_png_header(30000, 30000))
+    frame.write_bytes(content)
     dm = KittiOdometryDataModule(str(root), train_sequences=["01"], test_sequences=["00"],
                                  image_size=8, num_workers=0)  # fmt: skip
     with (
         unchanged(root / "sequences"),
         within(10),
-        pytest.raises(ValueError, match=r"000001\.png: a PNG of 30000 x 30000"),
+        pytest.raises(ValueError, match=rf"000001\.png: {size} pixels"),
     ):
         dm.setup()
     assert not list((root / ".rotlearn_cache").glob("00_*"))  # sequence 01's cache is whole
@@ -213,6 +231,30 @@ def test_headers_of_every_format_give_the_size(tmp_path):
     for ext in ("png", "jpg", "bmp", "ppm", "pgm", "webp", "tiff"):
         image = COLOUR[..., 0] if ext == "pgm" else COLOUR
         assert image_size(_written(tmp_path, f"f.{ext}", image))[:2] == (20, 12), ext
+
+
+def test_an_os2_bmp_header_gives_the_size_opencv_decodes(tmp_path):
+    """The OS/2 core header (12 bytes) holds 16-bit width and height, where the Windows
+    header (40 bytes and more) holds 32-bit ones: read as OpenCV reads them."""
+    path = tmp_path / "f.bmp"
+    path.write_bytes(_os2_bmp(20, 12, bytes(4 * 12)))  # rows of 20 bits, padded to 4 bytes
+    assert cv2.imread(str(path), cv2.IMREAD_UNCHANGED).shape[:2] == (12, 20)
+    assert image_size(path) == (20, 12, "BMP")
+    assert read_image(path).shape == (12, 20, 3)
+
+
+def test_a_frame_opencv_fails_on_is_refused_in_one_line_naming_it(tmp_path, monkeypatch):
+    """Whatever header OpenCV reads otherwise than `check_frame` (an OS/2 BMP once), its
+    cv2.error (not a ValueError: a traceback naming no file) becomes a ValueError naming it."""
+    import rotlearn.data.images as images
+
+    path = tmp_path / "000000.bmp"
+    path.write_bytes(_os2_bmp(64513, 65535))
+    monkeypatch.setattr(images, "check_frame", lambda path: None)  # as before the header fix
+    with unchanged(tmp_path), within(10), pytest.raises(ValueError) as info:
+        read_image(path)
+    assert str(info.value).startswith(f"{path}: cannot be decoded as an image (")
+    assert "\n" not in str(info.value)
 
 
 PNM_LAYOUTS = {  # headers of a 20 x 12 PGM, each read by OpenCV as 20 x 12

@@ -77,7 +77,9 @@ def _jpeg(f: BinaryIO, head: bytes) -> tuple[int, int] | None:
 def _bmp(f: BinaryIO, head: bytes) -> tuple[int, int] | None:
     if head[:2] != b"BM" or len(head) < 26:
         return None
-    width, height = struct.unpack("<ii", head[18:26])
+    if struct.unpack("<I", head[14:18])[0] == 12:  # OS/2 BITMAPCOREHEADER: 16 bits, unsigned
+        return struct.unpack("<HH", head[18:22])
+    width, height = struct.unpack("<ii", head[18:26])  # BITMAPINFOHEADER and later: 32, signed
     return abs(width), abs(height)
 
 

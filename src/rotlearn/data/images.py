@@ -61,7 +61,12 @@ def read_frame(path: Path, gray: bool = False) -> tuple[np.ndarray, str]:
     cv2 = import_extra("cv2", "reading and resizing images")
 
     check_frame(path)
-    image = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
+    try:
+        image = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
+    except cv2.error as exc:  # a header OpenCV reads otherwise than check_frame: not a traceback
+        lines = str(exc).strip().splitlines()
+        reason = f" ({lines[-1].strip()})" if lines else ""
+        raise ValueError(f"{path}: cannot be decoded as an image{reason}") from None
     if image is None or image.size == 0:
         raise ValueError(f"{path}: cannot be read as an image (empty, truncated or corrupt)")
     if image.dtype == np.uint16:
