@@ -170,3 +170,18 @@ def test_a_crafted_file_of_a_run_is_named_in_a_warning_and_left_out(tmp_path, ca
     assert "Traceback" not in capsys.readouterr().err
     assert any(warning in r.getMessage() for r in caplog.records), caplog.text
     assert (sweep / "report.md").is_file() and (sweep / "summary.csv").is_file()
+
+
+def test_a_sweep_whose_report_is_refused_ends_with_a_warning_and_its_results(tmp_path, caplog):
+    """The report at a multirun's end (`ReportCallback`) raised the layout's refusal past Hydra
+    once the jobs were done; it now warns, naming the file and the command to run again."""
+    from omegaconf import OmegaConf
+
+    from rotlearn.cli.callbacks import ReportCallback
+
+    sweep = tmp_path / "sweep"
+    _run(sweep / "0", report={"plots": [{"kind": "curves", "file": "../out.png"}]})
+    config = OmegaConf.create({"hydra": {"sweep": {"dir": str(sweep)}}})
+    ReportCallback().on_multirun_end(config)
+    assert "no report:" in caplog.text and "report.plots[0].file" in caplog.text
+    assert sorted(p.name for p in sweep.iterdir()) == ["0"] and not (tmp_path / "out.png").exists()

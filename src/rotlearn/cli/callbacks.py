@@ -218,8 +218,9 @@ class ReportCallback(Callback):
         try:
             with logger_at_least("tensorboard"):
                 files = make_report(sweep_dir)
-        except FileNotFoundError as exc:
-            log.warning("no report: %s", exc)
+        except (OSError, ValueError) as exc:  # no runs, a failed write, a layout it refuses
+            log.warning("no report: %s (the jobs' results are kept: rotlearn-report %s)",
+                        exc, sweep_dir)  # fmt: skip
             return
         log.info("report: %s", files["report"])
         log.info("open TensorBoard on the sweep: tensorboard --logdir %s", sweep_dir)
