@@ -199,6 +199,35 @@ def test_keep_earlier_records_numbers_each_attempt(tmp_path):
     assert (run / "history" / "1" / ".hydra" / "overrides.yaml").read_text() == "- rep=a\n"
 
 
+def test_keep_earlier_records_refuses_a_received_history_it_cannot_keep_and_changes_nothing(
+    tmp_path,
+):
+    """A received run crashed the resume with a traceback once its lock was taken: a folder
+    history/² (a digit to str.isdigit, not to int), a history that is a file, a config over its
+    cap (which also left history/.1.*.partial behind). One is skipped, the others refused."""
+    from rotlearn.io import MAX_BYTES, UnreadableFileError
+
+    def tree(run: Path) -> dict[str, str]:
+        return {**_hashes(run), **{str(p.relative_to(run)): "dir" for p in run.rglob("*")
+                                   if p.is_dir()}}  # fmt: skip
+
+    run = _fake_run(tmp_path, "numbered", ["rep=a"])
+    (run / "status.json").write_text("{}")
+    (run / "history" / "²").mkdir(parents=True)
+    assert keep_earlier_records(run) == run / "history" / "1"
+    file_history = _fake_run(tmp_path, "file", ["rep=a"])
+    (file_history / "history").write_text("x")
+    large_config = _fake_run(tmp_path, "large", ["rep=a"])
+    big = b"#" * (MAX_BYTES["YAML config"] + 1)
+    (large_config / ".hydra" / "hydra.yaml").write_bytes(big)
+    for run, name in ((file_history, "history"), (large_config, ".hydra/hydra.yaml")):
+        (run / "status.json").write_text("{}")
+        before = tree(run)
+        with pytest.raises(UnreadableFileError, match=re.escape(str(run / name))):
+            keep_earlier_records(run)
+        assert tree(run) == before  # no partial folder, every record in place
+
+
 def test_the_earlier_tests_tensorboard_session_is_kept_out_of_tensorboards_view(tmp_path):
     """TensorBoard shows a run's first HPARAMS session: a finished run trained longer showed the
     first attempt's settings (trainer.max_epochs=2) beside the new results. The earlier test's

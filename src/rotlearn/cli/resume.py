@@ -26,6 +26,7 @@ import contextlib
 import logging
 import os
 import secrets
+import shutil
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -451,16 +452,25 @@ def keep_earlier_records(run_dir: Path) -> Path | None:
     if not records and not configs:
         return None
     history = run_dir / "history"
+    if os.path.lexists(history) and (history.is_symlink() or not history.is_dir()):
+        raise UnreadableFileError(f"{history}: not a folder, where the earlier records are kept")
     history.mkdir(exist_ok=True)
-    n = 1 + max((int(p.name) for p in history.iterdir() if p.name.isdigit()), default=0)
+    numbers = (int(p.name) for p in history.iterdir() if p.name.isascii() and p.name.isdigit())
+    n = 1 + max(numbers, default=0)
     target = history / str(n)
     staging = history / f".{n}.{secrets.token_hex(4)}.partial"
     (staging / ".hydra").mkdir(parents=True)  # the mode the umask allows
-    for path in configs:  # copied: the run keeps a config until Hydra writes the new one
-        _copy_bounded(path, staging / ".hydra" / path.name)
-    for path, kept in records:  # linked, then unlinked from the run once the folder is in place
-        (staging / kept).parent.mkdir(parents=True, exist_ok=True)
-        os.link(path, staging / kept, follow_symlinks=False)
+    try:
+        for path in configs:  # copied: the run keeps a config until Hydra writes the new one
+            _copy_bounded(path, staging / ".hydra" / path.name)
+        for path, kept in records:  # linked, then unlinked from the run once the folder is whole
+            (staging / kept).parent.mkdir(parents=True, exist_ok=True)
+            os.link(path, staging / kept, follow_symlinks=False)
+    except (OSError, ValueError):  # a config over its cap: the run is left as it was
+        shutil.rmtree(staging, ignore_errors=True)
+        with contextlib.suppress(OSError):  # made here, still empty
+            history.rmdir()
+        raise
     os.rename(staging, target)
     for path, _ in records:
         with contextlib.suppress(FileNotFoundError):

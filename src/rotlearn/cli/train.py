@@ -192,7 +192,10 @@ def _checked_command_line(argv: list[str]) -> list[str]:
         raise SystemExit(f"rotlearn-train: refusing to resume: {exc}") from None
     except ValueError as exc:  # the lock file is a symlink or not a regular file
         raise SystemExit(f"rotlearn-train: refusing to resume {plan.run_dir}: {exc}") from None
-    kept = keep_earlier_records(plan.run_dir)
+    try:
+        kept = keep_earlier_records(plan.run_dir)
+    except (OSError, ValueError) as exc:  # a received run's history or config it cannot keep
+        raise SystemExit(f"rotlearn-train: refusing to resume {plan.run_dir}: {exc}") from None
     if kept is not None:
         print(f"rotlearn-train: the run's earlier records are kept in {kept}", file=sys.stderr)
     return plan.args
