@@ -319,6 +319,8 @@ def test_a_damaged_overrides_file_does_not_resume_the_run_under_other_settings(
          r".data\.sigma=.*. reads \$\{oc\.\$\{oc\.decode:env\}:\.\.\.\}: a saved override"),
         (["rep=quat", r"""data.sigma="${oc.decode:'\${oc.env:HOME}'}" """], r"overrides\.yaml: "
          r"override .data\.sigma=.*. reads \$\{oc\.decode:\.\.\.\}: a saved override"),
+        (["rep=quat", "optim.lr=1e-3}"], r"overrides\.yaml: override 'optim\.lr=1e-3\}' is not "
+         r"Hydra's override grammar \(extraneous input '\}'\)$"),  # was Hydra's 3 lines
         (["rep=quat", "data.sigma='${oc.env:HOME'"], r"overrides\.yaml: override .data\.sigma="
          r".*. holds '\$\{oc\.env:HOME', which OmegaConf cannot read$"),
     ],

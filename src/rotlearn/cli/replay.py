@@ -55,8 +55,14 @@ def _parse(overrides: list[str], source: Path) -> None:
 
     try:
         parsed = OverridesParser.create().parse_overrides(overrides)
-    except HydraException as exc:
-        raise UntrustedConfigError(f"{source}: not a list of Hydra overrides: {exc}") from None
+    except HydraException as exc:  # OverrideParseException: which override, and where
+        from rotlearn.config import grammar_reason
+
+        text = getattr(exc, "override", None) or ""
+        raise UntrustedConfigError(
+            f"{source}: override {text!r} is not Hydra's override grammar "
+            f"({grammar_reason(exc, text)})"
+        ) from None
     for override in parsed:
         key = override.key_or_group
         if is_hydra_key(key):
