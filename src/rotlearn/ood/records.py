@@ -40,14 +40,16 @@ def write_samples(run_dir: str | os.PathLike, sets: Mapping[str, Mapping[str, Te
     return write_text_atomic(Path(run_dir) / SAMPLES_FILE, frame.to_csv(index=False))
 
 
-def read_samples(path: str | os.PathLike) -> dict[str, dict[str, Tensor]]:
+def read_samples(
+    path: str | os.PathLike, root: str | os.PathLike | None = None
+) -> dict[str, dict[str, Tensor]]:
     """The sets of `write_samples`' file, as `rotlearn.ood.evaluation.score_sets` returns them
-    (float64 tensors, bool "corrupted" where flagged).
+    (float64 tensors, bool "corrupted" where flagged); `root`: the folder it must lie in (a run's).
 
     Raises:
-        ValueError: naming the file, if it lacks the set or error column.
+        ValueError: naming the file, if it lacks the set or error column or leads out of `root`.
     """
-    frame = read_table(path)  # bounded: a regular file of at most MAX_BYTES["CSV table"]
+    frame = read_table(path, root)  # bounded: a regular file of at most MAX_BYTES["CSV table"]
     if not {"set", "error"} <= set(frame.columns):
         raise ValueError(f"{path}: not an OOD samples file (needs the columns set and error)")
     sets = {}

@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from rotlearn.io import read_json, read_table, resolve_inside, write_text_atomic
+from rotlearn.io import read_json, read_table, write_text_atomic
 from rotlearn.report import figures, tables
 from rotlearn.report.runs import RUN_MARKS, collect_runs, label_without
 from rotlearn.report.tensorboard import read_curve
@@ -504,8 +504,7 @@ def _samples(run: pd.Series, frame: pd.DataFrame) -> dict[str, dict] | None:
         return None
     reference = reference_set(frame)
     try:
-        resolve_inside(run["dir"], path, SAMPLES_FILE)  # read_samples reads it unchecked
-        sets = read_samples(path)
+        sets = read_samples(path, root=run["dir"])
         if "corrupted" not in sets or any(
             "corrupted" not in sets[s] for s in TEST_SETS if s in sets
         ):
