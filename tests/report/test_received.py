@@ -9,14 +9,11 @@ import json
 from pathlib import Path
 
 import pytest
-import torch
 import yaml
 
 from rotlearn.cli.report import main
-from rotlearn.ood import rejection_table
-from rotlearn.ood.records import write_samples
 from rotlearn.report import collect_runs, make_report
-from rotlearn.scores import SCORES
+from tests.cli.test_report_ood import _fabricate_run
 
 
 def _run(run: Path, report: dict | None = None, seed: int = 0, error: float = 1.0) -> Path:
@@ -33,21 +30,7 @@ def _run(run: Path, report: dict | None = None, seed: int = 0, error: float = 1.
 
 def _ood_run(run: Path) -> Path:
     """A completed run with the ood.csv and ood_samples.csv of an OOD evaluation (DT only)."""
-    _run(run)
-    g = torch.Generator().manual_seed(0)
-    scores = torch.randn(20, generator=g, dtype=torch.float64)
-    ood = torch.arange(20) >= 10
-    error = torch.rand(20, generator=g, dtype=torch.float64) + 1
-    sets = {
-        "val": {"error": torch.ones(20, dtype=torch.float64), "dt": scores},
-        "clean": {"error": error, "dt": scores, "corrupted": torch.zeros(20, dtype=torch.bool)},
-        "corrupted": {"error": torch.where(ood, 4 * error, error), "dt": scores + 3.0 * ood,
-                      "corrupted": ood},
-    }  # fmt: skip
-    rejection_table(sets, [SCORES["dt"]], [0.5, 0.75], {"dt": 0.75}, "val").to_csv(
-        run / "ood.csv", index=False
-    )
-    write_samples(run, sets)
+    _fabricate_run(run, "a", "BinghamNLLLoss", report={})
     return run
 
 
