@@ -84,7 +84,7 @@ MAX_BYTES: dict[str, int] = {
     "number array": 256 * _MIB,  # a .npy array of numbers (rotlearn-predict's point pairs)
     "checkpoint": 4 * _GIB,  # a .ckpt on disk, and its records once decompressed
     "calibration record": 4 * _KIB,  # checkpoints/temperature.json, ood_thresholds.json
-    "TensorBoard events": 1 * _GIB,  # a run's tensorboard/ folder, all event files together
+    "TensorBoard events": 256 * _MIB,  # a run's tensorboard/ folder, all event files together
 }
 MAX_DEPTH = 64  # nesting of a JSON or YAML document (rotlearn's own files nest a few levels)
 MAX_NODES = 2**20  # values in one loaded document or checkpoint (a tensor counts as one)

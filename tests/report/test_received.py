@@ -6,6 +6,7 @@ and left out)."""
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -168,3 +169,36 @@ def test_a_sweep_whose_report_is_refused_ends_with_a_warning_and_its_results(tmp
     ReportCallback().on_multirun_end(config)
     assert "no report:" in caplog.text and "report.plots[0].file" in caplog.text
     assert sorted(p.name for p in sweep.iterdir()) == ["0"] and not (tmp_path / "out.png").exists()
+
+
+def test_a_runs_tensorboard_folder_is_read_only_within_its_bounds(tmp_path, caplog, monkeypatch):
+    """TensorBoard's reader lists a folder again for each file in it: 4,000 empty event files (0
+    bytes, under the byte cap) took 79 s for one run's curve. A folder with more files than a run
+    writes, more bytes than the cap, or a file leading out of the run is not read, and a warning
+    names it; a run within them is read."""
+    from torch.utils.tensorboard import SummaryWriter
+
+    from rotlearn.io import MAX_BYTES
+    from rotlearn.report.tensorboard import MAX_EVENT_FILES, read_curve
+
+    run = _run(tmp_path / "run")
+    with SummaryWriter(str(run / "tensorboard" / "tb" / "val")) as writer:
+        for epoch in range(3):
+            writer.add_scalar("error/mean", 3.0 - epoch, epoch)
+    assert read_curve(run, "val/err_mean").tolist() == [3.0, 2.0, 1.0]
+    many = tmp_path / "many"
+    shutil.copytree(run, many)
+    for i in range(MAX_EVENT_FILES):
+        (many / "tensorboard" / "tb" / "val" / f"events.out.tfevents.{i}.x").touch()
+    outside = tmp_path / "outside"
+    shutil.copytree(run, outside)
+    (outside / "tensorboard" / "tb" / "val" / "events.out.tfevents.0.y").symlink_to(
+        next((run / "tensorboard" / "tb" / "val").iterdir())
+    )
+    for bad, said in ((many, f"over {MAX_EVENT_FILES} files"), (outside, "not a regular file")):
+        caplog.clear()
+        assert read_curve(bad, "val/err_mean") is None
+        assert said in caplog.text and str(bad / "tensorboard") in caplog.text
+    monkeypatch.setitem(MAX_BYTES, "TensorBoard events", 16)
+    caplog.clear()
+    assert read_curve(run, "val/err_mean") is None and "over 16 bytes" in caplog.text

@@ -46,6 +46,10 @@ STAGES = ("train", "val", "test")
 SESSION_RUN = "test"  # the sub-run that holds the HPARAMS session
 ERROR_STATS = ("mean", "median", "p10", "p90")
 _RENAMED = {"time/epoch_s": ("train", "learning/epoch_time_s")}
+# Files below a run's tensorboard/ folder that a report reads: each attempt writes one per
+# stage, so a run resumed dozens of times stays well below. TensorBoard's reader lists a folder
+# again for every file in it: 4,000 empty files (0 bytes) took 79 s to read.
+MAX_EVENT_FILES = 256
 
 
 def tensorboard_place(key: str) -> tuple[str, str]:
@@ -75,17 +79,20 @@ def event_runs(run_dir: str | Path) -> list[Path]:
 
 def _readable_events(run_dir: Path) -> bool:
     """Whether TensorBoard may read the run's event files: regular files inside the run, at most
-    `MAX_BYTES["TensorBoard events"]` in all (TensorBoard reads them unbounded; a named pipe
-    would hang it). A warning names what is refused."""
+    `MAX_EVENT_FILES` of them and `MAX_BYTES["TensorBoard events"]` in all (TensorBoard reads
+    them unbounded; a named pipe would hang it). A warning names what is refused."""
     root = run_dir / EVENTS_DIR
     if not root.is_dir():
         return True  # nothing to read
-    total, real_run = 0, Path(os.path.realpath(run_dir))
+    total, count, real_run = 0, 0, Path(os.path.realpath(run_dir))
     for path in root.rglob("*"):
         if path.is_dir() and not path.is_symlink():
             continue
         if not (path.is_file() and Path(os.path.realpath(path)).is_relative_to(real_run)):
             log.warning("%s: not a regular file inside the run; its events are not read", path)
+            return False
+        if (count := count + 1) > MAX_EVENT_FILES:
+            log.warning("%s: over %d files; its events are not read", root, MAX_EVENT_FILES)
             return False
         total += path.stat().st_size
     if total > MAX_BYTES["TensorBoard events"]:
