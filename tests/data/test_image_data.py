@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -169,6 +170,9 @@ def test_a_thin_frame_is_refused_before_it_is_resized(tmp_path, monkeypatch):
         mav_module(root).setup()
     assert not list((root / ".rotlearn_cache").glob("*.npy"))
     assert images.resize_center_crop(np.zeros((20, 26), np.uint8), 10, 8).shape == (8, 8)
+    thin = next((root / "flea3" / "data").glob("*.png"))  # rotlearn-predict's pair: named too
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(thin))}: a 400x1 frame resized"):
+        mav_module(root).read_pair(thin, thin)
 
 
 # -- KITTI bad input ---------------------------------------------------------------------------
