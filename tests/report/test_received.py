@@ -102,7 +102,7 @@ def test_a_received_report_layout_of_the_wrong_kind_is_refused_in_one_line(tmp_p
     _run(sweep / "0", report={"trial_keys": 5})
     assert main([str(sweep)]) == 2
     _one_line(capsys.readouterr().err, str(sweep / "0" / ".hydra" / "config.yaml"),
-              "report.trial_keys: 5 is not a list")  # fmt: skip
+              "report.trial_keys: should be a valid list, got 5")  # fmt: skip
     assert sorted(p.name for p in sweep.iterdir()) == ["0"]
 
 

@@ -22,12 +22,15 @@ from __future__ import annotations
 
 import difflib
 import logging
+import re
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import pandas as pd
 import yaml
+from pydantic import AfterValidator, ConfigDict
+from typing_extensions import TypedDict
 
 from rotlearn import io
 from rotlearn.io import read_json
@@ -152,11 +155,55 @@ def _unused(cfg: Mapping[str, Any]) -> set[str]:
     return {*NOT_SETTINGS, *(p for p in MODEL_PARTS if p not in taken)}
 
 
+def _png_name(name: str) -> str:
+    """A plot's file: a plain name of a PNG file, written into the report's folder."""
+    try:
+        plain = io.plain_name(name).endswith(".png")
+    except ValueError:
+        plain = False
+    if not plain:
+        raise ValueError("should be a plain file name ending in .png (the plot is written into "
+                         "the report's folder)")  # fmt: skip
+    return name
+
+
+class _Open(TypedDict, total=False):
+    __pydantic_config__ = ConfigDict(extra="allow")  # other keys are kept as they are
+
+
+class PlotLayout(_Open, total=False):
+    kind: str
+    x: str
+    label: str
+    file: Annotated[str, AfterValidator(_png_name)]
+    metrics: list[str]
+
+
+class OODLayout(_Open, total=False):
+    quantiles: list[float]
+    sets: dict[str, Any]
+
+
+class PaperLayout(_Open, total=False):
+    where: dict[str, Any]
+    rows: list[Any]
+
+
+class ReportLayout(_Open, total=False):
+    """A run's `report` node (`DEFAULT_REPORT` fills in what it leaves out)."""
+
+    lead: str | None
+    trial_keys: list[str] | None
+    plots: list[PlotLayout] | None
+    ood: OODLayout | None
+    paper: PaperLayout | None
+
+
 def layout_of(
     configs: Sequence[Mapping[str, Any]], sources: Sequence[str | Path] | None = None
 ) -> dict[str, Any]:
-    """The report layout: the first run's `report` node over `DEFAULT_REPORT`, checked; each
-    plot's `file` filled in (`curves.png`, `<label>_box.png`).
+    """The report layout: the first run's `report` node over `DEFAULT_REPORT`, validated as a
+    `ReportLayout`; each plot's `file` filled in (`curves.png`, `<label>_box.png`).
 
     Args:
         configs: the runs' configs.
@@ -167,69 +214,38 @@ def layout_of(
             of keys, a plot file that is no plain `.png` name, which could be written outside
             the report's folder), naming the config file and the key.
     """
+    from pydantic import TypeAdapter, ValidationError
+
     sources = list(sources) if sources is not None else [None] * len(configs)
     node, where = next(((c["report"], s) for c, s in zip(configs, sources, strict=True)
                         if isinstance(c.get("report"), dict)), ({}, None))  # fmt: skip
-    layout = {**DEFAULT_REPORT, **node}
-    return _checked_layout(layout, f"{where}: " if where is not None else "")
-
-
-def _refuse(where: str, key: str, value: Any, what: str) -> ValueError:
-    """The error of a report node's value: "<config file>: report.<key>: <value> is not ..."."""
-    shown = repr(value) if len(repr(value)) <= 80 else f"{repr(value)[:77]}..."
-    return ValueError(f"{where}report.{key}: {shown} is not {what}")
-
-
-def _of_kind(
-    node: Mapping[str, Any], key: str, where: str, kind: type | tuple, what: str, many: bool = False
-) -> Any:
-    """The value of `node` at the last part of `key` (its full key below `report`), if absent,
-    None, a `kind` or (`many`) a list of `kind`s; else a `_refuse` error that says `what`."""
-    value = node.get(key.rpartition(".")[2])
-    if value is None:
-        return None
-    items = value if many and isinstance(value, list) else [value]
-    if (many and not isinstance(value, list)) or not all(isinstance(v, kind) for v in items):
-        raise _refuse(where, key, value, what)
-    return value
-
-
-def _checked_layout(layout: dict[str, Any], where: str) -> dict[str, Any]:
-    """`layout` with its values checked (`layout_of`; `where`: "<config file>: ")."""
-    _of_kind(layout, "lead", where, str, "a config key")
-    layout["trial_keys"] = _of_kind(layout, "trial_keys", where, str, "a list of keys", True) or []
-    plots = _of_kind(layout, "plots", where, dict, "a list of mappings (kind, x, ...)", True)
-    layout["plots"] = [_checked_plot(p, f"plots[{i}]", where) for i, p in enumerate(plots or [])]
-    ood = _of_kind(layout, "ood", where, Mapping, "a mapping") or {}
-    _of_kind(ood, "ood.quantiles", where, (int, float), "a list of numbers", True)
-    _of_kind(ood, "ood.sets", where, Mapping, "a mapping")
-    paper = _of_kind(layout, "paper", where, Mapping, "a mapping") or {}
-    _of_kind(paper, "paper.where", where, Mapping, "a mapping")
-    _of_kind(paper, "paper.rows", where, object, "a list", True)  # rows of no kind: '-' cells
+    where = f"{where}: " if where is not None else ""
+    try:
+        layout = TypeAdapter(ReportLayout).validate_python({**DEFAULT_REPORT, **node})
+    except ValidationError as exc:
+        error = exc.errors(include_url=False)[0]
+        raise _refused(where, error["loc"], error["msg"], error["input"]) from None
+    for i, plot in enumerate(layout.get("plots") or []):  # the file each plot is drawn into
+        if plot.get("kind") == "curves":
+            plot.setdefault("file", "curves.png")
+        elif plot.get("kind") == "box" and not plot.get("file"):
+            source = "label" if plot.get("label") else "x"
+            try:
+                name = str(plot.get(source, "")).split(".")[-1] if source == "x" else plot[source]
+                plot["file"] = _png_name(f"{name}_box.png")
+            except ValueError as exc:
+                raise _refused(where, ("plots", i, source), str(exc), plot.get(source)) from None
+    layout["trial_keys"] = layout.get("trial_keys") or []
     return layout
 
 
-def _checked_plot(plot: dict[str, Any], key: str, where: str) -> dict[str, Any]:
-    """A plot of the layout, checked, with the file it is drawn into (`file`: a plain name of a
-    PNG file in the report's folder; by default `curves.png` or `<label>_box.png`)."""
-    for name in ("kind", "x", "label", "file"):
-        _of_kind(plot, f"{key}.{name}", where, str, "a string")
-    _of_kind(plot, f"{key}.metrics", where, str, "a list of metric names", True)
-    if plot.get("kind") == "box" and plot.get("x") and not plot.get("file"):
-        source = "label" if plot.get("label") else "x"
-        file = f"{plot.get('label') or plot['x'].split('.')[-1]}_box.png"
-    elif plot.get("kind") == "curves" or plot.get("file"):
-        source, file = "file", plot.get("file") or "curves.png"
-    else:
-        return plot
-    try:
-        plain = io.plain_name(file).endswith(".png")
-    except ValueError:
-        plain = False
-    if not plain:
-        what = "a plain file name ending in .png (the plot is written into the report's folder)"
-        raise _refuse(where, f"{key}.{source}", plot.get(source), what)
-    return {**plot, "file": file}
+def _refused(where: str, loc: Sequence[Any], said: str, value: Any) -> ValueError:
+    """'<config file>: report.<key>: should be ..., got <value>' (pydantic's words, as
+    `rotlearn.config` words them)."""
+    key = "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in loc)
+    said = re.sub(r"^(Value error, )?(\w+ )?(?=should )", "", said)
+    shown = repr(value) if len(repr(value)) <= 80 else f"{repr(value)[:77]}..."
+    return ValueError(f"{where}report{key}: {said}, got {shown}")
 
 
 def _roots(root: str | Path | Sequence[str | Path]) -> list[Path]:
