@@ -848,10 +848,13 @@ def resolve_inside(root: str | os.PathLike, path: str | os.PathLike, where: str)
         where: what named `path` (a config key, "<file>:<line>"), for messages.
 
     Raises:
-        ValueError: "<where>: <path> resolves to <target>, outside <root>".
+        ValueError: "<where>: <path> resolves to <target>, outside <root>", or a symlink loop
+            (Python 3.11's `resolve` raises RuntimeError for one, 3.13's OSError).
     """
-    real_root = Path(root).resolve()
-    real = Path(path).resolve()
+    try:
+        real_root, real = Path(root).resolve(), Path(path).resolve()
+    except (RuntimeError, OSError) as exc:
+        raise ValueError(f"{where}: {path} cannot be resolved ({exc}): a symlink loop") from None
     if not real.is_relative_to(real_root):
         raise ValueError(f"{where}: {path} resolves to {real}, outside {real_root}")
     return real

@@ -533,6 +533,10 @@ def test_plain_name_and_resolve_inside(tmp_path):
     assert resolve_inside(tmp_path / "root", tmp_path / "root" / "new", "w").name == "new"
     with pytest.raises(ValueError, match=r"^w: .* outside"):
         resolve_inside(tmp_path / "root", tmp_path / "root" / ".." / "x", "w")
+    loop = tmp_path / "root" / "000005.png"  # a dataset's frame or cache linked to itself
+    loop.symlink_to(loop)  # Python 3.11's resolve: RuntimeError, a traceback in rotlearn-train
+    with pytest.raises(ValueError, match=r"^w: .*000005\.png cannot be resolved .*symlink loop"):
+        resolve_inside(tmp_path / "root", loop, "w")
 
 
 def test_number_rows_name_the_first_non_finite_line(tmp_path):
