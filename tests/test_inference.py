@@ -451,7 +451,7 @@ def test_predict_command_reports_the_temperature(calibrated_run, tmp_path, capsy
 
 
 def test_load_of_several_runs_is_their_ensemble_and_calibrates_on_held_out_data(
-    trained_runs, tmp_path
+    trained_runs, tmp_path, monkeypatch
 ):
     """rotlearn.load([run, its copy]): the product of two identical beliefs (A doubled, the
     same rotation, no disagreement); Predictor.calibrate fits its temperature and level map. The
@@ -460,8 +460,13 @@ def test_load_of_several_runs_is_their_ensemble_and_calibrates_on_held_out_data(
     single = rotlearn.load(trained_runs["a"])(x)
     for twice in ([trained_runs["a"]] * 2, [trained_runs["a"], trained_runs["a"] / "checkpoints"
                                               / "last.ckpt"]):  # fmt: skip
-        with pytest.raises(ValueError, match=r"is .* again \(.*last\.ckpt\): each member of an"):
+        with pytest.raises(ValueError, match=r"is .* again \(.*\): each member of an"):
             rotlearn.load(twice)
+    spelled = [trained_runs["a"], trained_runs["a"] / ".." / trained_runs["a"].name]
+    with monkeypatch.context() as patch:  # refused before any member is loaded (50 copies: 5.6 GB)
+        patch.setattr(rotlearn.inference, "load_run", lambda *a, **k: pytest.fail("loaded"))
+        with pytest.raises(ValueError, match=r"is .* again \(.*\): each member of an"):
+            rotlearn.load(spelled)
     copy = shutil.copytree(trained_runs["a"], tmp_path / "copy")
     ensemble = rotlearn.load([trained_runs["a"], copy])
     estimate = ensemble(x)

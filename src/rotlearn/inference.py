@@ -406,12 +406,9 @@ def ensemble_members(
 
     if not paths:
         raise ValueError("an ensemble needs at least one run")
+    _refuse_repeats(paths, [os.path.realpath(p) for p in paths])  # before loading any
     runs = [load_run(p, task="rotation") for p in paths]
-    files = [run.path.resolve() for run in runs]
-    for later, file in enumerate(files):
-        if (first := files.index(file)) < later:  # its belief would count twice
-            raise ValueError(f"{paths[later]} is {paths[first]} again ({file}): each member of "
-                             "an ensemble must be another run")  # fmt: skip
+    _refuse_repeats(paths, [os.path.realpath(run.path) for run in runs])  # a run and its file
     nets, heads = [], []
     for run in runs:
         net, head = run.build("net"), run.build("rep", prefix="head")  # weights checked, loaded
@@ -421,6 +418,15 @@ def ensemble_members(
         heads.append(head)
     head = EnsembleHead(heads, [run.temperature for run in runs])
     return EnsembleNet(nets), head, runs
+
+
+def _refuse_repeats(paths: Sequence[str | os.PathLike], files: list[str]) -> None:
+    """ValueError for a member listed again (`files[i]`: what `paths[i]` names, resolved): its
+    belief would count twice."""
+    for later, file in enumerate(files):
+        if (first := files.index(file)) < later:
+            raise ValueError(f"{paths[later]} is {paths[first]} again ({file}): each member of "
+                             "an ensemble must be another run")  # fmt: skip
 
 
 def _load_ensemble(
