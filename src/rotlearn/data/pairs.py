@@ -394,10 +394,10 @@ class ImagePairDataModule(pl.LightningDataModule):
 
         frames = []
         for path in (first, second):
+            image = read_image(Path(path), self.gray)  # its errors name the file
             try:
-                frame = self.preprocess(read_image(Path(path), self.gray))
+                frame = self.preprocess(image)
             except ValueError as exc:  # e.g. a thin frame over the pixel budget once resized
-                said = str(exc)
-                raise ValueError(said if str(path) in said else f"{path}: {said}") from None
+                raise ValueError(f"{path}: {exc}") from None
             frames.append(frame[None] if self.gray else frame.transpose(2, 0, 1))
         return self.normalize(torch.from_numpy(np.concatenate(frames)))
