@@ -68,6 +68,11 @@ BAD = [
     ("net.center_init=1", r"net\.center_init: should be a valid boolean, got 1"),
     ("+net.dropout=0.1", r"net\.dropout: unknown key; allowed: out_dim, in_channels, point_chann"),
     ("optim.lr=${nope}", r"config key optim\.lr: cannot be resolved"),
+    ("report={trial_keys: 5}", r"config key report\.trial_keys: should be a valid list, got 5"),
+    (  # the report a sweep writes when it ends: refused before it starts, not after
+        "report={plots: [{kind: curves, file: ../curves.png}]}",
+        r"report\.plots\[0\]\.file: should be a plain file name ending in \.png .*'\.\./curv",
+    ),
 ]
 
 

@@ -81,7 +81,7 @@ TOP_LEVEL: dict[str, Any] = {  # conf/train.yaml's keys (and sweep=lr's); seed a
     "trials": Annotated[int, Ge(1), Le(2**31)],
     "sweep_seed": int,
     "lr_range": Annotated[list[Annotated[float, Gt(0)]], Len(2, 2)],
-    "report": dict | None,  # rotlearn-report's layout (an experiment's report node)
+    "report": dict | None,  # rotlearn-report's layout (`rotlearn.report.layout`)
 }
 _CONDITION = re.compile(r"(?:(\w+)=([^:/{}]+):\s*)?(.*)")  # a layout path: [key=value: ]path
 _PLAIN = re.compile(r"(?!\.\.?$)[^/\\\0]+")  # a file name: no separator, not . or ..
@@ -332,13 +332,17 @@ def _check(key: str, value: Any, annotation: Any) -> None:
 
 def check_values(values: dict[str, Any]) -> None:
     """Pass 2, importing only what each check needs, the fastest first: the values whose
-    annotations their source tells, the head and the loss built, the calibration rule, then the
-    values whose annotations need their component imported."""
+    annotations their source tells, the report layout, the head and the loss built, the
+    calibration rule, then the values whose annotations need their component imported."""
     from hydra.errors import InstantiationException
     from hydra.utils import instantiate
 
     for name in (n for n in TOP_LEVEL if n in values):
         _check(name, values[name], TOP_LEVEL[name])
+    if values.get("report"):  # the report a sweep writes when it ends: checked before it starts
+        from rotlearn.report.layout import report_layout
+
+        report_layout(values["report"])
     later = []
     for key, group, node in _nodes(values):
         target = node["_target_"]

@@ -3,7 +3,8 @@ from its run directories alone (`rotlearn.report.runs`), with the tables of
 `rotlearn.report.tables` and the figures of `rotlearn.report.figures`.
 
 The layout comes from the sweep's `report` config node (an experiment's or a sweep's, e.g.
-`conf/experiment/synthetic_phi_max.yaml`, `conf/sweep/lr.yaml`), over `DEFAULT_REPORT`::
+`conf/experiment/synthetic_phi_max.yaml`, `conf/sweep/lr.yaml`), over
+`rotlearn.report.layout.DEFAULT_REPORT`::
 
     report:
       lead: rep.name                  # the key whose value starts each setting's label
@@ -76,7 +77,7 @@ def make_report(
     Raises:
         FileNotFoundError: `root` holds no run directories.
         FileExistsError: a folder stands where a file of the report goes (nothing written).
-        ValueError: a run's `report` node is not a layout (`rotlearn.report.runs.layout_of`).
+        ValueError: a run's `report` node is not a layout (`rotlearn.report.layout.layout_of`).
     """
     roots = [Path(r) for r in root] if isinstance(root, (list, tuple)) else [Path(root)]
     for folder in (r for r in roots if not r.is_dir()):
@@ -202,7 +203,7 @@ def _plots(done, runs, layout, out: Path, files: dict[str, Path]) -> list[str]:
         kind = plot.get("kind")
         if kind == "box" and plot.get("x") in done and done[plot["x"]].nunique() > 1:
             x, label = str(plot["x"]), _label(plot)
-            name = plot["file"]  # a plain name (`rotlearn.report.runs.layout_of`)
+            name = plot["file"]  # a plain name (`rotlearn.report.layout.layout_of`)
             done = done[done[x].notna()]
             done = done.assign(series=label_without(runs.loc[done.index], [x]))
             rows, values = tables.setting_order(done, "series"), _sorted(done[x])

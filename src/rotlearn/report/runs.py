@@ -3,8 +3,8 @@
 Each run's `.hydra/config.yaml` is read as plain YAML data: never resolved (a run directory is
 untrusted; an interpolation such as `${oc.env:...}` stays text); a job folder that leads out of
 its sweep (a symlink to a run elsewhere) is not read. The report layout, a run's `report` node,
-is checked once (`layout_of`): a value of the wrong kind is refused naming the file and key, and
-each plot is drawn into the report's folder under a plain `.png` name.
+is checked once (`rotlearn.report.layout.layout_of`): a value of the wrong kind is refused naming
+the file and key, and each plot is drawn into the report's folder under a plain `.png` name.
 
 Runs are grouped by every config key whose value differs between them, except the trial keys:
 those the sweep or experiment declares (`report.trial_keys`; `sweep=lr` declares its trials,
@@ -22,38 +22,29 @@ from __future__ import annotations
 
 import difflib
 import logging
-import re
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Any
 
 import pandas as pd
 import yaml
-from pydantic import AfterValidator, ConfigDict
-from typing_extensions import TypedDict
 
 from rotlearn import io
 from rotlearn.io import read_json
 from rotlearn.paths import EVALUATED_FILE
 from rotlearn.report.identity import parse_override, short_value
+from rotlearn.report.layout import layout_of
 
 __all__ = [
-    "DEFAULT_REPORT",
     "NOT_SETTINGS",
     "RUN_MARKS",
     "collect_runs",
     "is_run",
     "label_without",
-    "layout_of",
     "matches",
     "run_dirs",
 ]
 
-DEFAULT_REPORT: dict[str, Any] = {
-    "lead": "rep.name",
-    "trial_keys": ["seed", "data.seed", "trial"],
-    "plots": [{"kind": "curves"}],
-}
 log = logging.getLogger("rotlearn")
 NOT_SETTINGS = ("hydra", "paths", "report")  # per-run paths, and the report layout itself
 MODEL_PARTS = ("rep", "loss", "scheduler")  # settings only where the model takes them (`${rep}`)
@@ -153,99 +144,6 @@ def _unused(cfg: Mapping[str, Any]) -> set[str]:
         return set(NOT_SETTINGS)
     taken = {str(v)[2:-1] for v in model.values() if str(v).startswith("${")}
     return {*NOT_SETTINGS, *(p for p in MODEL_PARTS if p not in taken)}
-
-
-def _png_name(name: str) -> str:
-    """A plot's file: a plain name of a PNG file, written into the report's folder."""
-    try:
-        plain = io.plain_name(name).endswith(".png")
-    except ValueError:
-        plain = False
-    if not plain:
-        raise ValueError("should be a plain file name ending in .png (the plot is written into "
-                         "the report's folder)")  # fmt: skip
-    return name
-
-
-class _Open(TypedDict, total=False):
-    __pydantic_config__ = ConfigDict(extra="allow")  # other keys are kept as they are
-
-
-class PlotLayout(_Open, total=False):
-    kind: str
-    x: str
-    label: str
-    file: Annotated[str, AfterValidator(_png_name)]
-    metrics: list[str]
-
-
-class OODLayout(_Open, total=False):
-    quantiles: list[float]
-    sets: dict[str, Any]
-
-
-class PaperLayout(_Open, total=False):
-    where: dict[str, Any]
-    rows: list[Any]
-
-
-class ReportLayout(_Open, total=False):
-    """A run's `report` node (`DEFAULT_REPORT` fills in what it leaves out)."""
-
-    lead: str | None
-    trial_keys: list[str] | None
-    plots: list[PlotLayout] | None
-    ood: OODLayout | None
-    paper: PaperLayout | None
-
-
-def layout_of(
-    configs: Sequence[Mapping[str, Any]], sources: Sequence[str | Path] | None = None
-) -> dict[str, Any]:
-    """The report layout: the first run's `report` node over `DEFAULT_REPORT`, validated as a
-    `ReportLayout`; each plot's `file` filled in (`curves.png`, `<label>_box.png`).
-
-    Args:
-        configs: the runs' configs.
-        sources: the file each config was read from (for messages).
-
-    Raises:
-        ValueError: a value of the node that is not of its kind (`report.trial_keys` not a list
-            of keys, a plot file that is no plain `.png` name, which could be written outside
-            the report's folder), naming the config file and the key.
-    """
-    from pydantic import TypeAdapter, ValidationError
-
-    sources = list(sources) if sources is not None else [None] * len(configs)
-    node, where = next(((c["report"], s) for c, s in zip(configs, sources, strict=True)
-                        if isinstance(c.get("report"), dict)), ({}, None))  # fmt: skip
-    where = f"{where}: " if where is not None else ""
-    try:
-        layout = TypeAdapter(ReportLayout).validate_python({**DEFAULT_REPORT, **node})
-    except ValidationError as exc:
-        error = exc.errors(include_url=False)[0]
-        raise _refused(where, error["loc"], error["msg"], error["input"]) from None
-    for i, plot in enumerate(layout.get("plots") or []):  # the file each plot is drawn into
-        if plot.get("kind") == "curves":
-            plot.setdefault("file", "curves.png")
-        elif plot.get("kind") == "box" and not plot.get("file"):
-            source = "label" if plot.get("label") else "x"
-            try:
-                name = str(plot.get(source, "")).split(".")[-1] if source == "x" else plot[source]
-                plot["file"] = _png_name(f"{name}_box.png")
-            except ValueError as exc:
-                raise _refused(where, ("plots", i, source), str(exc), plot.get(source)) from None
-    layout["trial_keys"] = layout.get("trial_keys") or []
-    return layout
-
-
-def _refused(where: str, loc: Sequence[Any], said: str, value: Any) -> ValueError:
-    """'<config file>: report.<key>: should be ..., got <value>' (pydantic's words, as
-    `rotlearn.config` words them)."""
-    key = "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in loc)
-    said = re.sub(r"^(Value error, )?(\w+ )?(?=should )", "", said)
-    shown = repr(value) if len(repr(value)) <= 80 else f"{repr(value)[:77]}..."
-    return ValueError(f"{where}report{key}: {said}, got {shown}")
 
 
 def _roots(root: str | Path | Sequence[str | Path]) -> list[Path]:
