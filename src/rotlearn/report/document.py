@@ -52,16 +52,16 @@ __all__ = ["CURVE_METRICS", "make_report"]
 
 log = logging.getLogger("rotlearn")
 CURVE_METRICS = ["train/err_mean", "val/err_mean"]
-OUTPUT_FILES = (
-    "summary.csv",
-    "report.md",
-    "reliability.png",
-    "ood_table.csv",
-    "ood_pr.png",
-    "ood_scatter.png",
-    "ood_box.png",
-    "ood_sets.png",
-)  # and the layout's plots
+OUTPUT_FILES = {  # what make_report returns -> the file in the report's folder
+    "summary": "summary.csv",
+    "report": "report.md",
+    "reliability": "reliability.png",
+    "ood_table": "ood_table.csv",
+    "ood_pr": "ood_pr.png",
+    "ood_scatter": "ood_scatter.png",
+    "ood_box": "ood_box.png",
+    "ood_sets": "ood_sets.png",
+}  # and the layout's plots
 
 
 def make_report(
@@ -91,12 +91,13 @@ def make_report(
         where = ", ".join(str(r) for r in roots)
         marks = ", ".join(f"*/{m}" for m in RUN_MARKS)
         raise FileNotFoundError(f"no runs under {where} (no run directory: {marks})")
-    for name in (*OUTPUT_FILES, *(p["file"] for p in runs.attrs["layout"]["plots"] if "file" in p)):
+    plots = [p["file"] for p in runs.attrs["layout"]["plots"] if "file" in p]
+    for name in (*OUTPUT_FILES.values(), *plots):
         if (out / name).is_dir() and not (out / name).is_symlink():
             raise FileExistsError(f"{out / name}: a folder is where the report writes a file; "
                                   "move it away or pass --out")  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
-    files = {"summary": write_text_atomic(out / "summary.csv", runs.to_csv(index=False))}
+    files = {"summary": write_text_atomic(out / OUTPUT_FILES["summary"], runs.to_csv(index=False))}
     done, recon = (_having(runs, m) for m in ("test/err_mean", "test/recon_mean"))
     completed = runs.loc[done.index.union(recon.index)]  # with a test score
     failed = runs[runs["status"] != "COMPLETED"]
@@ -125,7 +126,7 @@ def make_report(
                "PENDING: never ran; RUNNING: started, never finished (killed); INTERRUPTED: "
                "stopped by a signal, resumable with the command shown.", "",
                tables.failed_table(failed), ""]  # fmt: skip
-    files["report"] = write_text_atomic(out / "report.md", "\n".join(md))
+    files["report"] = write_text_atomic(out / OUTPUT_FILES["report"], "\n".join(md))
     return files
 
 
@@ -304,10 +305,10 @@ def _beliefs(done: pd.DataFrame, out: Path, files: dict[str, Path]) -> list[str]
     curves, remedies = _reliability_curves(done)
     if curves:
         fig = figures.reliability_figure(curves, remedy="\n".join(remedies) or None)
-        files["reliability"] = figures.save_figure(fig, out / "reliability.png")
+        files["reliability"] = figures.save_figure(fig, out / OUTPUT_FILES["reliability"])
         md += ["Reliability of the credible regions (coverage against level; on the diagonal: "
                "calibrated, below it: over-confident, above it: too wide):", "",
-               "![reliability diagram](reliability.png)", ""]  # fmt: skip
+               f"![reliability diagram]({OUTPUT_FILES['reliability']})", ""]  # fmt: skip
         md += [f"- {r}" for r in remedies] + ([""] if remedies else [])
     return md
 
@@ -453,7 +454,7 @@ def _ood_sections(frames, layout, out: Path, files: dict[str, Path]) -> list[str
     """Table I, the paper comparison, per-score and per-set tables and the OOD figures."""
     samples = [_samples(run, frame) for run, frame in frames]
     ood = _ood_table(frames, samples)
-    files["ood_table"] = write_text_atomic(out / "ood_table.csv", ood.to_csv(index=False))
+    files["ood_table"] = write_text_atomic(out / OUTPUT_FILES["ood_table"], ood.to_csv(index=False))
     md = ["## OOD rejection (paper Table I)", "", OOD_NOTE, "",
           tables.markdown_table(ood, ["job", *tables.TABLE_ONE_COLUMNS]), ""]  # fmt: skip
     if ood["method"].duplicated().any():
@@ -575,7 +576,7 @@ def _ood_figures(
             if curves:
                 ax.set_visible(True)
                 figures.pr_figure(curves, ax=ax, title=set_names.get(name, name))
-        files["ood_pr"] = figures.save_figure(fig, out / "ood_pr.png", dpi=90)
+        files["ood_pr"] = figures.save_figure(fig, out / OUTPUT_FILES["ood_pr"], dpi=90)
         n_cols = max(len(scores) for _, _, scores, _ in runs)
         for key, what in (
             ("ood_scatter", "Error against score on the half-erased test set"),
@@ -596,17 +597,18 @@ def _ood_figures(
                         groups = figures.box_groups(score.name, sets)
                         figures.score_boxes_figure(score.name, score.keep_below, groups, ax=ax,
                                                    title=title)  # fmt: skip
-            files[key] = figures.save_figure(fig, out / f"{key}.png", dpi=90)
-            md += [f"### {what}", "", f"![{what}]({key}.png)", ""]
+            files[key] = figures.save_figure(fig, out / OUTPUT_FILES[key], dpi=90)
+            md += [f"### {what}", "", f"![{what}]({OUTPUT_FILES[key]})", ""]
         md = ["### Precision-recall over the quantile q (q = 0.05 to 0.97)", "",
               "Runs of one setting (seeds) share a curve: their mean recall and precision at "
-              "each q.", "", "![precision-recall over q](ood_pr.png)", "", *md]  # fmt: skip
+              "each q.", "", f"![precision-recall over q]({OUTPUT_FILES['ood_pr']})", "",
+              *md]  # fmt: skip
     bars, sets = _set_bars(frames)
     if len(sets) >= 2 and bars:
         fig = figures.sets_bars_figure(bars, [set_names.get(s, s) for s in sets])
-        files["ood_sets"] = figures.save_figure(fig, out / "ood_sets.png", dpi=90)
-        md += ["### Error per test set (paper Fig. 8b)", "", "![error per test set](ood_sets.png)",
-               ""]  # fmt: skip
+        files["ood_sets"] = figures.save_figure(fig, out / OUTPUT_FILES["ood_sets"], dpi=90)
+        md += ["### Error per test set (paper Fig. 8b)", "",
+               f"![error per test set]({OUTPUT_FILES['ood_sets']})", ""]  # fmt: skip
     examples = [(run, Path(run["dir"]) / "ood_examples.png") for run, _ in frames]
     examples = [(run, path) for run, path in examples if path.is_file()]
     if examples:
