@@ -325,6 +325,17 @@ def test_mav_symlinked_frame_outside_the_root_names_the_line(demo_data, tmp_path
     refuses(lambda: mav(root, cache), tmp_path, cache, ValueError, pattern)
 
 
+def test_mav_frame_folder_symlinked_outside_the_root_is_refused(demo_data, tmp_path):
+    """The frames are checked against their folder, resolved once: a folder that leads out of
+    data.root is refused, however plain each frame inside it is."""
+    root, cache = copy_demo(demo_data, "mav", tmp_path), tmp_path / "cache"
+    folder, outside = root / "flea3" / "data", tmp_path / "elsewhere"
+    shutil.move(folder, outside)
+    folder.symlink_to(outside)
+    pattern = r"data\.root: .*flea3/data resolves to .*elsewhere, outside"
+    refuses(lambda: mav(root, cache), tmp_path, cache, ValueError, pattern)
+
+
 def test_mav_pair_index_out_of_range_names_the_line(demo_data, tmp_path):
     root, cache = copy_demo(demo_data, "mav", tmp_path), tmp_path / "cache"
     set_line(root / "pairs" / "outdoor.csv", 2, "0,999")
