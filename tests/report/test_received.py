@@ -95,6 +95,23 @@ def test_a_job_folder_or_file_that_leads_out_of_the_sweep_is_not_read(tmp_path, 
     assert "ood_pr" not in files  # the samples (its figures) were not read
 
 
+def test_a_listed_job_whose_folder_leads_out_of_the_sweep_is_reported_as_not_read(tmp_path):
+    """Its folder is not read (above); the job jobs.json lists was not shown at all ("2 jobs: 1
+    completed" and nothing more). Now report.md lists it as NOT READ, saying where it leads."""
+    victim, sweep = _run(tmp_path / "victim", seed=1), tmp_path / "sweep"
+    _run(sweep / "0")
+    (sweep / "1").symlink_to(victim, target_is_directory=True)
+    jobs = [{"num": n, "dir": str(sweep / str(n)), "status": "COMPLETED",
+             "overrides": [f"seed={n}"]} for n in (0, 1)]  # fmt: skip
+    (sweep / "jobs.json").write_text(json.dumps({"jobs": jobs}))
+    rows = collect_runs(sweep).set_index("job")
+    assert list(rows["status"]) == ["COMPLETED", "NOT READ"]
+    assert f"{sweep / '1'} resolves to {victim}" in rows.loc["1", "error"]
+    report = make_report(sweep)["report"].read_text()
+    assert "2 jobs: 1 completed, 1 not read." in report
+    assert "| 1 | NOT READ | seed=1 | job folder:" in report
+
+
 def test_a_received_report_layout_of_the_wrong_kind_is_refused_in_one_line(tmp_path, capsys):
     """`report: {trial_keys: 5}` failed with a TypeError traceback; now one line names the
     config file and the key, and nothing is written."""

@@ -124,7 +124,8 @@ def make_report(
     if not failed.empty:
         md += ["## Failed, interrupted or never-run jobs", "",
                "PENDING: never ran; RUNNING: started, never finished (killed); INTERRUPTED: "
-               "stopped by a signal, resumable with the command shown.", "",
+               "stopped by a signal, resumable with the command shown; NOT READ: its folder "
+               "leads out of the sweep (a link), so the report did not read it.", "",
                tables.failed_table(failed), ""]  # fmt: skip
     files["report"] = write_text_atomic(out / OUTPUT_FILES["report"], "\n".join(md))
     return files

@@ -36,6 +36,7 @@ from rotlearn.report.identity import parse_override, short_value
 from rotlearn.report.layout import layout_of
 
 __all__ = [
+    "NOT_READ",
     "NOT_SETTINGS",
     "RUN_MARKS",
     "collect_runs",
@@ -49,6 +50,7 @@ log = logging.getLogger("rotlearn")
 NOT_SETTINGS = ("hydra", "paths", "report")  # per-run paths, and the report layout itself
 MODEL_PARTS = ("rep", "loss", "scheduler")  # settings only where the model takes them (`${rep}`)
 _MISSING = "-"
+NOT_READ = "NOT READ"  # the status of a job whose folder leads out of its sweep
 RUN_MARKS = (".hydra/config.yaml", "status.json", "metrics.json")  # what makes a run directory
 
 
@@ -356,7 +358,8 @@ def _path_parts(value: Any) -> list[str]:
 
 def _unstarted_jobs(root: Path, seen: set[str]) -> list[dict[str, Any]]:
     """Rows for the jobs that `<root>/jobs.json` lists but that have no run directory (yet): those
-    that never ran (PENDING), or died before Hydra wrote their config."""
+    that never ran (PENDING), or died before Hydra wrote their config; or whose folder leads out
+    of the sweep (`NOT_READ`: `run_dirs` did not read it)."""
     summary = read_json(root / "jobs.json", root=root)
     jobs = summary.get("jobs", []) if isinstance(summary, dict) else []
     rows = []
@@ -367,16 +370,20 @@ def _unstarted_jobs(root: Path, seen: set[str]) -> list[dict[str, Any]]:
         if name in seen:
             continue
         overrides = job.get("overrides") if isinstance(job.get("overrides"), list) else []
-        status = job.get("status", "PENDING")
+        status, error = job.get("status", "PENDING"), job.get("error") or "never ran"
         if not isinstance(status, str):
             log.warning("%s: jobs[%d].status is not a string; ignored", root / "jobs.json", i)
             status = "PENDING"
+        try:  # its folder is there, but `run_dirs` did not read it
+            io.resolve_inside(root, root / name, "job folder")
+        except ValueError as exc:
+            status, error = NOT_READ, f"{exc}: not read"
         rows.append(
             {
                 "job": name,
                 "dir": str(job["dir"]) if job.get("dir") else None,
                 "status": status,
-                "error": job.get("error") or "never ran",
+                "error": error,
                 "overrides": " ".join(str(o) for o in overrides),
             }
         )
