@@ -171,6 +171,27 @@ def test_a_truncated_or_inflating_or_oversized_file_is_refused_unread(tmp_path, 
         load_checkpoint(path)
 
 
+def test_torch_loads_the_file_that_was_checked_not_one_swapped_in_after(tmp_path, monkeypatch):
+    """The bounded check and torch's load read one open file: a checkpoint renamed over it in
+    between (it could hold what the check refuses) is not the one loaded."""
+    import rotlearn.checkpoint as checkpoint
+
+    path, other = tmp_path / "last.ckpt", tmp_path / "other.ckpt"
+    torch.save({"epoch": 1, "state_dict": {"w": torch.ones(3)}}, path)
+    torch.save({"epoch": 2, "state_dict": {"w": torch.zeros(3)}}, other)
+    check = checkpoint._plain_checkpoint
+
+    def check_then_swap(*args):
+        found = check(*args)
+        other.replace(path)  # after the check, before torch reads
+        return found
+
+    monkeypatch.setattr(checkpoint, "_plain_checkpoint", check_then_swap)
+    loaded = load_checkpoint(path)
+    assert loaded["epoch"] == 1 and torch.equal(loaded["state_dict"]["w"], torch.ones(3))
+    assert torch.load(path, weights_only=True)["epoch"] == 2  # the swap took place
+
+
 def test_the_evaluation_runs_on_the_devices_its_command_line_gives(finished_run, tmp_path):
     """A checkpoint's trainer.devices=6 once launched six processes in rotlearn-eval."""
     from hydra import compose, initialize_config_dir

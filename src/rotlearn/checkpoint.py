@@ -31,9 +31,11 @@ import pickle
 import stat
 import struct
 import zipfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, BinaryIO
 
 import numpy as np
 
@@ -218,18 +220,14 @@ def _one_reading(
     return next((m for m, key in zip(members, keys, strict=True) if key == wanted), None)
 
 
-def _plain_checkpoint(path: Path) -> Any:
-    """What checkpoint file `path` holds, read as data without torch (`rotlearn.io.plain_pickle`:
-    tensors and other objects as OPAQUE) from the pickle torch would read, `<folder>/data.pkl`
-    where <folder> is the first record's. Before that, from the one handle it reads: refuse a
-    file that is not a regular file, is larger than `MAX_BYTES["checkpoint"]`, is not a whole
-    zip archive (a truncated file has no central directory; a damaged record fails its CRC), or
-    whose records would decompress beyond the cap or `_MAX_INFLATION` times the file's size, or
-    that torch's reader (miniz) could read otherwise than Python's zipfile (`_one_reading`).
+@contextmanager
+def _opened(path: Path) -> Iterator[tuple[BinaryIO, int]]:
+    """Checkpoint file `path` opened once for every read of it (its check and torch's load: a
+    file swapped in between is not read), with its size: refused unless it is a regular file
+    of at most `MAX_BYTES["checkpoint"]` bytes.
 
     Raises:
-        UnsafeCheckpointError: naming the file and which of these it is, or a pickle that is not
-            one or is past `plain_pickle`'s bounds.
+        UnsafeCheckpointError: naming the file and which of these it is.
     """
     cap = MAX_BYTES["checkpoint"]
     fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
@@ -239,24 +237,40 @@ def _plain_checkpoint(path: Path) -> Any:
             raise UnsafeCheckpointError(f"{path} is not a regular file; not read")
         if info.st_size > cap:
             raise UnsafeCheckpointError(f"{path} is larger than a checkpoint may be ({cap} bytes)")
-        try:
-            archive = zipfile.ZipFile(handle)
-            members = archive.infolist()
-            inflated = sum(m.file_size for m in members)
-            bounded = inflated <= min(cap, _MAX_INFLATION * max(info.st_size, 1) + 2**20)
-            record = _one_reading(path, handle, info.st_size, members)
-            data = archive.read(record) if bounded and record is not None else b""
-        except UnsafeCheckpointError:
-            raise
-        except (zipfile.BadZipFile, OSError, ValueError, EOFError, struct.error) as exc:
-            raise UnsafeCheckpointError(
-                f"{path} is not a whole PyTorch checkpoint (a zip archive): truncated, damaged or "
-                f"another kind of file ({exc})"
-            ) from None
+        yield handle, info.st_size
+
+
+def _plain_checkpoint(path: Path, handle: BinaryIO, size: int) -> Any:
+    """What the checkpoint file `path`, open as `handle` (`_opened`) with `size` bytes, holds,
+    read as data without torch (`rotlearn.io.plain_pickle`: tensors and other objects as
+    OPAQUE) from the pickle torch would read, `<folder>/data.pkl` where <folder> is the first
+    record's. Before that, refuse a file that is not a whole zip archive (a truncated file has
+    no central directory; a damaged record fails its CRC), or whose records would decompress
+    beyond `MAX_BYTES["checkpoint"]` or `_MAX_INFLATION` times the file's size, or that torch's
+    reader (miniz) could read otherwise than Python's zipfile (`_one_reading`).
+
+    Raises:
+        UnsafeCheckpointError: naming the file and which of these it is, or a pickle that is not
+            one or is past `plain_pickle`'s bounds.
+    """
+    try:
+        archive = zipfile.ZipFile(handle)
+        members = archive.infolist()
+        inflated = sum(m.file_size for m in members)
+        bounded = inflated <= min(MAX_BYTES["checkpoint"], _MAX_INFLATION * max(size, 1) + 2**20)
+        record = _one_reading(path, handle, size, members)
+        data = archive.read(record) if bounded and record is not None else b""
+    except UnsafeCheckpointError:
+        raise
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError, struct.error) as exc:
+        raise UnsafeCheckpointError(
+            f"{path} is not a whole PyTorch checkpoint (a zip archive): truncated, damaged or "
+            f"another kind of file ({exc})"
+        ) from None
     if not bounded:
         raise UnsafeCheckpointError(
             f"{path}: its records would decompress to {inflated} bytes from a file of "
-            f"{info.st_size}; refusing it unread (a PyTorch checkpoint is stored uncompressed)"
+            f"{size}; refusing it unread (a PyTorch checkpoint is stored uncompressed)"
         )
     try:
         return plain_pickle(data)
@@ -292,27 +306,29 @@ def load_checkpoint(path: str | os.PathLike, map_location: Any = "cpu") -> dict[
     import torch
 
     path = resolve_checkpoint(path)
-    _plain_checkpoint(path)  # bounded before torch's unpickler hashes a key or anything walks it
-    try:
-        checkpoint = torch.load(path, map_location=map_location, weights_only=True)
-    except pickle.UnpicklingError as exc:
-        reason = next((line for line in str(exc).splitlines() if "GLOBAL" in line), "")
-        detail = f" ({reason.strip()})" if reason else ""
-        raise UnsafeCheckpointError(
-            f"refusing to load {path}: it is not a checkpoint of tensors and plain data"
-            f"{detail}. A file that needs a full unpickler can run code when loaded; rotlearn "
-            "only reads checkpoints with torch.load(weights_only=True)."
-        ) from None
-    except Exception as exc:  # a damaged or foreign file fails in many ways (KeyError, ...)
-        text = str(exc).strip()
-        first = text.splitlines()[0] if text else ""
-        if "weights_only" in first:  # never pass on torch's advice to unpickle
-            first = ""
-        raise UnsafeCheckpointError(
-            f"{path} is not a readable PyTorch checkpoint ({type(exc).__name__}"
-            + (f": {first}" if first else "")
-            + ")"
-        ) from None
+    with _opened(path) as (handle, size):  # one handle: torch reads the bytes checked
+        _plain_checkpoint(path, handle, size)  # bounded before torch's unpickler hashes a key
+        handle.seek(0)
+        try:
+            checkpoint = torch.load(handle, map_location=map_location, weights_only=True)
+        except pickle.UnpicklingError as exc:
+            reason = next((line for line in str(exc).splitlines() if "GLOBAL" in line), "")
+            detail = f" ({reason.strip()})" if reason else ""
+            raise UnsafeCheckpointError(
+                f"refusing to load {path}: it is not a checkpoint of tensors and plain data"
+                f"{detail}. A file that needs a full unpickler can run code when loaded; rotlearn "
+                "only reads checkpoints with torch.load(weights_only=True)."
+            ) from None
+        except Exception as exc:  # a damaged or foreign file fails in many ways (KeyError, ...)
+            text = str(exc).strip()
+            first = text.splitlines()[0] if text else ""
+            if "weights_only" in first:  # never pass on torch's advice to unpickle
+                first = ""
+            raise UnsafeCheckpointError(
+                f"{path} is not a readable PyTorch checkpoint ({type(exc).__name__}"
+                + (f": {first}" if first else "")
+                + ")"
+            ) from None
     if not isinstance(checkpoint, dict):
         raise UnsafeCheckpointError(
             f"{path} is not a checkpoint: it holds a {type(checkpoint).__name__}, not a dict"
@@ -329,7 +345,8 @@ def saved_config(path: Path) -> Any:
     Raises:
         UnsafeCheckpointError: as `load_checkpoint`, naming the file.
     """
-    checkpoint = _plain_checkpoint(path)
+    with _opened(path) as (handle, size):
+        checkpoint = _plain_checkpoint(path, handle, size)
     return checkpoint.get("rotlearn_config") if isinstance(checkpoint, dict) else None
 
 
