@@ -24,7 +24,7 @@ import pickletools
 import re
 import secrets
 import stat
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +41,7 @@ __all__ = [
     "WriteError",
     "atomic_write",
     "cache_file",
+    "cache_manifest",
     "parse_number_rows",
     "parse_yaml",
     "plain_name",
@@ -71,6 +72,7 @@ __all__ = [
 log = logging.getLogger("rotlearn")
 
 _INT = re.compile(r"[+-]?[0-9]+")
+_LINE_BREAK = re.compile(r"\r\n|[\n\r\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029]")  # str.splitlines
 _KIB, _MIB, _GIB = 2**10, 2**20, 2**30
 
 # The most bytes rotlearn reads from one file of each kind: what a genuine file needs, with room.
@@ -86,6 +88,7 @@ MAX_BYTES: dict[str, int] = {
     "calibration record": 4 * _KIB,  # checkpoints/temperature.json, ood_thresholds.json
     "TensorBoard events": 256 * _MIB,  # a run's tensorboard/ folder, all event files together
 }
+MAX_LINE_CHARS = _MIB  # a line of a text file of rows (`word_rows`): split into words, ~24x
 MAX_DEPTH = 64  # nesting of a JSON or YAML document (rotlearn's own files nest a few levels)
 MAX_NODES = 2**20  # values in one loaded document or checkpoint (a tensor counts as one)
 
@@ -606,25 +609,32 @@ def rewrite_in_place(path: str | os.PathLike, data: bytes) -> Path:
 # ---- numbers ------------------------------------------------------------------------------------
 
 
-def require_finite(values: np.ndarray, lines: np.ndarray, where: str, layout: str) -> np.ndarray:
-    """`values` unchanged if every entry is finite.
+def require_finite(
+    values: np.ndarray, lines: np.ndarray, where: str, layout: str, bound: float | None = None
+) -> np.ndarray:
+    """`values` unchanged if every entry is finite (and at most `bound` in magnitude).
 
     Args:
         values: (N, ...) numbers read from a file, one row per line.
         lines: (N,) the 1-based line of each row.
         where: the file, for messages.
         layout: what a row holds, for messages.
+        bound: the largest magnitude allowed (None: any finite number).
 
     Raises:
         ValueError: "<where>:<line>: ..." naming the first row with a NaN or an infinity (also
-            numbers too large for float64, such as 1e999) and how many rows have one.
+            numbers too large for float64, such as 1e999) or a number beyond `bound`, and how
+            many rows have one.
     """
-    bad = np.flatnonzero(~np.isfinite(values.reshape(len(values), -1)).all(axis=1))
+    rows = values.reshape(len(values), -1)
+    good = np.isfinite(rows) if bound is None else np.abs(rows) <= bound  # NaN: not <= bound
+    bad = np.flatnonzero(~good.all(axis=1))
     if len(bad):
         row = values[bad[0]].ravel().tolist()
+        beyond = f"beyond the range of {values.dtype}" if bound is None else f"beyond +-{bound:g}"
         raise ValueError(
             f"{where}:{int(lines[bad[0]])}: not finite ({layout}): {row} "
-            f"(NaN, inf, or beyond the range of {values.dtype}); {len(bad)} such row(s) in all"
+            f"(NaN, inf, or {beyond}); {len(bad)} such row(s) in all"
         )
     return values
 
@@ -646,7 +656,8 @@ def strict_int(text: str, where: str) -> int:
 
 def parse_number_rows(
     rows: Iterable[tuple[int, list[str]]], where: str, width: int, layout: str,
-    extra_ok: bool = False, dtype: np.dtype | type = np.float64,
+    extra_ok: bool = False, dtype: np.dtype | type = np.float64, bound: float | None = None,
+    max_rows: int | None = None,
 ) -> np.ndarray:  # fmt: skip
     """Rows of number words -> (N, width) `dtype`, every number checked finite in `dtype` (a
     number beyond float32 is refused when reading float32).
@@ -657,10 +668,13 @@ def parse_number_rows(
         width: numbers per row; layout: what a row holds, for messages.
         extra_ok: keep the first `width` numbers of longer rows instead of refusing them.
         dtype: the floating dtype returned.
+        bound: every number's magnitude at most this (None: finite is enough).
+        max_rows: at most this many rows (None: any number); reading stops at the one past it.
 
     Raises:
         ValueError: "<where>:<line>: ..." for the first row of the wrong length, with a word that
-            is not a number, or with a NaN / infinity; "<where>: no rows" when there is none.
+            is not a number, with a NaN / infinity or a number beyond `bound`, or past
+            `max_rows`; "<where>: no rows" when there is none.
     """
     values, lines = pyarray.array("d"), pyarray.array("q")  # 8 bytes a number, not a float object
     for lineno, words in rows:
@@ -673,16 +687,18 @@ def parse_number_rows(
         except ValueError:
             raise ValueError(f"{where}:{lineno}: not a number in {' '.join(words)!r}") from None
         lines.append(lineno)
+        if max_rows is not None and len(lines) > max_rows:
+            raise ValueError(f"{where}:{lineno}: more than {max_rows} rows ({layout})")
     if not lines:
         raise ValueError(f"{where}: no rows of numbers ({layout})")
     with np.errstate(over="ignore"):
         numbers = np.frombuffer(values, np.float64).reshape(-1, width).astype(dtype, copy=False)
-    return require_finite(numbers, np.frombuffer(lines, np.int64), where, layout)
+    return require_finite(numbers, np.frombuffer(lines, np.int64), where, layout, bound)
 
 
 def read_number_rows(
     path: str | os.PathLike, width: int, layout: str, extra_ok: bool = False, commas: bool = False,
-    dtype: np.dtype | type = np.float64,
+    dtype: np.dtype | type = np.float64, bound: float | None = None, max_rows: int | None = None,
 ) -> np.ndarray:  # fmt: skip
     """The rows of a text file of numbers, (N, width) `dtype`, all finite: one row per non-blank
     line, `#` starting a comment.
@@ -694,33 +710,44 @@ def read_number_rows(
         extra_ok: keep the first `width` numbers of longer rows instead of refusing them.
         commas: commas separate numbers too.
         dtype: the floating dtype returned (float64; float32 for point clouds).
+        bound, max_rows: as `parse_number_rows`.
 
     Raises:
         FileNotFoundError: no such file.
         ValueError: naming the file and line of the first malformed row (wrong count, not a
-            number, NaN or infinite), or an empty file or one that is not UTF-8 text.
+            number, NaN or infinite, beyond `bound`, past `max_rows`, longer than
+            `MAX_LINE_CHARS`), or an empty file or one that is not UTF-8 text.
     """
-    rows = word_rows(read_text_file(path), commas)
-    return parse_number_rows(rows, str(path), width, layout, extra_ok, dtype)
+    rows = word_rows(read_text_file(path), str(path), commas)
+    return parse_number_rows(rows, str(path), width, layout, extra_ok, dtype, bound, max_rows)
 
 
-def word_rows(text: str, commas: bool = False) -> Iterator[tuple[int, list[str]]]:
+def word_rows(text: str, where: str, commas: bool = False) -> Iterator[tuple[int, list[str]]]:
     """(line number, words) of each line of `text` that has words before its `#` comment (with
     `commas`, commas separate words too), one at a time (`text_lines`): a row's words are
-    dropped once the caller has parsed them."""
+    dropped once the caller has parsed them.
+
+    Raises:
+        ValueError: "<where>:<line>: ..." for a line longer than `MAX_LINE_CHARS` (its words
+            would take about 24 times its size).
+    """
     for lineno, line in enumerate(text_lines(text), start=1):
+        if len(line) > MAX_LINE_CHARS:
+            raise ValueError(f"{where}:{lineno}: a line of {len(line)} characters, over the "
+                             f"{MAX_LINE_CHARS} a line of rows may have")  # fmt: skip
         kept = line.split("#", 1)[0]
         if words := (kept.replace(",", " ") if commas else kept).split():
             yield lineno, words
 
 
 def text_lines(text: str, block: int = _MIB) -> Iterator[str]:
-    """`text.splitlines()`, a block of about `block` characters at a time (each cut after a
-    newline, so every line is whole): a file of short lines is not held as one string each."""
+    """`text.splitlines()`, a block of about `block` characters at a time (each cut after a line
+    break, any that `splitlines` breaks at, so every line is whole): a file of short lines is
+    not held as one string each."""
     start = 0
     while start < len(text):
-        cut = text.find("\n", start + block)
-        end = len(text) if cut < 0 else cut + 1
+        cut = _LINE_BREAK.search(text, start + block)
+        end = len(text) if cut is None else cut.end()
         yield from text[start:end].splitlines()
         start = end
 
@@ -858,6 +885,27 @@ def resolve_inside(root: str | os.PathLike, path: str | os.PathLike, where: str)
     if not real.is_relative_to(real_root):
         raise ValueError(f"{where}: {path} resolves to {real}, outside {real_root}")
     return real
+
+
+def cache_manifest(files: Sequence[Path], recipe: dict, what: str = "file") -> dict:
+    """What a cache built from `files` records of them, so that it is rebuilt when any changes:
+    the recipe, and each file's path, size and modification time (ns).
+
+    Raises:
+        FileNotFoundError: "<file>: <what> <i>: no such file", for the first missing one.
+    """
+    stats = []
+    for i, path in enumerate(files):
+        try:
+            stats.append(path.stat())
+        except FileNotFoundError:
+            raise FileNotFoundError(f"{path}: {what} {i}: no such file") from None
+    return {
+        "recipe": recipe,
+        "files": [str(f) for f in files],
+        "sizes": [s.st_size for s in stats],
+        "mtimes_ns": [s.st_mtime_ns for s in stats],
+    }
 
 
 def cache_file(

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import shutil
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -21,7 +20,13 @@ import numpy as np
 
 from rotlearn.data.image_header import MAX_PIXELS, check_frame
 from rotlearn.extras import import_extra
-from rotlearn.io import atomic_write, read_cached_array, read_manifest, write_text_atomic
+from rotlearn.io import (
+    atomic_write,
+    cache_manifest,
+    read_cached_array,
+    read_manifest,
+    write_text_atomic,
+)
 
 __all__ = [
     "DECODER",
@@ -144,24 +149,6 @@ def require_same_size(image: np.ndarray, first: np.ndarray, files: Sequence[Path
         )
 
 
-def _stat(files: Sequence[Path], i: int) -> os.stat_result:
-    """The stat of frame `i`; a missing one raises a FileNotFoundError naming it."""
-    try:
-        return files[i].stat()
-    except FileNotFoundError:
-        raise FileNotFoundError(f"{files[i]}: frame {i}: no such image file") from None
-
-
-def _manifest(files: Sequence[Path], recipe: dict) -> dict:
-    stats = [_stat(files, i) for i in range(len(files))]
-    return {
-        "recipe": recipe,
-        "files": [str(f) for f in files],
-        "sizes": [s.st_size for s in stats],
-        "mtimes_ns": [s.st_mtime_ns for s in stats],
-    }
-
-
 def _require_space(path: Path, size: int) -> None:
     """ValueError naming `path` unless its file system (that of its nearest existing folder)
     has `size` bytes free and `_SPARE_BYTES` to spare."""
@@ -208,7 +195,7 @@ def frame_cache(
     """
     array_path, manifest_path = cache.with_suffix(".npy"), cache.with_suffix(".json")
     shape = (len(files), 1 if gray else 3, size, size)  # what the cache holds
-    manifest = _manifest(files, {**recipe, "gray": gray, "decoder": DECODER})
+    manifest = cache_manifest(files, {**recipe, "gray": gray, "decoder": DECODER}, "frame")
     if read_manifest(manifest_path) == manifest:
         cached = read_cached_array(array_path, np.uint8, shape)
         if cached is not None:

@@ -12,11 +12,10 @@ under `test_rotations` fixed, seeded rotations.
 
 from __future__ import annotations
 
-import io
+import array as pyarray
 import json
 import logging
 import os
-import re
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Literal
 
@@ -37,13 +36,15 @@ from rotlearn.geometry import quat_to_rotmat, so3_exp_quat
 from rotlearn.io import (
     atomic_write,
     cache_file,
-    parse_number_rows,
+    cache_manifest,
     plain_name,
     read_cached_array,
     read_manifest,
     read_number_rows,
     read_text_file,
+    require_finite,
     resolve_inside,
+    strict_int,
     word_rows,
     write_text_atomic,
 )
@@ -61,9 +62,14 @@ POINT_SUFFIXES = (".pts", ".xyz")
 # Points a cloud may use (the 6D paper's have about 2.4k-2.9k, half used): every draw holds each
 # point 6 times a sample, so a file of 100k short lines made a batch of 100 take 240 MB.
 MAX_CLOUD_POINTS = 2**16
-# Every line break of `str.splitlines` (the vertex check's lines), as one pattern: written as
-# "\n" before trimesh parses the text, so that it reads the lines the check read.
-_LINE_BREAKS = re.compile(r"\r\n|[\r\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029]")
+MAX_POINT_ROWS = 2**20  # rows of a point file: past them it is not read further (any fraction)
+# A point or vertex coordinate's largest magnitude: a rotated cloud, with noise, squared in a
+# distance, stays finite in float32 (3e38 is finite there, and overflowed once rotated).
+MAX_COORDINATE = 1e6
+# A mesh's vertices and triangles (polygons fanned): memory stays bounded (a 7 MB file of two
+# 2-million-corner faces took 1.2 GB through trimesh's reader).
+MAX_MESH_VERTICES = 2**22
+MAX_MESH_TRIANGLES = 2**22
 
 
 def read_point_file(path: str | os.PathLike) -> np.ndarray:
@@ -72,65 +78,100 @@ def read_point_file(path: str | os.PathLike) -> np.ndarray:
 
     Raises:
         ValueError: naming the file and line of the first malformed row (not 3 numbers, or a
-            NaN / infinity, also one that only float32 overflows).
+            NaN / infinity or a coordinate beyond `MAX_COORDINATE`), or of the row past
+            `MAX_POINT_ROWS` (read no further).
     """
-    return read_number_rows(path, 3, "x y z", extra_ok=True, dtype=np.float32)
+    return read_number_rows(path, 3, "x y z", extra_ok=True, dtype=np.float32,
+                            bound=MAX_COORDINATE, max_rows=MAX_POINT_ROWS)  # fmt: skip
 
 
-def _obj_vertices(path: Path, text: str) -> np.ndarray:
-    """The "v x y z" rows of an OBJ file's `text`, (V, 3) float32 (the clouds' dtype), checked to
-    be finite there (`rotlearn.io.parse_number_rows` names the line at fault: a vertex of 1e39
-    is finite in float64 and sampled into inf points); the lines are read a block at a
-    time and each row's words dropped once parsed (`rotlearn.io.word_rows`), so a file of short
-    lines costs a few times its size, not a string per line."""
-    rows = ((lineno, words[1:]) for lineno, words in word_rows(text) if words[0] == "v")
-    return parse_number_rows(rows, str(path), 3, "v x y z", extra_ok=True, dtype=np.float32)
+def read_obj(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """The vertices (V, 3) float32 and triangles (F, 3) int64 (0-based) of an OBJ file (UTF-8
+    text), read by rotlearn alone, a line at a time (`rotlearn.io.word_rows`).
 
-
-def _parse_obj(path: Path, text: str):
-    """trimesh's Trimesh of OBJ `text`, unprocessed; referenced files (mtllib) are not read.
-
-    Raises:
-        ValueError: naming the file, whatever trimesh raised (never a missing-module message).
-    """
-    trimesh = import_extra("trimesh", "reading meshes")
-
-    try:
-        mesh = trimesh.load(
-            io.BytesIO(text.encode("utf-8")), file_type="obj", force="mesh", process=False
-        )
-    except ImportError:
-        raise ValueError(f"{path}: cannot be read as an OBJ mesh") from None
-    except Exception as exc:
-        detail = f"{type(exc).__name__}: {exc}"
-        raise ValueError(f"{path}: cannot be read as an OBJ mesh ({detail})") from None
-    if not isinstance(mesh, trimesh.Trimesh):
-        raise ValueError(f"{path}: no triangle mesh in it (trimesh read a {type(mesh).__name__})")
-    return mesh
-
-
-def read_mesh(path: str | os.PathLike):
-    """A mesh file (OBJ, UTF-8 text) as a trimesh.Trimesh, checked for sampling.
-
-    Checked: UTF-8 text; every "v" line three numbers, finite in float32; trimesh parses it to a
-    triangle mesh; at least one face, every face index a vertex; every vertex finite; a
-    positive, finite total area.
+    Read: "v x y z" lines (more numbers, a w or a colour, ignored); "f" lines of 3 or more
+    corners `i`, `i/t`, `i//n` or `i/t/n` (1-based, or negative: counted back from the last
+    vertex so far), polygons fanned into triangles (0, j, j + 1). Every other line (vt, vn,
+    usemtl, mtllib, g, o, s, l, p, ...) is skipped: no file it names is read.
 
     Raises:
         FileNotFoundError: no such file.
-        ValueError: naming the file (and the line, for a vertex or an encoding error).
+        ValueError: "<file>:<line>: ..." for a line continued with a backslash, a vertex that is
+            not 3 numbers, finite and within `MAX_COORDINATE`, a corner that is no vertex index
+            (0, not an integer, or no such vertex), a face of fewer than 3 corners, or more than
+            `MAX_MESH_VERTICES` vertices or `MAX_MESH_TRIANGLES` triangles; "<file>: ..." for a
+            mesh with no faces.
     """
-    path = Path(path)
-    text = _LINE_BREAKS.sub("\n", read_text_file(path))  # trimesh's lines: the check's lines
-    _obj_vertices(path, text)
-    mesh = _parse_obj(path, text)
-    faces, vertices = np.asarray(mesh.faces), np.asarray(mesh.vertices)
-    if faces.shape[0] == 0:
-        raise ValueError(f"{path}: the mesh has no faces")
-    if faces.min() < 0 or faces.max() >= len(vertices):
-        raise ValueError(f"{path}: a face refers to a vertex that does not exist")
-    if not np.isfinite(vertices).all():
-        raise ValueError(f"{path}: the mesh has non-finite vertices")
+    where = str(path)
+    text = read_text_file(path).removeprefix("\ufeff")  # a byte-order mark would hide line 1
+    values, vertex_lines = pyarray.array("d"), pyarray.array("q")
+    corners, sizes, face_lines, triangles = pyarray.array("q"), pyarray.array("q"), [], 0
+    for lineno, words in word_rows(text, where):
+        if words[-1].endswith("\\"):
+            raise ValueError(f"{where}:{lineno}: a line continued with '\\' (not read; write "
+                             "it on one line)")  # fmt: skip
+        if words[0] == "v":
+            if len(vertex_lines) == MAX_MESH_VERTICES:
+                raise ValueError(f"{where}:{lineno}: more than {MAX_MESH_VERTICES} vertices")
+            if len(words) < 4:
+                raise ValueError(f"{where}:{lineno}: expected 3 numbers (v x y z), got "
+                                 f"{len(words) - 1}")  # fmt: skip
+            try:
+                values.extend([float(w) for w in words[1:4]])
+            except ValueError:
+                raise ValueError(f"{where}:{lineno}: not a number in {' '.join(words)!r}") from None
+            vertex_lines.append(lineno)
+        elif words[0] == "f":
+            if len(words) < 4:
+                raise ValueError(f"{where}:{lineno}: a face of {len(words) - 1} corners (3 or "
+                                 "more make a face)")  # fmt: skip
+            if (triangles := triangles + len(words) - 3) > MAX_MESH_TRIANGLES:
+                raise ValueError(f"{where}:{lineno}: more than {MAX_MESH_TRIANGLES} triangles")
+            count = len(vertex_lines)  # a negative corner counts back from here
+            for word in words[1:]:
+                index = strict_int(word.partition("/")[0], f"{where}:{lineno}")
+                if index == 0 or not -count <= index <= MAX_MESH_VERTICES:
+                    raise ValueError(f"{where}:{lineno}: corner {word!r} names no vertex (1, 2, "
+                                     f"... or -1 to -{count}, counted back)")  # fmt: skip
+                corners.append(index - 1 if index > 0 else count + index)
+            sizes.append(len(words) - 1)
+            face_lines.append(lineno)
+    if not sizes:
+        raise ValueError(f"{where}: the mesh has no faces ({len(vertex_lines)} vertices; an OBJ "
+                         "mesh's faces are its 'f' lines)")  # fmt: skip
+    with np.errstate(over="ignore"):
+        vertices = np.frombuffer(values, np.float64).reshape(-1, 3).astype(np.float32)
+    require_finite(vertices, np.frombuffer(vertex_lines, np.int64), where, "v x y z",
+                   MAX_COORDINATE)  # fmt: skip
+    index, size = np.frombuffer(corners, np.int64), np.frombuffer(sizes, np.int64)
+    if len(past := np.flatnonzero(index >= len(vertices))):  # a vertex the file lacks
+        face = int(np.searchsorted(np.cumsum(size), past[0], side="right"))
+        raise ValueError(f"{where}:{face_lines[face]}: a corner names vertex {index[past[0]] + 1},"
+                         f" but the file has {len(vertices)}")  # fmt: skip
+    return vertices, _fan(index, size)
+
+
+def _fan(corners: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+    """Triangles (T, 3) of polygons given as their corners, concatenated, and their sizes (each
+    >= 3): polygon (c_0, ..., c_k-1) -> (c_0, c_j, c_j+1), j = 1 .. k - 2."""
+    fans = sizes - 2
+    first = np.repeat(np.cumsum(sizes) - sizes, fans)  # each triangle's polygon's first corner
+    j = np.arange(int(fans.sum())) - np.repeat(np.cumsum(fans) - fans, fans) + 1
+    return np.stack((corners[first], corners[first + j], corners[first + j + 1]), axis=-1)
+
+
+def read_mesh(path: str | os.PathLike):
+    """A mesh file (OBJ, `read_obj`) as a trimesh.Trimesh (unprocessed), checked for sampling: a
+    positive total area once its vertices are float32 (the clouds' dtype).
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: naming the file (and the line, as `read_obj`).
+    """
+    trimesh = import_extra("trimesh", "reading meshes")
+
+    vertices, faces = read_obj(path)
+    mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
     area = np.asarray(mesh.area_faces).sum()
     if not (np.isfinite(area) and area > 0):
         raise ValueError(
@@ -143,16 +184,18 @@ def read_mesh(path: str | os.PathLike):
 def sample_meshes(paths: list[Path], num_points: int, cache: Path, seed: int = 0) -> np.ndarray:
     """Surface samples of meshes, (M, num_points, 3) float32, cached in `cache` (.npy + .json).
 
-    The cache is reused only if its manifest (read bounded) lists the same files, point count
-    and seed and its array holds (M, num_points, 3) finite float32; anything else in the cache
-    folder (a named pipe, a huge or foreign file) is rebuilt over. Each mesh is checked by
-    `read_mesh`; an error leaves no cache behind.
+    The cache is reused only if its manifest (read bounded) lists the same files, each of the
+    same size and modification time (`rotlearn.io.cache_manifest`: an edited mesh is sampled
+    again), point count, seed and reader, and its array holds (M, num_points, 3) float32 within
+    `MAX_COORDINATE`; anything else in the cache folder (a named pipe, a huge or foreign file)
+    is rebuilt over. Each mesh is checked by `read_mesh`; an error leaves no cache behind.
     """
-    manifest = {"files": [str(p) for p in paths], "num_points": num_points, "seed": seed}
+    recipe = {"num_points": num_points, "seed": seed, "reader": "rotlearn.data.shapenet.read_obj"}
+    manifest = cache_manifest(paths, recipe, "mesh")
     array_path, manifest_path = cache.with_suffix(".npy"), cache.with_suffix(".json")
     if read_manifest(manifest_path) == manifest:
         cached = read_cached_array(array_path, np.float32, (len(paths), num_points, 3))
-        if cached is not None and np.isfinite(cached).all():
+        if cached is not None and (np.abs(cached) <= MAX_COORDINATE).all():  # NaN: not <=
             return np.array(cached)
     trimesh = import_extra("trimesh", "reading meshes")
     from tqdm import tqdm
@@ -262,7 +305,8 @@ class ShapeNetDataModule(DrawDataModule):
     def _load_meshes(self) -> tuple[list[Tensor], list[Tensor]]:
         folder = self.root / self.synset
         resolve_inside(self.root, folder, "data.synset")
-        paths = sorted(folder.glob("*/models/model_normalized.obj"))
+        paths = [model / "model_normalized.obj" for model in sorted(folder.glob("*/models"))]
+        paths = [path for path in paths if os.path.lexists(path)]  # a dangling link: refused
         for path in paths:
             resolve_inside(self.root, path, "data.synset")
         if not paths:
