@@ -72,6 +72,7 @@ __all__ = [
 log = logging.getLogger("rotlearn")
 
 _INT = re.compile(r"[+-]?[0-9]+")
+_UNPRINTABLE = re.compile(r"[\x00-\x1f\x7f-\x9f\u2028\u2029\ud800-\udfff]")  # Cc, Zl, Zp, Cs
 _LINE_BREAK = re.compile(r"\r\n|[\n\r\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029]")  # str.splitlines
 _KIB, _MIB, _GIB = 2**10, 2**20, 2**30
 
@@ -834,18 +835,23 @@ def _require_input(path: str | os.PathLike) -> None:
 
 
 def _name_problem(name: str) -> str | None:
-    """Why `name` is not one plain file or folder name, or None."""
+    """Why `name` is not one plain file or folder name ("(what): why it matters"), or None."""
     if name in ("", ".", ".."):
-        return "empty, '.' or '..'"
+        return "(empty, '.' or '..'): it could leave the dataset"
     if any(c in name for c in "/\\\0"):
-        return "it holds a path separator or NUL"
+        return "(it holds a path separator or NUL): it could leave the dataset"
+    if _UNPRINTABLE.search(name):
+        return (
+            "(a line break, a control character or bytes that are not UTF-8): a message "
+            "naming it would be garbled"
+        )
     return None
 
 
 def plain_name(name: object, where: str | None = None, key: str | None = None) -> str:
     """`name` as a string, if it is one plain file or folder name: not empty, '.' or '..', no
-    '/', '\\' or NUL. A plain name joined to a folder stays in that folder (up to symlinks:
-    `resolve_inside`).
+    '/', '\\' or NUL, no control character, line break or undecodable byte. A plain name joined
+    to a folder stays in that folder (up to symlinks: `resolve_inside`).
 
     Args:
         name: the name, from a config or a dataset file.
@@ -860,7 +866,7 @@ def plain_name(name: object, where: str | None = None, key: str | None = None) -
     problem = _name_problem(text)
     if problem is None:
         return text
-    message = f"{text!r} is not a plain file or folder name ({problem}): it could leave the dataset"
+    message = f"{text!r} is not a plain file or folder name {problem}"
     if key is not None:
         raise ConfigValueError(key, message)
     raise ValueError(f"{where}: {message}")

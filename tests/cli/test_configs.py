@@ -442,3 +442,32 @@ def test_every_command_in_a_config_comment_composes_and_validates(
     cfg, _ = command_line_config(args, str(tmp_path / "run"))
     make_data_layout(cfg)
     validate(cfg)
+
+
+@pytest.mark.parametrize("config_name", ["train", "eval"])
+def test_the_run_log_writes_a_name_that_is_not_utf8_escaped(config_name, tmp_path, capsys):
+    """A received dataset's or run's file name that is not UTF-8 (a surrogate escape) made the
+    run log's handler print "--- Logging error ---" and two tracebacks."""
+    import logging
+    import logging.config
+
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        cfg = hydra_compose(config_name, return_hydra_config=True)
+    job_logging = OmegaConf.to_container(cfg.hydra.job_logging)
+    file = {**job_logging["handlers"]["file"], "filename": str(tmp_path / "run.log")}
+    logger = logging.getLogger("rotlearn_log_test")  # the run log's handler, on a logger alone
+    alone = {"handlers": ["file"], "propagate": False}  # not to pytest's capture either
+    logging.config.dictConfig({"version": 1, "disable_existing_loggers": False,
+                               "formatters": job_logging["formatters"], "handlers": {"file": file},
+                               "loggers": {logger.name: alone}})  # fmt: skip
+    try:
+        logger.error("%s: refused", "evil\udcff")
+    finally:
+        for handler in logger.handlers:
+            handler.close()
+        logger.handlers.clear()
+    assert "Logging error" not in capsys.readouterr().err
+    assert "evil\\udcff: refused" in (tmp_path / "run.log").read_text()

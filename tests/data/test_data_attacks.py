@@ -523,6 +523,20 @@ def test_bad_meshes_are_refused_naming_the_file(demo_data, tmp_path, content, pa
     assert not cache.exists() or not list(cache.iterdir())
 
 
+@pytest.mark.parametrize(
+    "name", ["evil\n\x1b[2Jrotlearn-train: all good", "evil\udcff"], ids=["line-break", "not-utf8"]
+)
+def test_a_model_folder_whose_name_would_garble_a_message_is_refused(demo_data, tmp_path, name):
+    """A name with a line break cut the one-line error before its cause (the rest reached the
+    terminal raw, escape codes included); one not UTF-8 crashed the log file's handler."""
+    root, cache = copy_demo(demo_data, "mesh", tmp_path), tmp_path / "cache"
+    model = sorted(root.glob("02691156/*/models"))[0].parent
+    model.rename(model.with_name(name))
+    make = lambda: shapenet(root, cache, format="mesh")  # noqa: E731
+    error = refuses(make, tmp_path, cache, ValueError, "a line break, a control character")
+    assert str(error).count("\n") == 0 and "\x1b" not in str(error) and repr(name) in str(error)
+
+
 def test_mtllib_outside_the_root_is_never_read(demo_data, tmp_path):
     root, cache = copy_demo(demo_data, "mesh", tmp_path), tmp_path / "cache"
     path = sorted(root.glob("02691156/*/models/model_normalized.obj"))[0]
@@ -553,7 +567,9 @@ def test_a_symlinked_model_outside_the_root_is_refused(demo_data, tmp_path):
 
 def test_plain_name_and_resolve_inside(tmp_path):
     assert plain_name("00", "f:1") == "00" and plain_name("a..b", "f:1") == "a..b"
-    for bad in ("", ".", "..", "../x", "x/..", "/etc", "a\\b", "x\0"):
+    assert plain_name("évian é", "f:1") == "évian é"  # printable, not ASCII: plain
+    for bad in ("", ".", "..", "../x", "x/..", "/etc", "a\\b", "x\0", "a\nb", "x\x1b[2J",
+                "x\udcff", "a\u2028b", "a\x85"):  # fmt: skip
         with pytest.raises(ValueError, match=r"f:1: .* not a plain"):
             plain_name(bad, "f:1")
     with pytest.raises(ConfigValueError) as err:

@@ -190,6 +190,7 @@ class KittiOdometryDataModule(ImagePairDataModule):
         expected = [f"{i:06d}.png" for i in range(len(names))]
         odd = sorted(names.difference(expected))
         if odd:
+            plain_name(odd[0], str(folder))  # a name that would garble the message: refused
             missing = next(name for name in expected if name not in names)
             raise ValueError(
                 f"sequence {sequence}: {folder / odd[0]} is not named as a frame: the "

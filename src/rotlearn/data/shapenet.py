@@ -291,6 +291,7 @@ class ShapeNetDataModule(DrawDataModule):
             )
         clouds = []
         for path in files:
+            plain_name(path.name, str(folder))  # a name that would garble a message: refused
             points = read_point_file(resolve_inside(self.root, path, "data.root"))
             keep = max(1, int(len(points) * self.point_fraction))
             if keep > MAX_CLOUD_POINTS:
@@ -305,7 +306,10 @@ class ShapeNetDataModule(DrawDataModule):
     def _load_meshes(self) -> tuple[list[Tensor], list[Tensor]]:
         folder = self.root / self.synset
         resolve_inside(self.root, folder, "data.synset")
-        paths = [model / "model_normalized.obj" for model in sorted(folder.glob("*/models"))]
+        models = sorted(folder.glob("*/models"))
+        for model in models:  # a name that would garble a message: refused
+            plain_name(model.parent.name, str(folder))
+        paths = [model / "model_normalized.obj" for model in models]
         paths = [path for path in paths if os.path.lexists(path)]  # a dangling link: refused
         for path in paths:
             resolve_inside(self.root, path, "data.synset")
