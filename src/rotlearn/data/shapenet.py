@@ -2,8 +2,9 @@
 
 Reads either the 6D paper's prepared clouds, `<root>/train/*.pts` and `<root>/test/*.pts` (or
 `.xyz`: one "x y z" point per line), or ShapeNetCore v2 meshes,
-`<root>/<synset>/<model_id>/models/model_normalized.obj`, sampled once with trimesh to a fixed
-number of surface points and cached as `.npy` beside a manifest (with a progress bar).
+`<root>/<synset>/<model_id>/models/model_normalized.obj` (read by `read_obj`, bounded), sampled
+once with trimesh to a fixed number of surface points and cached as `.npy` beside a manifest
+(with a progress bar).
 
 Training: each step takes one training cloud (drawn by the data seed) under `rotations_per_cloud`
 rotations C = Exp(phi), phi ~ N(0, I); input rows are (x_i, C x_i). Test: every held-out cloud
