@@ -23,7 +23,7 @@ from timing import PEAK_RSS
 RESULTS = Path(__file__).resolve().parent / "results"
 ROWS = {  # reader -> (shortest row it accepts, as a format of the row number i)
     "mav pose (read_pose_file)": "{s},1,0,0,0\n",
-    "mav frames (read_frame_list)": "{i},a\n",
+    "mav frames (read_frame_list)": "{i},{i}\n",  # each row its own frame
     "mav pairs (read_pair_file)": "{i},0\n",
     "kitti poses (read_kitti_poses)": "1 0 0 0 0 1 0 0 0 0 1 0\n",
 }
