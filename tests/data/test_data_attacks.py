@@ -474,7 +474,7 @@ CUBE_VERTICES = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n"
     ("content", "pattern"),
     [
         (b"\xff\xfe\x00\x81garbage\x80\n", r":1: not UTF-8 text"),
-        (b"hello world\nfoo bar\n", r": the mesh has no faces \(0 vertices"),
+        (b"hello world\nfoo bar\n", r": no rows of numbers \(v x y z\)"),
         (CUBE_VERTICES.encode(), ": the mesh has no faces"),
         ((CUBE_VERTICES + "f 1 2 9\n").encode(), r":5: a corner names vertex 9, but the file has"),
         (b"v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n", r": the mesh's total area is 0\.0"),

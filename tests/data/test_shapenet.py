@@ -232,7 +232,7 @@ def test_vertices_triangles_and_line_lengths_are_capped(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match=r"m\.obj:6: more than 2 triangles"):
         shapenet.read_obj(path)
     monkeypatch.setattr(shapenet, "MAX_MESH_VERTICES", 3)
-    with pytest.raises(ValueError, match=r"m\.obj:4: more than 3 vertices"):
+    with pytest.raises(ValueError, match=r"m\.obj:4: more than 3 rows \(v x y z\)"):
         shapenet.read_obj(path)
     monkeypatch.setattr(io, "MAX_LINE_CHARS", 9)
     path.write_text("v 0 0 0\nv 1 0 0\nv 0 1.00 0\nf 1 2 3\n")

@@ -38,12 +38,12 @@ from rotlearn.io import (
     atomic_write,
     cache_file,
     cache_manifest,
+    parse_number_rows,
     plain_name,
     read_cached_array,
     read_manifest,
     read_number_rows,
     read_text_file,
-    require_finite,
     resolve_inside,
     strict_int,
     word_rows,
@@ -105,45 +105,39 @@ def read_obj(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     """
     where = str(path)
     text = read_text_file(path).removeprefix("\ufeff")  # a byte-order mark would hide line 1
-    values, vertex_lines = pyarray.array("d"), pyarray.array("q")
-    corners, sizes, face_lines, triangles = pyarray.array("q"), pyarray.array("q"), [], 0
-    for lineno, words in word_rows(text, where):
-        if words[-1].endswith("\\"):
-            raise ValueError(f"{where}:{lineno}: a line continued with '\\' (not read; write "
-                             "it on one line)")  # fmt: skip
-        if words[0] == "v":
-            if len(vertex_lines) == MAX_MESH_VERTICES:
-                raise ValueError(f"{where}:{lineno}: more than {MAX_MESH_VERTICES} vertices")
-            if len(words) < 4:
-                raise ValueError(f"{where}:{lineno}: expected 3 numbers (v x y z), got "
-                                 f"{len(words) - 1}")  # fmt: skip
-            try:
-                values.extend([float(w) for w in words[1:4]])
-            except ValueError:
-                raise ValueError(f"{where}:{lineno}: not a number in {' '.join(words)!r}") from None
-            vertex_lines.append(lineno)
-        elif words[0] == "f":
-            if len(words) < 4:
-                raise ValueError(f"{where}:{lineno}: a face of {len(words) - 1} corners (3 or "
-                                 "more make a face)")  # fmt: skip
-            if (triangles := triangles + len(words) - 3) > MAX_MESH_TRIANGLES:
-                raise ValueError(f"{where}:{lineno}: more than {MAX_MESH_TRIANGLES} triangles")
-            count = len(vertex_lines)  # a negative corner counts back from here
-            for word in words[1:]:
-                index = strict_int(word.partition("/")[0], f"{where}:{lineno}")
-                if index == 0 or not -count <= index <= MAX_MESH_VERTICES:
-                    raise ValueError(f"{where}:{lineno}: corner {word!r} names no vertex (1, 2, "
-                                     f"... or -1 to -{count}, counted back)")  # fmt: skip
-                corners.append(index - 1 if index > 0 else count + index)
-            sizes.append(len(words) - 1)
-            face_lines.append(lineno)
+    corners, sizes, face_lines = pyarray.array("q"), pyarray.array("q"), []
+    count = triangles = 0  # vertices so far (a negative corner counts back from there)
+
+    def vertex_rows():  # the "v" rows, for parse_number_rows; the faces on the way
+        nonlocal count, triangles
+        for lineno, words in word_rows(text, where):
+            if words[-1].endswith("\\"):
+                raise ValueError(f"{where}:{lineno}: a line continued with '\\' (not read; "
+                                 "write it on one line)")  # fmt: skip
+            if words[0] == "v":
+                count += 1
+                yield lineno, words[1:]
+            elif words[0] == "f":
+                if len(words) < 4:
+                    raise ValueError(f"{where}:{lineno}: a face of {len(words) - 1} corners (3 or "
+                                     "more make a face)")  # fmt: skip
+                if (triangles := triangles + len(words) - 3) > MAX_MESH_TRIANGLES:
+                    raise ValueError(f"{where}:{lineno}: more than {MAX_MESH_TRIANGLES} triangles")
+                for word in words[1:]:
+                    index = strict_int(word.partition("/")[0], f"{where}:{lineno}")
+                    if index == 0 or not -count <= index <= MAX_MESH_VERTICES:
+                        raise ValueError(f"{where}:{lineno}: corner {word!r} names no vertex (1, "
+                                         f"2, ... or -1 to -{count}, counted back)")  # fmt: skip
+                    corners.append(index - 1 if index > 0 else count + index)
+                sizes.append(len(words) - 1)
+                face_lines.append(lineno)
+
+    vertices = parse_number_rows(vertex_rows(), where, 3, "v x y z", extra_ok=True,
+                                 dtype=np.float32, bound=MAX_COORDINATE,
+                                 max_rows=MAX_MESH_VERTICES)  # fmt: skip
     if not sizes:
-        raise ValueError(f"{where}: the mesh has no faces ({len(vertex_lines)} vertices; an OBJ "
+        raise ValueError(f"{where}: the mesh has no faces ({len(vertices)} vertices; an OBJ "
                          "mesh's faces are its 'f' lines)")  # fmt: skip
-    with np.errstate(over="ignore"):
-        vertices = np.frombuffer(values, np.float64).reshape(-1, 3).astype(np.float32)
-    require_finite(vertices, np.frombuffer(vertex_lines, np.int64), where, "v x y z",
-                   MAX_COORDINATE)  # fmt: skip
     index, size = np.frombuffer(corners, np.int64), np.frombuffer(sizes, np.int64)
     if len(past := np.flatnonzero(index >= len(vertices))):  # a vertex the file lacks
         face = int(np.searchsorted(np.cumsum(size), past[0], side="right"))
