@@ -137,11 +137,12 @@ def _command_help_directive():
 
 def _code_or_xref(name, rawtext, text, lineno, inliner, options=None, content=None):
     """The docstrings' default role: Python's `obj` role, except for text that starts with a dot,
-    which is a file or folder name (`.hydra/config.yaml`, `.npy`) and is shown as written (the
-    Python role reads a leading dot as "search relatively" and drops it from the text)."""
+    which is a file or folder name (`.hydra/config.yaml`, `.npy`), and text with a placeholder
+    (`<out>/<name>`, `rotlearn.data.<name>`), both shown as written (the Python role reads a
+    leading dot as "search relatively" and `title <target>` as a link, dropping `<name>`)."""
     from docutils import nodes
 
-    if text.startswith("."):
+    if text.startswith(".") or "<" in text:
         return [nodes.literal(rawtext, text)], []
     role = inliner.document.settings.env.get_domain("py").role("obj")
     return role(name, rawtext, text, lineno, inliner, options or {}, content or [])

@@ -130,14 +130,14 @@ def test_the_score_example_is_evaluated(cleanup):
     OODEvaluation(scores=["dt", "gap_ratio"])  # the callback accepts its name
 
 
-def test_a_file_name_in_a_docstring_keeps_its_leading_dot():
-    """The docstrings' default role (docs/conf.py) shows `.hydra/config.yaml` as written; with
-    Python's `obj` role the docs site read the dot as a relative lookup and showed
-    "hydra/config.yaml"."""
+def test_file_names_and_placeholders_in_a_docstring_are_shown_as_written():
+    """The docstrings' default role (docs/conf.py) shows `.hydra/config.yaml` and `<out>/<name>`
+    as written; with Python's `obj` role the docs site read the dot as a relative lookup and
+    showed "hydra/config.yaml", and read `<name>` as a link target and showed "<out>/"."""
     spec = importlib.util.spec_from_file_location("docs_conf", DOC.parent / "conf.py")
     conf = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(conf)
     assert conf.default_role == "code-or-xref"
-    text = ".hydra/config.yaml"
-    (node,), messages = conf._code_or_xref("", f"`{text}`", text, 1, None)
-    assert node.astext() == text and node.tagname == "literal" and messages == []
+    for text in (".hydra/config.yaml", "<out>/<name>", "rotlearn.data.<name>"):  # placeholders:
+        (node,), messages = conf._code_or_xref("", f"`{text}`", text, 1, None)  # were dropped
+        assert node.astext() == text and node.tagname == "literal" and messages == []

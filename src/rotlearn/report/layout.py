@@ -76,9 +76,9 @@ def report_layout(node: Mapping[str, Any]) -> dict[str, Any]:
     `ReportLayout`, each plot's `file` filled in (`curves.png`, `<label>_box.png`).
 
     Raises:
-        ConfigError: on `report.<key>`, a value that is not of its kind (`report.trial_keys` not
-            a list of keys, a plot file that is no plain `.png` name, which could be written
-            outside the report's folder).
+        ConfigError: naming the key of a value that is not of its kind (`report.trial_keys`
+            not a list of keys; `report.plots[0].file` no plain `.png` name, which could be
+            written outside the report's folder).
     """
     from pydantic import TypeAdapter, ValidationError
 
