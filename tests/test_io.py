@@ -415,3 +415,13 @@ def test_a_file_of_carriage_returns_is_read_a_block_at_a_time_too():
     finally:
         tracemalloc.stop()
     assert count == 4_000_000 and peak < 50 * 2**20, f"peak {peak / 2**20:.0f} MiB"
+
+
+def test_a_file_where_a_folder_goes_is_named(tmp_path):
+    """A dataset's `.rotlearn_cache` that is a file gave "cannot write <cache>.npy: File
+    exists", naming the file the cache would have held, not the file in the way."""
+    (tmp_path / ".rotlearn_cache").write_text("")
+    target = tmp_path / ".rotlearn_cache" / "sub" / "x.npy"
+    pattern = rf"{target}: {tmp_path / '.rotlearn_cache'} is a file, not a folder"
+    with pytest.raises(WriteError, match=pattern):
+        write_text_atomic(target, "x")

@@ -528,6 +528,11 @@ def atomic_write(path: str | os.PathLike) -> Iterator[Path]:
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = _new_temporary(path)
+    except (FileExistsError, NotADirectoryError) as exc:  # a file where a folder goes
+        folders = (path.parent, *path.parent.parents)
+        file = next((f for f in folders if f.exists() and not f.is_dir()), path.parent)
+        message = f"cannot write {path}: {file} is a file, not a folder"
+        raise WriteError(exc.errno, message) from None
     except OSError as exc:
         raise _write_error(path, exc) from None
     try:
