@@ -42,6 +42,7 @@ __all__ = [
     "atomic_write",
     "cache_file",
     "cache_manifest",
+    "numbered_lines",
     "parse_number_rows",
     "parse_yaml",
     "plain_name",
@@ -734,16 +735,27 @@ def word_rows(text: str, where: str, commas: bool = False) -> Iterator[tuple[int
     dropped once the caller has parsed them.
 
     Raises:
-        ValueError: "<where>:<line>: ..." for a line longer than `MAX_LINE_CHARS` (its words
-            would take about 24 times its size).
+        ValueError: "<where>:<line>: ..." for a line longer than `MAX_LINE_CHARS`
+            (`numbered_lines`).
+    """
+    for lineno, line in numbered_lines(text, where):
+        kept = line.split("#", 1)[0]
+        if words := (kept.replace(",", " ") if commas else kept).split():
+            yield lineno, words
+
+
+def numbered_lines(text: str, where: str) -> Iterator[tuple[int, str]]:
+    """(line number, line) of each line of `text` (`text_lines`), for a reader that splits them.
+
+    Raises:
+        ValueError: "<where>:<line>: ..." for a line longer than `MAX_LINE_CHARS` (split into
+            words or fields, it would take about 24 times its size).
     """
     for lineno, line in enumerate(text_lines(text), start=1):
         if len(line) > MAX_LINE_CHARS:
             raise ValueError(f"{where}:{lineno}: a line of {len(line)} characters, over the "
                              f"{MAX_LINE_CHARS} a line of rows may have")  # fmt: skip
-        kept = line.split("#", 1)[0]
-        if words := (kept.replace(",", " ") if commas else kept).split():
-            yield lineno, words
+        yield lineno, line
 
 
 def text_lines(text: str, block: int = _MIB) -> Iterator[str]:

@@ -336,6 +336,20 @@ def test_mav_frame_folder_symlinked_outside_the_root_is_refused(demo_data, tmp_p
     refuses(lambda: mav(root, cache), tmp_path, cache, ValueError, pattern)
 
 
+def test_a_mav_line_over_the_cap_is_refused_before_it_is_split(demo_data, tmp_path, monkeypatch):
+    """A line of commas was split into a field each before anything was checked (the text cap
+    allows 256 MB on one line)."""
+    import rotlearn.io as io
+
+    root, cache = copy_demo(demo_data, "mav", tmp_path), tmp_path / "cache"
+    listing = root / "flea3" / "data.csv"
+    lines = listing.read_text().splitlines()
+    monkeypatch.setattr(io, "MAX_LINE_CHARS", max(map(len, lines)))
+    listing.write_text("\n".join([*lines[:3], "," * (io.MAX_LINE_CHARS + 1), *lines[3:]]) + "\n")
+    pattern = rf"flea3/data\.csv:4: a line of {io.MAX_LINE_CHARS + 1} characters, over the"
+    refuses(lambda: mav(root, cache), tmp_path, cache, ValueError, pattern)
+
+
 def test_mav_pair_index_out_of_range_names_the_line(demo_data, tmp_path):
     root, cache = copy_demo(demo_data, "mav", tmp_path), tmp_path / "cache"
     set_line(root / "pairs" / "outdoor.csv", 2, "0,999")

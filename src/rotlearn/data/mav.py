@@ -36,12 +36,12 @@ from rotlearn.errors import ConfigValueError
 from rotlearn.geometry import quat_normalize, quat_to_rotmat, relative_rotation
 from rotlearn.io import (
     cache_file,
+    numbered_lines,
     plain_name,
     read_text_file,
     require_finite,
     resolve_inside,
     strict_int,
-    text_lines,
 )
 from rotlearn.trust import config_target
 
@@ -77,9 +77,9 @@ def _time_stamp(text: str, where: str) -> int:
 def _rows(path: Path, columns: int | None = None, min_columns: int = 1):
     """(line number, fields) of a CSV file's rows, skipping blank lines and `#` comments; the
     field count checked (`rotlearn.io.read_text_file` raises for a missing or non-text file). The
-    lines are split a block at a time (`text_lines`): a pose file at 200 Hz is never held as a
-    list of all its lines."""
-    for lineno, line in enumerate(text_lines(read_text_file(path)), start=1):
+    lines are split a block at a time (`rotlearn.io.numbered_lines`): a pose file at 200 Hz is
+    never held as a list of all its lines, and a line longer than `MAX_LINE_CHARS` is refused."""
+    for lineno, line in numbered_lines(read_text_file(path), str(path)):
         text = line.strip()
         if not text or text.startswith("#"):
             continue
