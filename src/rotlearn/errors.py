@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+import re
+
+_SUBJECT = re.compile(r"^(Value error, )?(\w+ )?(?=should )")  # pydantic's "Input should ..."
+
 __all__ = [
     "ConfigError",
     "ConfigValueError",
     "NonFiniteError",
     "batch_index",
+    "validation_words",
 ]
 
 
@@ -49,3 +54,9 @@ def batch_index(flat: int, shape: tuple[int, ...]) -> tuple[int, ...]:
         index.append(flat % size)
         flat //= size
     return tuple(reversed(index))
+
+
+def validation_words(message: str) -> str:
+    """A pydantic error message as rotlearn's config errors word it, after the key: "should be
+    a valid list" (pydantic: "Input should be a valid list", "Value error, should be ...")."""
+    return _SUBJECT.sub("", message)

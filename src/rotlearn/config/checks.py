@@ -39,7 +39,7 @@ from rotlearn.config.source import (
     provides,
     typing_names,
 )
-from rotlearn.errors import ConfigError
+from rotlearn.errors import ConfigError, validation_words
 
 __all__ = [
     "TOP_LEVEL",
@@ -322,7 +322,7 @@ def _check(key: str, value: Any, annotation: Any) -> None:
                 raise ConfigError(key, f"must be {meta.description}, got {value!r}") from None
         said = []
         for error in exc.errors(include_url=False):  # "Input should be ...", "List should have"
-            text = re.sub(r"^(Value error, )?(\w+ )?(?=should )", "", error["msg"])
+            text = validation_words(error["msg"])
             at = "".join(f"[{i}]" for i in error["loc"] if isinstance(i, int))
             said.append(text.replace(" after validation", "") + (f" (at {at})" if at else ""))
         whole = isinstance(value, dict) and value and all(str(k).isdigit() for k in value)

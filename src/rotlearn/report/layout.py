@@ -8,7 +8,6 @@ report's folder under a plain `.png` name. No pandas: validation imports it.
 
 from __future__ import annotations
 
-import re
 from collections.abc import Mapping, Sequence
 from typing import Annotated, Any
 
@@ -16,7 +15,7 @@ from pydantic import AfterValidator, ConfigDict
 from typing_extensions import TypedDict
 
 from rotlearn import io
-from rotlearn.errors import ConfigError
+from rotlearn.errors import ConfigError, validation_words
 
 __all__ = ["DEFAULT_REPORT", "ReportLayout", "layout_of", "report_layout"]
 
@@ -125,6 +124,6 @@ def _refused(loc: Sequence[Any], said: str, value: Any) -> ConfigError:
     """`report.<key>`: should be ..., got <value>' (pydantic's words, as `rotlearn.config`
     words them)."""
     key = "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in loc)
-    said = re.sub(r"^(Value error, )?(\w+ )?(?=should )", "", said)
+    said = validation_words(said)
     shown = repr(value) if len(repr(value)) <= 80 else f"{repr(value)[:77]}..."
     return ConfigError(f"report{key}", f"{said}, got {shown}")
