@@ -109,19 +109,35 @@ TINY_PAIRS = [
 ]
 
 
+def _write_tiny_kitti(root: Path) -> Path:
+    return write_kitti(root, {"00": yaw_sequence(11, 1.0), "01": yaw_sequence(9, -1.0)}, seed=3)
+
+
 @pytest.fixture
 def tiny_kitti(tmp_path):
-    return write_kitti(
-        tmp_path / "kitti", {"00": yaw_sequence(11, 1.0), "01": yaw_sequence(9, -1.0)}, seed=3
-    )
+    return _write_tiny_kitti(tmp_path / "kitti")
+
+
+@pytest.fixture(scope="module")
+def _trained_once(tmp_path_factory):
+    """One tiny OOD run for the module's tests (a training is about 5 s); each test gets a
+    copy (`trained_run`), so no test sees what another wrote into it."""
+    from rotlearn.config import compose as compose_run
+
+    base = tmp_path_factory.mktemp("trained")
+    kitti = _write_tiny_kitti(base / "kitti")
+    run_dir = base / "run"
+    overrides = [f"paths.output_dir={run_dir}", *TINY_PAIRS, f"data.root={kitti}"]
+    metrics = train(compose_run(overrides, check=False))
+    return run_dir, metrics
 
 
 @pytest.fixture
-def trained_run(tmp_path, tiny_kitti, make_cfg):
-    run_dir = tmp_path / "run"
-    cfg = make_cfg([*TINY_PAIRS, f"data.root={tiny_kitti}"], run_dir=run_dir)
-    metrics = train(cfg)
-    return run_dir, metrics
+def trained_run(tmp_path, tiny_kitti, _trained_once):
+    """(a copy of the module's trained run in tmp_path/run, its test metrics); its data root is
+    the module's copy of `tiny_kitti`'s frames (the same files)."""
+    run_dir, metrics = _trained_once
+    return Path(shutil.copytree(run_dir, tmp_path / "run", symlinks=True)), dict(metrics)
 
 
 def test_the_callback_writes_every_column(trained_run):
