@@ -141,3 +141,20 @@ def test_file_names_and_placeholders_in_a_docstring_are_shown_as_written():
     for text in (".hydra/config.yaml", "<out>/<name>", "rotlearn.data.<name>"):  # placeholders:
         (node,), messages = conf._code_or_xref("", f"`{text}`", text, 1, None)  # were dropped
         assert node.astext() == text and node.tagname == "literal" and messages == []
+
+
+def test_no_documented_class_names_a_private_base():
+    """The API pages show each class's bases ("Bases: ..."); a private base (`_Open`, once the
+    report layout's) is shown as a name the reader can neither look up nor import."""
+    modules = re.findall(r"\.\. automodule:: (\S+)", "".join(
+        page.read_text() for page in sorted((DOC.parent / "api").glob("*.rst"))))  # fmt: skip
+    private = []
+    for name in modules:
+        module = importlib.import_module(name)
+        public = [
+            v for k, v in vars(module).items() if not k.startswith("_") and isinstance(v, type)
+        ]
+        for cls in (c for c in public if c.__module__.startswith("rotlearn")):
+            bases = [b for b in cls.__bases__ if b.__module__.startswith("rotlearn")]
+            private += [f"{cls.__qualname__}({b.__name__})" for b in bases if b.__name__[0] == "_"]
+    assert modules and not private, private

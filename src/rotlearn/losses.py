@@ -9,12 +9,12 @@ from typing import ClassVar
 from torch import Tensor, nn
 
 from rotlearn import bingham, fisher
-from rotlearn.errors import ConfigValueError
+from rotlearn.errors import ConfigError
 from rotlearn.geometry import angle, chordal_distance_sq, rotmat_to_quat
 from rotlearn.heads import HEADS, RotationPrediction
 from rotlearn.trust import config_target
 
-__all__ = ["AngularLoss", "BinghamNLLLoss", "ChordalLoss", "FisherNLLLoss"]
+__all__ = ["AngularLoss", "BinghamNLLLoss", "ChordalLoss", "FisherNLLLoss", "LikelihoodLoss"]
 
 
 @config_target
@@ -36,13 +36,13 @@ class AngularLoss(nn.Module):
         return angle(prediction.R, batch["R"]).square().mean()
 
 
-class _LikelihoodLoss(nn.Module):
+class LikelihoodLoss(nn.Module):
     """A negative log-likelihood loss: it reads one belief parameter of the prediction and
     refuses, at construction, a head whose predictions do not carry it.
 
     Args:
         rep: the representation's name (the config's `rep.name`), optional. If given and that
-            head lacks the belief the loss needs, construction fails with a ConfigValueError on
+            head lacks the belief the loss needs, construction fails with a ConfigError on
             key "rep".
     """
 
@@ -54,7 +54,7 @@ class _LikelihoodLoss(nn.Module):
     def __init__(self, rep: str | None = None) -> None:
         super().__init__()
         if rep is not None and rep in HEADS and not getattr(HEADS[rep], self.head_flag):
-            raise ConfigValueError("rep", self._message(rep))
+            raise ConfigError("rep", self._message(rep))
         self.rep = rep
 
     @classmethod
@@ -87,12 +87,12 @@ class _LikelihoodLoss(nn.Module):
 
 
 @config_target
-class BinghamNLLLoss(_LikelihoodLoss):
+class BinghamNLLLoss(LikelihoodLoss):
     """Mean Bingham negative log-likelihood `nll(prediction.A, batch["q"])` (paper eq. 19).
 
     The targets are batch["q"] (..., 4), or the quaternions of batch["R"] where the batch has no
     "q" (the sign does not matter: the likelihood is antipodally symmetric). Heads that define a
-    belief (rep=a, rep=fisher) only; `rep` as in `_LikelihoodLoss`. Computed with check=False:
+    belief (rep=a, rep=fisher) only; `rep` as in `LikelihoodLoss`. Computed with check=False:
     no host sync per step; a belief sharper than MAX_DISPERSION is scored at that bound (the
     loss stops sharpening it; it failed the run), NaN/Inf are left to `rotlearn.lit.finite`.
     """
@@ -106,13 +106,13 @@ class BinghamNLLLoss(_LikelihoodLoss):
 
 
 @config_target
-class FisherNLLLoss(_LikelihoodLoss):
+class FisherNLLLoss(LikelihoodLoss):
     """Mean matrix Fisher negative log-likelihood `rotlearn.fisher.nll(prediction.F, batch["R"])`
     (Mohlin et al., NeurIPS 2020), in nats w.r.t. the Haar probability measure on SO(3).
 
     On the Fisher head it equals `BinghamNLLLoss` (the same density, A = -K(F)), computed from
     the 3 x 3 SVD instead of the 4 x 4 eigen-decomposition. Heads that give a matrix Fisher
-    parameter (rep=fisher) only; `rep` as in `_LikelihoodLoss`. Unchecked, as `BinghamNLLLoss`.
+    parameter (rep=fisher) only; `rep` as in `LikelihoodLoss`. Unchecked, as `BinghamNLLLoss`.
     """
 
     option, parameter, head_flag = "fisher_nll", "F", "defines_fisher"

@@ -17,7 +17,7 @@ from typing_extensions import TypedDict
 from rotlearn import io
 from rotlearn.errors import ConfigError, validation_words
 
-__all__ = ["DEFAULT_REPORT", "ReportLayout", "layout_of", "report_layout"]
+__all__ = ["DEFAULT_REPORT", "OpenNode", "ReportLayout", "layout_of", "report_layout"]
 
 DEFAULT_REPORT: dict[str, Any] = {
     "lead": "rep.name",
@@ -38,11 +38,14 @@ def _png_name(name: str) -> str:
     return name
 
 
-class _Open(TypedDict, total=False):
+class OpenNode(TypedDict, total=False):
+    """A node of the layout: the keys its subclass declares are checked; any other key is kept
+    as it is (a later report may read it)."""
+
     __pydantic_config__ = ConfigDict(extra="allow")  # other keys are kept as they are
 
 
-class PlotLayout(_Open, total=False):
+class PlotLayout(OpenNode, total=False):
     kind: str
     x: str
     label: str
@@ -50,17 +53,17 @@ class PlotLayout(_Open, total=False):
     metrics: list[str]
 
 
-class OODLayout(_Open, total=False):
+class OODLayout(OpenNode, total=False):
     quantiles: list[float]
     sets: dict[str, Any]
 
 
-class PaperLayout(_Open, total=False):
+class PaperLayout(OpenNode, total=False):
     where: dict[str, Any]
     rows: list[Any]
 
 
-class ReportLayout(_Open, total=False):
+class ReportLayout(OpenNode, total=False):
     """A run's `report` node (`DEFAULT_REPORT` fills in what it leaves out)."""
 
     lead: str | None
