@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from rotlearn import bingham, fisher
 from rotlearn.cli.train import train
-from rotlearn.errors import ConfigValueError
+from rotlearn.errors import ConfigError
 from rotlearn.geometry import quat_chordal_distance, quat_to_rotmat, rotmat_to_quat
 from rotlearn.heads import HEADS, make_head
 from rotlearn.losses import AngularLoss, BinghamNLLLoss, ChordalLoss, FisherNLLLoss
@@ -178,7 +178,7 @@ def test_fisher_nll_refuses_heads_without_f(rep):
         f"loss=fisher_nll needs a head that gives a matrix Fisher parameter (rep=fisher); "
         f"rep={rep} does not"
     )
-    with pytest.raises(ConfigValueError) as info:
+    with pytest.raises(ConfigError) as info:
         FisherNLLLoss(rep=rep)
     assert info.value.key == "rep" and info.value.message == message
     pred = predict(rep, (3,), seed=22)

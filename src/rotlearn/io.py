@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from rotlearn.errors import ConfigValueError
+from rotlearn.errors import ConfigError
 
 __all__ = [
     "MAX_BYTES",
@@ -874,10 +874,10 @@ def plain_name(name: object, where: str | None = None, key: str | None = None) -
         name: the name, from a config or a dataset file.
         where: for a name read from a file, "<file>:<line>"; the error is a ValueError.
         key: for a name from the config, the key (relative to the component, e.g.
-            "train_sequences"); the error is a `ConfigValueError` on that key.
+            "train_sequences"); the error is a `ConfigError` on that key.
 
     Raises:
-        ValueError / ConfigValueError: naming `where` or `key`, the name and what is wrong.
+        ValueError / ConfigError: naming `where` or `key`, the name and what is wrong.
     """
     text = str(name)
     problem = _name_problem(text)
@@ -885,7 +885,7 @@ def plain_name(name: object, where: str | None = None, key: str | None = None) -
         return text
     message = f"{text!r} is not a plain file or folder name {problem}"
     if key is not None:
-        raise ConfigValueError(key, message)
+        raise ConfigError(key, message)
     raise ValueError(f"{where}: {message}")
 
 

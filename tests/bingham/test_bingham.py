@@ -18,7 +18,7 @@ import torch
 from scipy import integrate, special
 
 from rotlearn import bingham as bh
-from rotlearn.errors import ConfigValueError
+from rotlearn.errors import ConfigError
 from rotlearn.geometry import a_from_quat, quat_to_rotmat
 from rotlearn.heads import a_min_eigvec, make_head
 from rotlearn.losses import BinghamNLLLoss
@@ -438,7 +438,7 @@ def test_loss_refuses_heads_without_a_belief(rep):
     with pytest.raises(ValueError) as info:
         BinghamNLLLoss()(pred, {"q": pred.q})
     assert str(info.value) == message
-    with pytest.raises(ConfigValueError) as info:
+    with pytest.raises(ConfigError) as info:
         BinghamNLLLoss(rep=rep)
     assert info.value.key == "rep" and info.value.message == message
 

@@ -20,7 +20,7 @@ import pytest
 import torch
 
 from rotlearn.data import KittiOdometryDataModule, MAVDataModule, ShapeNetDataModule
-from rotlearn.errors import ConfigValueError, NonFiniteError
+from rotlearn.errors import ConfigError, NonFiniteError
 from rotlearn.io import plain_name, read_number_rows, resolve_inside
 from rotlearn.nets.pointnet import PointNet
 
@@ -153,7 +153,7 @@ def test_kitti_sequence_names_cannot_leave_the_root(demo_data, tmp_path, key, na
     plant_kitti_sequence(root, tmp_path / "data" / "x")  # what sequences/../../x would read
     shutil.copy(root / "poses" / "00.txt", tmp_path / "data" / "x.txt")
     make = lambda: kitti(root, cache, **{key: [name]})  # noqa: E731
-    error = refuses(make, tmp_path, cache, ConfigValueError, "not a plain file or folder name")
+    error = refuses(make, tmp_path, cache, ConfigError, "not a plain file or folder name")
     assert error.key == key
 
 
@@ -417,7 +417,7 @@ def test_mav_scene_names_cannot_leave_the_root(demo_data, tmp_path, key):
     root, cache = copy_demo(demo_data, "mav", tmp_path), tmp_path / "cache"
     shutil.copy(root / "pairs" / "outdoor.csv", root / "x.csv")  # what pairs/../x.csv would read
     make = lambda: mav(root, cache, **{key: ["../x"]})  # noqa: E731
-    error = refuses(make, tmp_path, cache, ConfigValueError, r"'\.\./x' is not a plain")
+    error = refuses(make, tmp_path, cache, ConfigError, r"'\.\./x' is not a plain")
     assert error.key == key
 
 
@@ -563,7 +563,7 @@ def test_mtllib_outside_the_root_is_never_read(demo_data, tmp_path):
 def test_the_synset_cannot_leave_the_root(demo_data, tmp_path, synset):
     root, cache = copy_demo(demo_data, "mesh", tmp_path), tmp_path / "cache"
     make = lambda: shapenet(root, cache, format="mesh", synset=synset)  # noqa: E731
-    assert refuses(make, tmp_path, cache, ConfigValueError, "not a plain").key == "synset"
+    assert refuses(make, tmp_path, cache, ConfigError, "not a plain").key == "synset"
 
 
 def test_a_symlinked_model_outside_the_root_is_refused(demo_data, tmp_path):
@@ -586,7 +586,7 @@ def test_plain_name_and_resolve_inside(tmp_path):
                 "x\udcff", "a\u2028b", "a\x85"):  # fmt: skip
         with pytest.raises(ValueError, match=r"f:1: .* not a plain"):
             plain_name(bad, "f:1")
-    with pytest.raises(ConfigValueError) as err:
+    with pytest.raises(ConfigError) as err:
         plain_name("../x", key="train_sequences")
     assert err.value.key == "train_sequences"
     (tmp_path / "root").mkdir()

@@ -11,7 +11,7 @@ import torch
 
 from rotlearn.data import SyntheticWahbaDataModule, wahba_batch
 from rotlearn.data.heteroscedastic import check_range, log_uniform, repeat_rows, uniform_counts
-from rotlearn.errors import ConfigValueError
+from rotlearn.errors import ConfigError
 from rotlearn.nets import PointNet
 
 TRAIN, VAL, TEST = 0, 1, 2
@@ -149,7 +149,7 @@ def test_laws_accept_float32():
     ],
 )
 def test_bad_ranges_are_refused_naming_the_key(kw, key):
-    with pytest.raises(ConfigValueError) as info:
+    with pytest.raises(ConfigError) as info:
         _module(**kw)
     assert info.value.key == key
 
@@ -157,7 +157,7 @@ def test_bad_ranges_are_refused_naming_the_key(kw, key):
 def test_check_range_passes_null_and_good_pairs():
     assert check_range("k", None, minimum=0) is None
     assert check_range("k", [2, 2], minimum=2, integer=True) == (2.0, 2.0)
-    with pytest.raises(ConfigValueError, match="hi <= 1"):
+    with pytest.raises(ConfigError, match="hi <= 1"):
         check_range("k", [0.5, 2], minimum=0, maximum=1)
 
 
@@ -215,7 +215,7 @@ def test_shapenet_without_ranges_is_unchanged():
     ],
 )
 def test_shapenet_bad_ranges_are_refused_naming_the_key(kw, key):
-    with pytest.raises(ConfigValueError) as info:
+    with pytest.raises(ConfigError) as info:
         _shapenet(**kw)
     assert info.value.key == key
 

@@ -14,7 +14,7 @@ from rotlearn.data import KittiOdometryDataModule, MAVDataModule, ShapeNetDataMo
 from rotlearn.data.pairs import PairIndex
 from rotlearn.data.splits import frame_keys, hold_out_tail
 from rotlearn.data.synthetic import SyntheticWahbaDataModule
-from rotlearn.errors import ConfigValueError
+from rotlearn.errors import ConfigError
 from tests.conftest import write_kitti, write_mav, yaw_sequence
 
 pytest.importorskip("cv2")
@@ -79,7 +79,7 @@ def test_kitti_held_out_sequences_validate_and_are_never_trained_or_tested(tmp_p
     assert_disjoint(train, val, test)
     # an unseen street: its validation pairs count as unseen like the test street's
     assert bool(dm.unseen_pairs("val").all()) and bool(dm.unseen_pairs("test").all())
-    with pytest.raises(ConfigValueError, match="val_sequences"):
+    with pytest.raises(ConfigError, match="val_sequences"):
         KittiOdometryDataModule(str(root), test_sequences=["00"], val_sequences=["00"])
 
 

@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 import torch
 
-from rotlearn.errors import ConfigValueError
+from rotlearn.errors import ConfigError
 from rotlearn.ood import (
     OODEvaluation,
     mixed_set,
@@ -125,12 +125,12 @@ def test_the_example_figure_has_one_row_of_two_frames_per_pair():
 
 def test_extra_sets_are_checked_when_the_callback_is_built():
     OODEvaluation(extra_sets={"indoor": {"test_scenes": ["indoor"]}})
-    with pytest.raises(ConfigValueError, match=r"extra_sets\.clean"):
+    with pytest.raises(ConfigError, match=r"extra_sets\.clean"):
         OODEvaluation(extra_sets={"clean": {"test_scenes": ["indoor"]}})
-    with pytest.raises(ConfigValueError, match=r"extra_sets\.indoor"):
+    with pytest.raises(ConfigError, match=r"extra_sets\.indoor"):
         OODEvaluation(extra_sets={"indoor": {}})
     for key in ("root", "cache_dir"):  # a received run's extra set wrote a cache anywhere
-        with pytest.raises(ConfigValueError, match=rf"extra_sets\.other\.{key}.*names no files"):
+        with pytest.raises(ConfigError, match=rf"extra_sets\.other\.{key}.*names no files"):
             OODEvaluation(extra_sets={"other": {"test_scenes": ["indoor"], key: "/elsewhere"}})
 
 
@@ -158,7 +158,7 @@ def test_a_tiny_mav_run_scores_its_extra_sets(tmp_path, make_cfg):
     assert (run_dir / "ood_examples.png").stat().st_size > 0
     bad = [o for o in overrides if "extra_sets" not in o]
     bad.append("callbacks.ood.extra_sets={x: {nope: 1}}")
-    with pytest.raises(ConfigValueError, match=r"extra_sets\.x\.nope"):  # at setup, before training
+    with pytest.raises(ConfigError, match=r"extra_sets\.x\.nope"):  # at setup, before training
         train(make_cfg(bad, run_dir=tmp_path / "r2"))
     assert not (tmp_path / "r2" / "checkpoints").exists()
 

@@ -23,7 +23,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from rotlearn.errors import ConfigValueError
+from rotlearn.errors import ConfigError
 
 __all__ = [
     "check_range",
@@ -47,30 +47,30 @@ def check_range(
     """`value` as a (lo, hi) pair with minimum <= lo <= hi (minimum < lo if `strict`), or None.
 
     Raises:
-        ConfigValueError naming `key` for anything else (not two numbers, out of order, below the
+        ConfigError naming `key` for anything else (not two numbers, out of order, below the
         minimum or above the maximum, not integers where `integer`).
     """
     if value is None:
         return None
     if isinstance(value, str | bytes):
-        raise ConfigValueError(key, f"must be [lo, hi] (two numbers) or null, got {value!r}")
+        raise ConfigError(key, f"must be [lo, hi] (two numbers) or null, got {value!r}")
     try:
         lo, hi = (float(v) for v in value)
     except (TypeError, ValueError):
         lo = hi = math.nan
     if math.isnan(lo) and math.isnan(hi):
-        raise ConfigValueError(key, f"must be [lo, hi] (two numbers) or null, got {value!r}")
+        raise ConfigError(key, f"must be [lo, hi] (two numbers) or null, got {value!r}")
     if not (math.isfinite(lo) and math.isfinite(hi)):
-        raise ConfigValueError(key, f"must be finite, got {value!r}")
+        raise ConfigError(key, f"must be finite, got {value!r}")
     if integer and not (lo.is_integer() and hi.is_integer()):
-        raise ConfigValueError(key, f"must be two integers, got {value!r}")
+        raise ConfigError(key, f"must be two integers, got {value!r}")
     if lo > hi:
-        raise ConfigValueError(key, f"needs lo <= hi, got {value!r}")
+        raise ConfigError(key, f"needs lo <= hi, got {value!r}")
     if lo < minimum or (strict and lo == minimum):
         bound = f"> {minimum}" if strict else f">= {minimum}"
-        raise ConfigValueError(key, f"needs lo {bound}, got {value!r}")
+        raise ConfigError(key, f"needs lo {bound}, got {value!r}")
     if maximum is not None and hi > maximum:
-        raise ConfigValueError(key, f"needs hi <= {maximum}, got {value!r}")
+        raise ConfigError(key, f"needs hi <= {maximum}, got {value!r}")
     return lo, hi
 
 

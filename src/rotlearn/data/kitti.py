@@ -23,7 +23,7 @@ import torch
 
 from rotlearn.data.images import frame_cache, resize_square
 from rotlearn.data.pairs import ImagePairDataModule, PairIndex
-from rotlearn.errors import ConfigValueError
+from rotlearn.errors import ConfigError
 from rotlearn.geometry import relative_rotation, special_orthogonalize
 from rotlearn.io import cache_file, plain_name, read_number_rows, resolve_inside
 from rotlearn.trust import config_target
@@ -76,7 +76,7 @@ def _sequence_names(key: str, sequences: Sequence[int | str]) -> list[str]:
     """`sequence_name` of each entry of the config list `key`, each a plain folder name.
 
     Raises:
-        ConfigValueError: on `key`, for a name with a path separator, "." or "..".
+        ConfigError: on `key`, for a name with a path separator, "." or "..".
     """
     return [plain_name(sequence_name(s), key=key) for s in sequences]
 
@@ -137,7 +137,7 @@ class KittiOdometryDataModule(ImagePairDataModule):
         self.val_sequences = _sequence_names("val_sequences", val_sequences)
         tested = sorted(set(self.val_sequences) & set(self.test_sequences))
         if tested:
-            raise ConfigValueError(
+            raise ConfigError(
                 "val_sequences", f"{tested} are test sequences: validation never comes from test"
             )
         self.train_sequences = [
@@ -150,10 +150,10 @@ class KittiOdometryDataModule(ImagePairDataModule):
             ("test_sequences", self.test_sequences),
         ):
             if not names:
-                raise ConfigValueError(key, "no sequence left (train minus test sequences)")
+                raise ConfigError(key, "no sequence left (train minus test sequences)")
         self.delta, self.image_size = int(delta), int(image_size)
         if deltas is not None and len(set(deltas)) != len(deltas):
-            raise ConfigValueError("deltas", f"must be distinct, got {list(deltas)!r}")
+            raise ConfigError("deltas", f"must be distinct, got {list(deltas)!r}")
         self.deltas = [int(d) for d in deltas] if deltas is not None else None
         self.cache_dir = Path(cache_dir) if cache_dir else self.root / ".rotlearn_cache"
 

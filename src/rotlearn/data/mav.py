@@ -32,7 +32,7 @@ import torch
 from rotlearn.data.draws import draw_seed
 from rotlearn.data.images import frame_cache, resize_center_crop
 from rotlearn.data.pairs import ImagePairDataModule, PairIndex
-from rotlearn.errors import ConfigValueError
+from rotlearn.errors import ConfigError
 from rotlearn.geometry import quat_normalize, quat_to_rotmat, relative_rotation
 from rotlearn.io import (
     cache_file,
@@ -289,7 +289,7 @@ class MAVDataModule(ImagePairDataModule):
     ) -> None:
         super().__init__(mean=mean, std=std, **kwargs)
         if image_size > resize:
-            raise ConfigValueError("image_size", f"the crop {image_size} exceeds resize={resize}")
+            raise ConfigError("image_size", f"the crop {image_size} exceeds resize={resize}")
         self.root = Path(root)
         self.train_scenes = [plain_name(s, key="train_scenes") for s in train_scenes]
         self.test_scenes = [plain_name(s, key="test_scenes") for s in test_scenes]

@@ -22,7 +22,7 @@ from rotlearn.data.heteroscedastic import (
     repeat_rows,
     uniform_counts,
 )
-from rotlearn.errors import ConfigValueError
+from rotlearn.errors import ConfigError
 from rotlearn.geometry import (
     quat_to_rotmat,
     random_rotvec_uniform_angle,
@@ -148,7 +148,7 @@ class SyntheticWahbaDataModule(DrawDataModule):
         matches = check_range("matches_range", matches_range, minimum=MIN_MATCHES, integer=True)
         self.matches_range = None if matches is None else (int(matches[0]), int(matches[1]))
         if self.matches_range is not None and self.matches_range[1] != num_matches:
-            raise ConfigValueError(
+            raise ConfigError(
                 "matches_range",
                 f"hi ({self.matches_range[1]}) must equal num_matches ({num_matches}), the "
                 "tensor width: set data.num_matches to the range's hi",

@@ -14,7 +14,7 @@ from torch import Tensor, nn
 from torchmetrics import MeanMetric
 
 from rotlearn.checkpoint import load_run
-from rotlearn.errors import ConfigValueError
+from rotlearn.errors import ConfigError
 from rotlearn.lit.finite import FINITE_CHECK_EVERY, FiniteChecks
 from rotlearn.lit.state import RunStateHooks
 from rotlearn.nets.autoencoder import ConvAutoEncoder, load_autoencoder_net
@@ -56,7 +56,7 @@ class AutoEncoderModule(FiniteChecks, RunStateHooks, pl.LightningModule):
         super().__init__()
         self._init_finite_checks(finite_check_every)
         if not isinstance(net, ConvAutoEncoder):
-            raise ConfigValueError(
+            raise ConfigError(
                 "net", f"model=autoencoder trains net=autoencoder, not {type(net).__name__}"
             )
         self.net = net

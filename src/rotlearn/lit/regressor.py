@@ -11,7 +11,7 @@ from torch import Tensor, nn
 from torchmetrics import MeanMetric
 
 from rotlearn.bingham import LevelMap
-from rotlearn.errors import ConfigValueError
+from rotlearn.errors import ConfigError
 from rotlearn.geometry import angle_deg, rotmat_to_quat
 from rotlearn.heads import RotationHead, RotationPrediction
 from rotlearn.lit.callbacks import DataDependentInit
@@ -119,7 +119,7 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
         super().__init__()
         self._init_finite_checks(finite_check_every)
         if isinstance(net, ConvAutoEncoder):
-            raise ConfigValueError(
+            raise ConfigError(
                 "net", "the auto-encoder reconstructs images; train it with model=autoencoder"
             )
         self.net, self.head, self.loss = net, head, loss

@@ -34,7 +34,7 @@ from omegaconf import DictConfig, OmegaConf
 from torch import Tensor
 
 from rotlearn.data.corruption import corrupted_flags, erase_boxes
-from rotlearn.errors import ConfigValueError
+from rotlearn.errors import ConfigError
 from rotlearn.ood.evaluation import (
     REFERENCE_SETS,
     calibrated_threshold,
@@ -57,11 +57,11 @@ FILE_SETTINGS = ("root", "cache_dir")  # an extra set reads the run's own datase
 
 
 def check_settings(source: Any, name: str, overrides: dict[str, Any]) -> None:
-    """Raise `ConfigValueError` (key `extra_sets.<name>.<setting>`) for a setting that the
+    """Raise `ConfigError` (key `extra_sets.<name>.<setting>`) for a setting that the
     datamodule `source` does not have."""
     for key in overrides:
         if key.startswith("_") or not hasattr(source, key) or callable(getattr(source, key)):
-            raise ConfigValueError(
+            raise ConfigError(
                 f"extra_sets.{name}.{key}", f"{type(source).__name__} has no setting {key!r}"
             )
 
@@ -72,7 +72,7 @@ def extra_source(source: Any, name: str, overrides: dict[str, Any]) -> Any:
     split stays that of `source`, so `unseen_pairs` still compares with what was trained on.
 
     Raises:
-        ConfigValueError: (key `extra_sets.<name>.<setting>`) if `source` has no such setting.
+        ConfigError: (key `extra_sets.<name>.<setting>`) if `source` has no such setting.
     """
     check_settings(source, name, overrides)
     extra = copy.copy(source)
@@ -158,16 +158,16 @@ class OODEvaluation(pl.Callback):
     ) -> None:
         super().__init__()
         if thresholds_from not in REFERENCE_SETS:
-            raise ConfigValueError(
+            raise ConfigError(
                 "thresholds_from", f"must be one of {list(REFERENCE_SETS)}, got {thresholds_from!r}"
             )
         self.thresholds_from = thresholds_from
         self.quantiles = [float(q) for q in quantiles]
         unknown = sorted(set(scores) - set(SCORES))
         if unknown:
-            raise ConfigValueError("scores", f"unknown {unknown}; choose from {sorted(SCORES)}")
+            raise ConfigError("scores", f"unknown {unknown}; choose from {sorted(SCORES)}")
         if autoencoder_ckpt and not Path(autoencoder_ckpt).exists():
-            raise ConfigValueError("autoencoder_ckpt", f"{autoencoder_ckpt} does not exist")
+            raise ConfigError("autoencoder_ckpt", f"{autoencoder_ckpt} does not exist")
         self.score_names = list(scores)
         self.autoencoder_ckpt = autoencoder_ckpt
         self.corrupt_fraction = float(corrupt_fraction)
@@ -179,13 +179,13 @@ class OODEvaluation(pl.Callback):
         self.extra_sets = dict(extra_sets or {})
         for name, overrides in self.extra_sets.items():
             if name in RESERVED_SETS or not isinstance(overrides, dict) or not overrides:
-                raise ConfigValueError(
+                raise ConfigError(
                     f"extra_sets.{name}",
                     f"needs a name other than {list(RESERVED_SETS)} and a non-empty mapping of "
                     f"datamodule settings (e.g. {{test_scenes: [indoor]}}), got {overrides!r}",
                 )
             for key in (k for k in overrides if k in FILE_SETTINGS):
-                raise ConfigValueError(
+                raise ConfigError(
                     f"extra_sets.{name}.{key}",
                     "an extra set tests other scenes or sequences of the run's own dataset and "
                     "cache (data.root, data.cache_dir); it names no files",
@@ -210,7 +210,7 @@ class OODEvaluation(pl.Callback):
         reference = self.thresholds_from
         n_ref, n_test = source.pair_count(reference), source.pair_count("test")
         if n_ref == 0:
-            raise ConfigValueError(
+            raise ConfigError(
                 "callbacks.ood.thresholds_from",
                 f"{reference}: the datamodule has no {reference} pairs to take thresholds from "
                 "(data.val_fraction=0 and no data.val_sequences?)",
@@ -265,7 +265,7 @@ class OODEvaluation(pl.Callback):
     def on_test_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         source = trainer.datamodule
         if not isinstance(source, OODDataSource):
-            raise ConfigValueError(
+            raise ConfigError(
                 "callbacks.ood", "needs an image-pair datamodule (data=kitti or data=mav)"
             )
         if not trainer.is_global_zero:
