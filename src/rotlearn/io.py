@@ -86,6 +86,8 @@ MAX_BYTES: dict[str, int] = {
     "CSV table": 256 * _MIB,  # ood.csv, ood_samples.csv, csv/metrics.csv
     "text file": 256 * _MIB,  # a dataset's text files (poses, frame lists, point clouds)
     "number array": 256 * _MIB,  # a .npy array of numbers (rotlearn-predict's point pairs)
+    "camera frame": _GIB,  # an image file: twice a frame of 2^26 pixels (the pixel budget,
+    # rotlearn.data.image_header.MAX_PIXELS) as uncompressed 16-bit RGBA
     "checkpoint": 4 * _GIB,  # a .ckpt on disk, and its records once decompressed
     "calibration record": 4 * _KIB,  # checkpoints/temperature.json, ood_thresholds.json
     "TensorBoard events": 256 * _MIB,  # a run's tensorboard/ folder, all event files together

@@ -5,6 +5,7 @@ cache of its sequence."""
 
 from __future__ import annotations
 
+import os
 import struct
 import zlib
 from pathlib import Path
@@ -104,7 +105,6 @@ def test_a_shipped_frame_cache_that_does_not_fit_is_rebuilt(tmp_path):
     dtype, frame count, channel count or a non-square frame, or a named pipe as the manifest,
     is not used (nor does it hang): the frames are decoded again, the same pixels result."""
     import json
-    import os
 
     root = write_kitti(tmp_path, {"00": yaw_sequence(4, 1.0), "01": yaw_sequence(3, 1.0)})
 
@@ -250,7 +250,7 @@ def test_a_frame_opencv_fails_on_is_refused_in_one_line_naming_it(tmp_path, monk
 
     path = tmp_path / "000000.bmp"
     path.write_bytes(_os2_bmp(64513, 65535))
-    monkeypatch.setattr(images, "check_frame", lambda path: None)  # as before the header fix
+    monkeypatch.setattr(images, "check_frame", lambda path, data: None)  # as before the fix
     with unchanged(tmp_path), within(10), pytest.raises(ValueError) as info:
         read_image(path)
     assert str(info.value).startswith(f"{path}: cannot be decoded as an image (")
@@ -392,12 +392,50 @@ def test_an_unknown_format_a_named_pipe_or_a_directory_is_refused(tmp_path):
     with pytest.raises(ValueError, match=r"f\.gif: cannot be read as an image"):
         read_image(path)
     fifo = tmp_path / "000000.png"
-    import os
-
     os.mkfifo(fifo)
     with within(5), pytest.raises(ValueError, match="not a regular file"):
         read_image(fifo)
     folder = tmp_path / "000001.png"  # named by the user (rotlearn-predict's frames): named back
     folder.mkdir()
-    with pytest.raises(ValueError, match=r"000001\.png: not a regular file"):
+    with pytest.raises(ValueError, match=r"000001\.png: a folder, not a regular file"):
         read_image(folder)
+
+
+def test_the_frame_decoded_is_the_one_whose_header_was_checked(tmp_path, monkeypatch):
+    """The header was read from the path, then OpenCV opened the path again: a file renamed over
+    it in between (one over the pixel budget, say) was decoded unchecked. Now one read feeds
+    both."""
+    import rotlearn.data.image_header as header
+
+    path, other = tmp_path / "000000.png", tmp_path / "other.png"
+    cv2.imwrite(str(path), np.full((12, 20), 7, np.uint8))
+    cv2.imwrite(str(other), np.full((30, 30), 9, np.uint8))
+    png = header._READERS["PNG"]
+
+    def swapped_after_the_header(f, head):
+        size = png(f, head)
+        if other.exists():
+            os.replace(other, path)
+        return size
+
+    monkeypatch.setitem(header._READERS, "PNG", swapped_after_the_header)
+    image = read_image(path, gray=True)
+    assert not other.exists()  # the swap happened
+    assert image.shape == (12, 20) and (image == 7).all()
+
+
+def test_a_frame_file_over_its_byte_cap_is_refused_unread(tmp_path, monkeypatch):
+    """A header of a few pixels before gigabytes of anything: OpenCV read through all of it.
+    Every frame file is read up to `MAX_BYTES["camera frame"]` (1 GiB; here lowered)."""
+    from rotlearn.io import MAX_BYTES
+
+    path = tmp_path / "000000.png"
+    cv2.imwrite(str(path), np.zeros((12, 20), np.uint8))
+    monkeypatch.setitem(MAX_BYTES, "camera frame", path.stat().st_size)
+    assert read_image(path, gray=True).shape == (12, 20)  # at the cap: read
+    with path.open("ab") as f:
+        f.write(b"\0")
+    cap = path.stat().st_size - 1
+    with within(5), pytest.raises(ValueError, match=rf"000000\.png: too large for a camera frame "
+                                  rf"\(over {cap} bytes\); not read"):  # fmt: skip
+        read_image(path)

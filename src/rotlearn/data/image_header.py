@@ -14,6 +14,7 @@ import os
 import re
 import stat
 import struct
+from io import BytesIO
 from pathlib import Path
 from typing import BinaryIO
 
@@ -144,8 +145,13 @@ def _tiff(f: BinaryIO, head: bytes) -> tuple[int, int] | None:
 _READERS = {"PNG": _png, "JPEG": _jpeg, "BMP": _bmp, "PNM": _pnm, "WebP": _webp, "TIFF": _tiff}
 
 
-def image_size(path: str | os.PathLike) -> tuple[int, int, str]:
+def image_size(path: str | os.PathLike, data: bytes | None = None) -> tuple[int, int, str]:
     """(width, height, format) of an image file, from its header alone.
+
+    Args:
+        path: the file (read, unless `data` is given; named in messages).
+        data: the file's bytes, already read: the header is taken from them, not from the file
+            again (`rotlearn.data.images.read_frame` decodes the same bytes).
 
     Raises:
         FileNotFoundError: no such file.
@@ -154,6 +160,8 @@ def image_size(path: str | os.PathLike) -> tuple[int, int, str]:
             read otherwise (a TIFF naming its size twice, or not as one SHORT or LONG; a BigTIFF).
     """
     path = Path(path)
+    if data is not None:
+        return _header_size(path, BytesIO(data))
     flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
     try:
         fd = os.open(path, flags | getattr(os, "O_BINARY", 0))
@@ -163,31 +171,37 @@ def image_size(path: str | os.PathLike) -> tuple[int, int, str]:
         os.close(fd)  # with "[Errno 21] Is a directory: <fd>", naming no file
         raise ValueError(f"{path}: not a regular file; not read as an image")
     with os.fdopen(fd, "rb") as f:
-        head = f.read(64)
-        for name, reader in _READERS.items():
-            f.seek(0)
-            try:
-                size = reader(f, head)
-            except _Refused as refused:
-                raise ValueError(f"{path}: {refused}; not decoded") from None
-            except (struct.error, OSError, ValueError):
-                size = None
-            if size is not None:
-                return int(size[0]), int(size[1]), name
+        return _header_size(path, f)
+
+
+def _header_size(path: Path, f: BinaryIO) -> tuple[int, int, str]:
+    """`image_size` of the open file `f` (from its start)."""
+    head = f.read(64)
+    for name, reader in _READERS.items():
+        f.seek(0)
+        try:
+            size = reader(f, head)
+        except _Refused as refused:
+            raise ValueError(f"{path}: {refused}; not decoded") from None
+        except (struct.error, OSError, ValueError):
+            size = None
+        if size is not None:
+            return int(size[0]), int(size[1]), name
     known = ", ".join(_READERS)
     raise ValueError(
         f"{path}: cannot be read as an image: no {known} header (empty, damaged, or another format)"
     )
 
 
-def check_frame(path: str | os.PathLike) -> tuple[int, int]:
-    """(width, height) of an image file, if its header says at most `MAX_PIXELS` pixels.
+def check_frame(path: str | os.PathLike, data: bytes | None = None) -> tuple[int, int]:
+    """(width, height) of an image file (or of its bytes `data`, as `image_size`), if its
+    header says at most `MAX_PIXELS` pixels.
 
     Raises:
         ValueError: naming the file and its size in pixels when it is larger than the budget,
             or as `image_size`.
     """
-    width, height, kind = image_size(path)
+    width, height, kind = image_size(path, data)
     if width * height > MAX_PIXELS:
         raise ValueError(
             f"{path}: a {kind} of {width} x {height} pixels, over the budget of {MAX_PIXELS} "

@@ -23,6 +23,7 @@ from rotlearn.extras import import_extra
 from rotlearn.io import (
     atomic_write,
     cache_manifest,
+    read_bytes,
     read_cached_array,
     read_manifest,
     write_text_atomic,
@@ -46,12 +47,14 @@ DECODER = 2  # in each cache's manifest: caches of an earlier decoder (16-bit fr
 def read_frame(path: Path, gray: bool = False) -> tuple[np.ndarray, str]:
     """An image file as uint8, and how its values were stored.
 
-    The header is checked against the pixel budget before anything is decoded
-    (`rotlearn.data.image_header.check_frame`). The file is decoded at its own bit depth and
-    channel count, then converted: 16-bit values are scaled to 8 bits (v / 257, rounded), except
-    when every value fits in 8 bits (8-bit values stored in 16-bit files, as some exports write
-    them: OpenCV's own 8-bit reading would shift them to black), which are kept; colour to gray
-    with OpenCV's luma weights, gray to three equal channels, an alpha channel dropped.
+    The file is read once, up to `rotlearn.io.MAX_BYTES["camera frame"]` bytes (a regular
+    file only), and its header checked against the pixel budget before anything is decoded
+    (`rotlearn.data.image_header.check_frame`): what is decoded is what was checked, even if
+    the file is replaced meanwhile. It is decoded at its own bit depth and channel count, then
+    converted: 16-bit values are scaled to 8 bits (v / 257, rounded), except when every value
+    fits in 8 bits (8-bit values stored in 16-bit files, as some exports write them: OpenCV's
+    own 8-bit reading would shift them to black), which are kept; colour to gray with OpenCV's
+    luma weights, gray to three equal channels, an alpha channel dropped.
 
     Returns:
         (H, W, 3) RGB, or (H, W) for `gray`, uint8; and "8-bit", "16-bit" or "8-bit values in
@@ -59,15 +62,18 @@ def read_frame(path: Path, gray: bool = False) -> tuple[np.ndarray, str]:
 
     Raises:
         FileNotFoundError: naming the file, if it is missing.
-        ValueError: naming the file: over the pixel budget, not an image format rotlearn reads,
-            not decodable (empty, truncated, garbage), or of another sample type (floating
-            point, 32-bit).
+        ValueError: naming the file: not a regular file, over the byte cap or the pixel budget,
+            not an image format rotlearn reads, not decodable (empty, truncated, garbage), or of
+            another sample type (floating point, 32-bit).
     """
     cv2 = import_extra("cv2", "reading and resizing images")
 
-    check_frame(path)
+    data = read_bytes(path, "camera frame")  # one read: the header checked is the one decoded
+    check_frame(path, data)
     try:
-        image = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
+        image = cv2.imdecode(
+            np.frombuffer(data, np.uint8), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR
+        )
     except cv2.error as exc:  # a header OpenCV reads otherwise than check_frame: not a traceback
         lines = str(exc).strip().splitlines()
         reason = f" ({lines[-1].strip()})" if lines else ""
