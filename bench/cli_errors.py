@@ -49,6 +49,12 @@ CASES: dict[str, tuple[str, list[str]]] = {
         ["-m", "sweep=seeds", "hydra.sweeper.params.trial=range(0,5)"],
     ),
     "value out of range": ("rotlearn-train", ["data.batch_size=0"]),
+    "a misspelt option in a sweep": ("rotlearn-train", ["-m", "rep=a,sixx"]),
+    "a sweep's second value out of range": ("rotlearn-train", ["-m", "data.phi_max_deg=90,270"]),
+    "sweep values that do not go together": (
+        "rotlearn-train",
+        ["-m", "rep=a,sixd", "loss=chordal,bingham"],
+    ),
     "a value of the wrong type": ("rotlearn-train", ["optim.lr=abc"]),
     "a Trainer value out of range": ("rotlearn-train", ["trainer.max_epochs=0"]),
     "null for a config group": ("rotlearn-train", ["logger=null"]),

@@ -62,6 +62,14 @@ EXPECTED = {
                                         r"sweep; to sweep trial: trial='range\(0,5\)'; a value"),
     "value out of range": (1, r"^rotlearn-train: config key data\.batch_size: should be greater "
                            r"than 0, got 0 \(nothing was written\)$"),
+    # a sweep: each job checked before the first runs (only its first values were)
+    "a misspelt option in a sweep": (1, rf"^rotlearn-train: config key rep: no option 'sixx'; "
+                                     rf"did you mean rep=sixd\?; {OPTIONS} \(nothing was wr"),
+    "a sweep's second value out of range": (1, r"^rotlearn-train: config key data\.phi_max_deg: "
+                                            r"should be less than or equal to 180, got 270 \("),
+    "sweep values that do not go together": (1, r"^rotlearn-train: config key loss\.rep: loss="
+                                             r"bingham needs a head that defines a belief \(rep="
+                                             r"a or rep=fisher\); rep=sixd does not \(nothing"),
     "a value of the wrong type": (1, r"^rotlearn-train: config key optim\.lr: should be a valid "
                                   r"number, got 'abc' \(nothing was written\)$"),
     "a Trainer value out of range": (1, r"^rotlearn-train: config key trainer\.max_epochs: must "

@@ -267,3 +267,21 @@ def test_the_ood_callback_is_checked_under_any_name(make_cfg, on_disk):
     ood = "+callbacks.mine={_target_: rotlearn.ood.OODEvaluation, noise_pairs: many}"
     with pytest.raises(ConfigError, match=r"callbacks\.mine\.noise_pairs: should be a valid int"):
         validate(on_disk(make_cfg(["data=kitti", ood])))
+
+
+def test_a_sweep_is_checked_job_by_job_or_value_by_value():
+    """`rotlearn.config.sweep_values`: every job of a sweep of at most CHECKED_JOBS (a pair of
+    values that do not go together is found), else each other value of each swept key with the
+    others at their first (of a range: its last)."""
+    from rotlearn.config import CHECKED_JOBS, sweep_values
+
+    def jobs(args):
+        return [(v["rep"]["name"], v["loss"]["_target_"].rsplit(".")[-1], v["seed"])
+                for v in sweep_values(args)]  # fmt: skip
+
+    assert jobs(["rep=a"]) == []  # no sweep: nothing more than the command line's own config
+    product = [("a", "AngularLoss", 3), ("quat", "ChordalLoss", 3), ("quat", "AngularLoss", 3)]
+    assert jobs(["-m", "rep=a,quat", "loss=chordal,angular", "seed=3"]) == product
+    assert CHECKED_JOBS < 2 * 20
+    assert jobs(["-m", "rep=a,quat", "seed=range(0,20)"]) == [
+        ("quat", "ChordalLoss", 0), ("a", "ChordalLoss", 19)]  # fmt: skip

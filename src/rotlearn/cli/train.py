@@ -102,9 +102,10 @@ def _refuse_an_invalid_new_run(argv: list[str]) -> list[str]:
     (`rotlearn.config.command_line_config`: a bad option or key exits naming it; a sweep with
     the first value of each swept key), check what files alone tell, refuse a folder Hydra
     would not use or a run or sweep directory that already exists and is not empty, check
-    every value (`rotlearn.config.validate`'s two passes, the folders checked between them),
-    then build a single run's datamodule and (on the meta device: nothing allocated) its model,
-    so that a bad value leaves nothing behind (SystemExit naming the key).
+    every value (`rotlearn.config.validate`'s two passes, the folders checked between them; a
+    sweep's other values too, `rotlearn.config.sweep_values`), then build a single run's
+    datamodule and (on the meta device: nothing allocated) its model, so that a bad value
+    leaves nothing behind (SystemExit naming the key).
     Returns the arguments for Hydra, with `+` before each component argument that its YAML does
     not list. A config that does not compose is left for Hydra to report (before it writes
     anything); flags such as --cfg or --info are Hydra's."""
@@ -112,17 +113,18 @@ def _refuse_an_invalid_new_run(argv: list[str]) -> list[str]:
     from omegaconf.errors import OmegaConfBaseException
 
     from rotlearn.cli.rundir import refuse_an_existing_output_dir, runs_a_sweep
-    from rotlearn.config import ConfigError, command_line_config
+    from rotlearn.config import ConfigError, command_line_config, sweep_values
     from rotlearn.config.checks import check_keys, check_values, plain
 
     if any(a.startswith("-") and a not in ("-m", "--multirun") for a in argv):
         return argv
     try:
         cfg, argv = command_line_config(argv, "new-run")
-        values = plain(cfg)
-        check_keys(values)  # from files alone, fast
+        jobs = [plain(cfg), *sweep_values(argv, "new-run")]  # a sweep: each other value too
+        for values in jobs:
+            check_keys(values)  # from files alone, fast
         refuse_an_existing_output_dir(cfg, argv, "train", "rotlearn-train", _requeued)
-        check_values(values)  # imports the components (torch, Lightning): seconds
+        check_values(*jobs)  # imports the components (torch, Lightning): seconds
     except (HydraException, OmegaConfBaseException):
         return argv
     except ConfigError as exc:

@@ -330,13 +330,21 @@ def _check(key: str, value: Any, annotation: Any) -> None:
         raise ConfigError(key, f"{' or '.join(dict.fromkeys(said))}, got {value!r}{hint}") from None
 
 
-def check_values(values: dict[str, Any]) -> None:
-    """Pass 2, importing only what each check needs, the fastest first: the values whose
-    annotations their source tells, the report layout, the head and the loss built, the
+def check_values(*configs: dict[str, Any]) -> None:
+    """Pass 2, importing only what each check needs, the fastest first (over all `configs`, a
+    sweep's jobs: a bad value of any is answered as soon as its kind of check runs): the values
+    whose annotations their source tells, the report layout, the head and the loss built, the
     calibration rule, then the values whose annotations need their component imported."""
-    from hydra.errors import InstantiationException
-    from hydra.utils import instantiate
+    later = [_check_from_source(values) for values in configs]
+    for values in configs:
+        _check_built(values)
+    for key, value, p in itertools.chain.from_iterable(later):  # these import Lightning (seconds)
+        _check(key, value, _imported_annotation(p.owner, p.name))
 
+
+def _check_from_source(values: dict[str, Any]) -> list[tuple[str, Any, Parameter]]:
+    """`check_values`' first step for one config; returns (key, value, argument) of the values
+    whose annotations need their component imported."""
     for name in (n for n in TOP_LEVEL if n in values):
         _check(name, values[name], TOP_LEVEL[name])
     if values.get("report"):  # the report a sweep writes when it ends: checked before it starts
@@ -354,8 +362,18 @@ def check_values(values: dict[str, Any]) -> None:
                     later.append((f"{key}.{name}", value, found[name]))
                 else:
                     _check(f"{key}.{name}", value, annotation)
+    return later
+
+
+def _check_built(values: dict[str, Any]) -> None:
+    """`check_values`' second step for one config: the head and the loss built (stateless and
+    cheap; the head registry checks name and size, a likelihood loss its head), and the
+    calibration rule (`temperature_refusal`, before Lightning is imported)."""
+    from hydra.errors import InstantiationException
+    from hydra.utils import instantiate
+
     built = {}
-    for key in ("rep", "loss"):  # stateless and cheap: built to ask the registry and the loss
+    for key in ("rep", "loss"):
         try:
             built[key] = instantiate(values[key])
         except InstantiationException as exc:  # Hydra wraps what the constructor raised
@@ -367,5 +385,3 @@ def check_values(values: dict[str, Any]) -> None:
     head = built["rep"] if "head" in values["model"] else None
     if values.get("calibrate") is True and (why := temperature_refusal(head, values["model"])):
         raise ConfigError("calibrate", why)
-    for key, value, p in later:  # these import Lightning (seconds)
-        _check(key, value, _imported_annotation(p.owner, p.name))
