@@ -179,8 +179,9 @@ def test_the_guide_runs_from_its_first_page_to_its_last(tmp_path):
                 continue
             for line in commands(code):
                 printed[" ".join(line)] = _run(line, tmp_path)
-    predicted = printed["rotlearn-predict outputs/first pairs.txt"]
+    predicted = printed["rotlearn-predict outputs/first outputs/pairs.txt"]
     assert "rotation" in predicted and "90 % of the belief lies within it" in predicted
+    assert "note:" not in predicted  # the example's u_i are unit vectors, as in training
     assert (tmp_path / "outputs" / "grid" / "curves.png").is_file()
     assert "| a |" in (tmp_path / "outputs" / "grid-by-rep" / "report.md").read_text()
     assert (tmp_path / "outputs" / "ood" / "ood.md").is_file()

@@ -7,6 +7,7 @@ import math
 import os
 import re
 import shutil
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -46,8 +47,10 @@ def trained_runs(tmp_path_factory) -> dict[str, Path]:
 
 
 def _points(n: int = 3, generator_seed: int = 0) -> torch.Tensor:
+    """(n, 16, 6) pairs of unit vectors (u_i, v_i), as the synthetic training pairs are."""
     g = torch.Generator().manual_seed(generator_seed)
-    return torch.randn(n, 16, 6, generator=g)
+    x = torch.randn(n, 16, 2, 3, generator=g)
+    return (x / torch.linalg.vector_norm(x, dim=-1, keepdim=True)).flatten(-2)
 
 
 def test_a_run_trained_with_a_usual_lightning_callback_loads(make_cfg, tmp_path):
@@ -523,8 +526,40 @@ def test_load_names_what_it_takes(what):
 
 def test_predict_answers_inputs_the_net_overflows_on_in_one_line(calibrated_run, tmp_path, capsys):
     path = tmp_path / "huge.npy"
-    np.save(path, np.full((1, 8, 6), 1e300))
+    huge = np.full((1, 8, 6), 1e300)
+    huge[..., :3] = [1.0, 0.0, 0.0]  # unit u_i (longer ones are divided by their length)
+    np.save(path, huge)
     assert predict_main([str(calibrated_run), str(path)]) == 2
     assert capsys.readouterr().err == (
         "rotlearn-predict: the network output is not finite for these inputs\n"
     )
+
+
+def test_point_pairs_are_read_as_the_synthetic_training_pairs_with_unit_u(
+    trained_runs, tmp_path, capsys
+):
+    """The training u_i are unit vectors: a network given longer ones (the quickstart's example
+    once drew them from a normal distribution) answered 25 deg off with a belief sure to 1 deg.
+    Each pair is divided by |u_i| (v_i = R u_i + noise keeps its relation), with a note."""
+    unit = _points(2)
+    longer = unit * torch.linspace(0.25, 4.0, 16).unsqueeze(-1)  # each pair scaled alike
+    predictor = rotlearn.load(trained_runs["a"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        expected = predictor(unit)  # unit u_i: no note
+    with pytest.warns(UserWarning, match=r"^30 of 32 u_i were not of unit length; each pair"):
+        scaled = predictor(longer)  # one of the 16 lengths per input is 1
+    assert torch.allclose(scaled.q, expected.q, atol=1e-5)
+    assert torch.allclose(scaled.A, expected.A, rtol=1e-4, atol=1e-3)
+    zero = unit.clone()
+    zero[1, 5, :3] = 0
+    with pytest.raises(ValueError, match=r"^pair 5 of input 1: u_i = 0 has no direction"):
+        predictor(zero)
+    npy = tmp_path / "pairs.npy"
+    np.save(npy, longer[0].numpy())
+    assert predict_main([str(trained_runs["a"]), str(npy), "--json"]) == 0
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)["q_xyzw"] == pytest.approx(expected.q[0].tolist(), abs=1e-5)
+    assert captured.err == (f"rotlearn-predict: note: {npy}: 15 of 16 u_i were not of unit length;"
+                            " each pair (u_i, v_i) was divided by |u_i|, as the network was trained"
+                            " on unit u_i\n")  # fmt: skip

@@ -46,9 +46,10 @@ isotropic, when balls are its HPD regions; `rotlearn-predict` reports it for a =
 
 from __future__ import annotations
 
+import importlib
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -173,6 +174,16 @@ class RotationEstimate:
         return bingham.log_prob(A, q)
 
 
+def _data_method(config: dict[str, Any], name: str) -> Any:
+    """Method `name` of the run's datamodule class (`config["data"]["_target_"]`: the config is
+    the user's, or passed `trusted_config` when `load` read it from a file), or None."""
+    data = config.get("data") if isinstance(config, Mapping) else None
+    target = str(data.get("_target_", "")) if isinstance(data, Mapping) else ""
+    module, _, attr = target.rpartition(".")
+    return getattr(getattr(importlib.import_module(module), attr, None), name, None) if module \
+        else None  # fmt: skip
+
+
 class Predictor:
     """A trained network and head, in evaluation mode, that validate what they are given.
 
@@ -215,6 +226,7 @@ class Predictor:
         self.image_size = (
             getattr(net, "image_size", None) if getattr(net, "channel_axis", -1) == 1 else None
         )
+        self.prepare = _data_method(self.config, "prepare_points")  # e.g. unit u_i (synthetic)
 
     def _validate(self, inputs: Any) -> Tensor:
         if isinstance(inputs, np.ndarray):
@@ -264,6 +276,8 @@ class Predictor:
         """Estimate rotations for (B, N, C) point inputs (or one (N, C) input, as a batch of one),
         or, for image-pair models, (B, C, S, S) normalised pairs (or one (C, S, S))."""
         x = self._validate(inputs)
+        if self.image_size is None and self.prepare is not None:
+            x = self.prepare(x)  # point inputs as the training data has them
         if x.ndim == (3 if self.image_size is not None else 2):
             x = x.unsqueeze(0)
         per_sample = max(1, x[:1].numel())

@@ -3,11 +3,12 @@ how sure.
 
 Point models: INPUT is a point-cloud pair file, a `.npy` array (N, 6) or (B, N, 6), or a text
 file of N lines "ux uy uz vx vy vz" (whitespace or commas; `#` starts a comment): the matched
-pairs (u_i, v_i) with v_i = R u_i. Image-pair models (data=kitti, data=mav): INPUT and INPUT2 are
+pairs (u_i, v_i) with v_i = R u_i (a run on synthetic data reads unit u_i, as it trained on:
+each pair is divided by |u_i| otherwise, with a note). Image-pair models (data=kitti, data=mav): INPUT and INPUT2 are
 the two frames (e.g. sequences/00/image_2/000000.png and 000001.png), preprocessed as in
 training; the answer is C_21, the rotation from the first camera to the second.
 
-Per pair it prints:
+Per input (a set of N pairs, or an image pair) it prints:
   rotation     its angle and axis, and the quaternion (x, y, z, w);
   uncertainty  (heads with a belief: rep=a, rep=fisher) the radius of the belief's 90 % credible
                ball around the rotation, in degrees (`rotlearn.bingham.credible_radius_deg`;
@@ -25,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -103,10 +105,14 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         predictor = load(args.checkpoint, device=args.device)
-        estimate = predictor(_read_input(predictor, args.input))
+        with warnings.catch_warnings(record=True) as notes:  # e.g. u_i scaled to unit length
+            warnings.simplefilter("always", UserWarning)
+            estimate = predictor(_read_input(predictor, args.input))
     except (OSError, ValueError, TypeError, FloatingPointError) as exc:  # FP: a non-finite output
         print(f"rotlearn-predict: {exc}", file=sys.stderr)
         return 2
+    for note in notes:
+        print(f"rotlearn-predict: note: {args.input[0]}: {note.message}", file=sys.stderr)
     results = describe(estimate, getattr(predictor, "ood", None))
     if args.json:
         print(json.dumps(results if len(results) > 1 else results[0], indent=2))

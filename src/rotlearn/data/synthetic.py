@@ -164,6 +164,34 @@ class SyntheticWahbaDataModule(DrawDataModule):
         self.seed = int(seed)
 
     @staticmethod
+    def prepare_points(points: Tensor) -> Tensor:
+        """Matched pairs (u_i, v_i) (..., N, 6) as the network was trained on them: each pair
+        divided by |u_i|, so that u_i is a unit vector (a direction, as every training u_i is)
+        and v_i = R u_i + noise keeps its relation to it (its length says how noisy it is).
+        Warns (`UserWarning`) how many u_i were not of unit length (within 1e-3): a network
+        given longer vectors answers with a wrong rotation and a confident belief.
+
+        Raises:
+            ValueError: a u_i of length 0 (no direction), naming the first pair.
+        """
+        length = torch.linalg.vector_norm(points[..., :3], dim=-1, keepdim=True)  # (..., N, 1)
+        if bool((length == 0).any()):
+            first = tuple(int(i) for i in (length[..., 0] == 0).nonzero()[0])
+            where = f"pair {first[-1]}" + (f" of input {first[0]}" if len(first) > 1 else "")
+            raise ValueError(f"{where}: u_i = 0 has no direction (the network reads unit u_i)")
+        scaled = int(((length - 1).abs() > 1e-3).sum())
+        if scaled:
+            import warnings
+
+            warnings.warn(
+                f"{scaled} of {length.numel()} u_i were not of unit length; each pair (u_i, v_i) "
+                "was divided by |u_i|, as the network was trained on unit u_i",
+                UserWarning,
+                stacklevel=4,  # the caller of Predictor.__call__ (under no_grad)
+            )
+        return points / length
+
+    @staticmethod
     def _sizes(total: int, batch: int) -> list[int]:
         return [min(batch, total - start) for start in range(0, total, batch)]
 
