@@ -324,6 +324,29 @@ def test_rotlearn_eval_sweeps_over_runs_with_m(trained_run, tmp_path, monkeypatc
     assert not (tmp_path / "e").exists()
 
 
+def test_the_ood_settings_of_an_evaluation_are_named_as_it_takes_them(
+    trained_run, tmp_path, monkeypatch
+):
+    """eval.yaml's `ood.<key>` is merged into the run's `callbacks.ood`: a misspelt one was
+    answered with "did you mean callbacks.ood.quantiles?", which rotlearn-eval then took (with
+    Hydra's `+`) and ignored. Both are named as rotlearn-eval takes them, nothing written."""
+    from rotlearn.cli.evaluate import _checked
+
+    run_dir, _ = trained_run
+    monkeypatch.chdir(tmp_path)
+    out = f"hydra.run.dir={tmp_path / 'e'}"
+    with pytest.raises(SystemExit, match=r"^rotlearn-eval: config key ood\.quantile: unknown key; "
+                       r"did you mean ood\.quantiles\?; allowed: quantiles, "):  # fmt: skip
+        _checked([f"ckpt={run_dir}", "ood.quantile=[0.5]", out])
+    refusal = (r"^rotlearn-eval: config key callbacks: unknown key; allowed: ckpt, data, "
+               r"expect_rep, hydra, ood, paths, sweep, trainer; ood\.quantiles sets the run's "
+               r"callbacks\.ood\.quantiles \(nothing was written\)$")  # fmt: skip
+    for typed in ("callbacks.ood.quantiles=[0.5]", "+callbacks.ood.quantiles=[0.5]"):
+        with pytest.raises(SystemExit, match=refusal):
+            _checked([f"ckpt={run_dir}", typed, out])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["kitti", "run"]  # no "e"
+
+
 def test_an_ensemble_without_its_data_is_refused_before_anything_is_written(
     trained_run, tmp_path, monkeypatch
 ):

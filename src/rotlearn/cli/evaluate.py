@@ -365,6 +365,7 @@ def _checked(argv: list[str]) -> list[str]:
         raise SystemExit("rotlearn-eval: ckpt=<run directory or .ckpt file> is missing (--help)")
     from rotlearn.cli.rundir import is_child_rank, refuse_an_existing_output_dir, runs_a_sweep
 
+    _refuse_keys_eval_does_not_take(argv)
     multirun = runs_a_sweep(argv)  # each job is checked as it runs
     members, ensemble = _ckpt_values(values[-1], multirun)
     try:
@@ -383,8 +384,40 @@ def _checked(argv: list[str]) -> list[str]:
             _first_look(cfg)  # among swept values is checked by its own job)
             validate(evaluation_config(cfg, _saved_run(cfg)))
     except ConfigError as exc:
+        if exc.key.startswith(_OOD_NODE):  # the run's OOD callback: set as ood.<key> here
+            exc = ConfigError(_as_typed(exc.key), _as_typed(exc.message))
         raise SystemExit(f"rotlearn-eval: {exc} (nothing was written)") from None
     return args
+
+
+_OOD_NODE = "callbacks.ood."  # where eval.yaml's `ood` keys are merged (`evaluation_config`)
+
+
+def _as_typed(text: str) -> str:
+    """`text` with the OOD callback's keys as rotlearn-eval takes them: `ood.<key>`."""
+    return text.replace(_OOD_NODE, "ood.")
+
+
+def _refuse_keys_eval_does_not_take(argv: list[str]) -> None:
+    """SystemExit for an override whose top-level key conf/eval.yaml has not (with or without
+    `+`, which Hydra would append and the evaluation ignore): `callbacks.ood.quantiles`, the
+    run's own key, is set here as `ood.quantiles`."""
+    from rotlearn.config.checks import refuse_unknown
+    from rotlearn.report.identity import is_hydra_key
+
+    config = OmegaConf.load(config_dir() / "eval.yaml")
+    groups = [str(k).split("@")[0] for d in config.get("defaults", []) if isinstance(d, Mapping)
+              for k in d]  # fmt: skip
+    allowed = sorted({*map(str, config), *groups} - {"defaults", "_self_"})
+    keys = [a.lstrip("+~").split("=", 1)[0] for a in argv if not a.startswith("-")]
+    tops = [k.split(".", 1)[0] for k in keys if not is_hydra_key(k)]
+    near = next(
+        (f"; {_as_typed(k)} sets the run's {k}" for k in keys if k.startswith(_OOD_NODE)), ""
+    )
+    try:
+        refuse_unknown("", tops, allowed, near)
+    except ConfigError as exc:
+        raise SystemExit(f"rotlearn-eval: {exc} (nothing was written)") from None
 
 
 def main() -> float | None:
