@@ -4,9 +4,10 @@ how sure.
 Point models: INPUT is a point-cloud pair file, a `.npy` array (N, 6) or (B, N, 6), or a text
 file of N lines "ux uy uz vx vy vz" (whitespace or commas; `#` starts a comment): the matched
 pairs (u_i, v_i) with v_i = R u_i (a run on synthetic data reads unit u_i, as it trained on:
-each pair is divided by |u_i| otherwise, with a note). Image-pair models (data=kitti, data=mav): INPUT and INPUT2 are
-the two frames (e.g. sequences/00/image_2/000000.png and 000001.png), preprocessed as in
-training; the answer is C_21, the rotation from the first camera to the second.
+each pair is divided by |u_i| otherwise, with a note). Image-pair models (data=kitti,
+data=mav): INPUT and INPUT2 are the two frames (e.g. sequences/00/image_2/000000.png and
+000001.png), preprocessed as in training; the answer is C_21, the rotation from the first
+camera to the second.
 
 Per input (a set of N pairs, or an image pair) it prints:
   rotation     its angle and axis, and the quaternion (x, y, z, w);
