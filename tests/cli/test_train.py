@@ -190,8 +190,10 @@ def test_a_bad_value_of_a_new_run_leaves_no_run_directory(tmp_path):
 
 
 def test_a_failing_job_keeps_the_others_and_is_listed(tmp_path):
+    """Job 1 fails as it trains (lr = 1e30 overflows the net: no check before the sweep can
+    see it; a value the config refuses, as this test once used, is refused before any job)."""
     sweep = tmp_path / "sweep"
-    args = ["-m", "data.phi_max_deg=90,270,45", "trainer.max_epochs=1", f"hydra.sweep.dir={sweep}"]
+    args = ["-m", "optim.lr=1e-3,1e30,1e-3", "trainer.max_epochs=1", f"hydra.sweep.dir={sweep}"]
     result = run_cli([*args, *FAST], tmp_path)
     assert result.returncode != 0  # the sweep reports the failure...
     summary = json.loads((sweep / "jobs.json").read_text())
@@ -200,7 +202,7 @@ def test_a_failing_job_keeps_the_others_and_is_listed(tmp_path):
     planned = json.loads((sweep / "planned_jobs.json").read_text())
     assert [job["overrides"] for job in planned] == [job["overrides"] for job in summary["jobs"]]
     failed = [job for job in summary["jobs"] if job["status"] == "FAILED"]
-    assert failed[0]["num"] == 1 and "data.phi_max_deg" in failed[0]["error"]
+    assert failed[0]["num"] == 1 and "NonFiniteError" in failed[0]["error"]
     for num in (0, 2):  # ...and the other jobs' results are all there
         assert json.loads((sweep / str(num) / "metrics.json").read_text())["epochs"] == 1
         assert json.loads((sweep / str(num) / "status.json").read_text())["status"] == "COMPLETED"
@@ -242,3 +244,31 @@ def test_a_folder_hydra_would_not_use_is_refused_before_anything_is_written(
     with pytest.raises(SystemExit, match=f"^rotlearn-train: {message}"):
         refuse_an_existing_output_dir(cfg, argv, "train", "rotlearn-train")
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    ("folders", "listed", "tensorboard"),
+    [(["checkpoints", "tensorboard"], "(metrics.json, checkpoints/, tensorboard/)", True),
+     (["checkpoints", "csv"], "(metrics.json, checkpoints/, csv/)", False),  # logger=csv
+     (["checkpoints"], "(metrics.json, checkpoints/)", False)],  # logger=none
+)  # fmt: skip
+def test_the_end_of_a_run_lists_what_it_wrote(tmp_path, monkeypatch, caplog, folders, listed,
+                                              tensorboard):  # fmt: skip
+    """With logger=csv or logger=none the run's last lines named tensorboard/ and how to open
+    TensorBoard on a run that wrote no events."""
+    import logging
+
+    from omegaconf import OmegaConf
+
+    from rotlearn.cli.training import report
+
+    monkeypatch.chdir(tmp_path)
+    run = tmp_path / "run"
+    for folder in folders:
+        (run / folder).mkdir(parents=True)
+    (run / "metrics.json").write_text("{}")
+    with caplog.at_level(logging.INFO, logger="rotlearn"):
+        report(OmegaConf.create({"paths": {"output_dir": str(run)}}), {"rep": "a"})
+    said = [r.getMessage() for r in caplog.records]
+    assert f"run directory: run {listed}" in said
+    assert any(line.startswith("open TensorBoard: ") for line in said) == tensorboard

@@ -318,7 +318,8 @@ def train(cfg: DictConfig) -> dict[str, Any]:
 
 
 def report(cfg: DictConfig, metrics: dict[str, Any]) -> None:
-    """Log a finished run's test errors, its directory and how to open TensorBoard on it."""
+    """Log a finished run's test errors, its directory (and what it wrote there) and how to open
+    TensorBoard on it, if it logged to TensorBoard."""
     run_dir = Path(cfg.paths.output_dir)
     try:
         shown = run_dir.resolve().relative_to(Path.cwd())
@@ -348,5 +349,8 @@ def report(cfg: DictConfig, metrics: dict[str, Any]) -> None:
             metrics.get("test/identity_err_mean", math.nan),
             metrics.get("test/identity_err_median", math.nan),
         )
-    log.info("run directory: %s (metrics.json, checkpoints/, tensorboard/)", shown)
-    log.info("open TensorBoard: %s --logdir %s", tb, shown)
+    records = ["metrics.json", "checkpoints/", "tensorboard/", "csv/"]  # what the run wrote
+    written = [r for r in records if run_dir.joinpath(r.rstrip("/")).exists()]
+    log.info("run directory: %s (%s)", shown, ", ".join(written))
+    if "tensorboard/" in written:  # logger=csv or logger=none write no event files
+        log.info("open TensorBoard: %s --logdir %s", tb, shown)
