@@ -32,6 +32,7 @@ PROGRAMS = {
 CASES: dict[str, tuple[str, list[str]]] = {
     "misspelt key": ("rotlearn-train", ["optim.lrr=1e-3"]),
     "misspelt key with +": ("rotlearn-train", ["+optim.lrr=1e-3"]),
+    "a component's key at the top level": ("rotlearn-train", ["lr=1e-3"]),
     "the README's misspelt key": ("rotlearn-train", ["data.phi_maxdeg=10"]),
     "a misspelt key to delete": ("rotlearn-train", ["~optim.lrr"]),
     "a misspelt key in a mapping": ("rotlearn-train", ["optim={{lrr: 1e-3}}"]),
@@ -49,6 +50,8 @@ CASES: dict[str, tuple[str, list[str]]] = {
         ["-m", "sweep=seeds", "hydra.sweeper.params.trial=range(0,5)"],
     ),
     "value out of range": ("rotlearn-train", ["data.batch_size=0"]),
+    "no demo data": ("rotlearn-train", ["experiment=mav_ood_demo"]),
+    "no data root of this format": ("rotlearn-train", ["data=shapenet", "data.root=/nonexistent"]),
     "a misspelt option in a sweep": ("rotlearn-train", ["-m", "rep=a,sixx"]),
     "a sweep's second value out of range": ("rotlearn-train", ["-m", "data.phi_max_deg=90,270"]),
     "sweep values that do not go together": (

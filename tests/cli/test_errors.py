@@ -28,6 +28,8 @@ EXPECTED = {
                      r"optim\.lr\?; allowed: lr, betas, eps, weight_decay, .* \(nothing was wr"),
     "misspelt key with +": (1, r"^rotlearn-train: config key optim\.lrr: unknown key; did you "
                             r"mean optim\.lr\?; allowed: lr, "),
+    "a component's key at the top level": (1, r"^rotlearn-train: config key lr: unknown key; did "
+                                           r"you mean optim\.lr\?; allowed: calibrate, "),
     "the README's misspelt key": (1, r"^rotlearn-train: config key data\.phi_maxdeg: unknown "
                                   r"key; did you mean data\.phi_max_deg\?; allowed: phi_max_deg"),
     "a misspelt key to delete": (1, r"^rotlearn-train: config key optim\.lrr: unknown key; did "
@@ -62,6 +64,12 @@ EXPECTED = {
                                         r"sweep; to sweep trial: trial='range\(0,5\)'; a value"),
     "value out of range": (1, r"^rotlearn-train: config key data\.batch_size: should be greater "
                            r"than 0, got 0 \(nothing was written\)$"),
+    "no demo data": (1, r"^rotlearn-train: config key data\.root: no directory data/demo/mav; it "
+                     r"must hold flea3/data\.csv, .*; make it: rotlearn-make-demo-data --out "
+                     r"data/demo --only mav \(nothing was written\)$"),
+    "no data root of this format": (1, r"^rotlearn-train: config key data\.root: no directory "
+                                    r"/nonexistent; it must hold train, test \(data/README\.md\)"
+                                    r" \(nothing was written\)$"),  # format=pts; not <synset>
     # a sweep: each job checked before the first runs (only its first values were)
     "a misspelt option in a sweep": (1, rf"^rotlearn-train: config key rep: no option 'sixx'; "
                                      rf"did you mean rep=sixd\?; {OPTIONS} \(nothing was wr"),

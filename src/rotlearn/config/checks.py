@@ -100,12 +100,15 @@ def plain(cfg: DictConfig) -> dict[str, Any]:
         raise ConfigError(exc.full_key, f"cannot be resolved: {exc.msg.splitlines()[0]}") from None
 
 
-def refuse_unknown(key: str, names: list[str], allowed: list[str], note: str = "") -> None:
-    """Refuse the first of `names` (keys of node `key`) not in `allowed`, naming the nearest
-    (then `note`)."""
+def refuse_unknown(
+    key: str, names: list[str], allowed: list[str], note: str = "", elsewhere: str = ""
+) -> None:
+    """Refuse the first of `names` (keys of node `key`) not in `allowed`, naming the nearest,
+    else `elsewhere` (a full key the name may have meant), then `note`."""
     for name in (n for n in names if n not in allowed):
-        near = difflib.get_close_matches(str(name), allowed, n=1)
-        hint = f"; did you mean {key + '.' if key else ''}{near[0]}?" if near else ""
+        close = difflib.get_close_matches(str(name), allowed, n=1)
+        near = (f"{key}." if key else "") + close[0] if close else elsewhere
+        hint = f"; did you mean {near}?" if near else ""
         full = f"{key}.{name}" if key else str(name)
         raise ConfigError(full, f"unknown key{hint}; allowed: {', '.join(allowed) or 'none'}{note}")
 
@@ -160,7 +163,11 @@ def data_paths(node: dict[str, Any]) -> list[tuple[str, Path]]:
 def check_keys(values: dict[str, Any]) -> None:
     """Pass 1, from files alone: top-level keys, each node's keys and required arguments, what
     its component needs of other nodes (`config_needs`), the data root and its layout."""
-    refuse_unknown("", list(values), sorted([*TOP_LEVEL, *NODES, *COLLECTIONS]))
+    top = sorted([*TOP_LEVEL, *NODES, *COLLECTIONS])
+    unknown = [k for k in values if k not in top][:1]
+    owners = [f"{node}.{k}" for k in unknown for node in NODES
+              if isinstance(values.get(node), dict) and k in values[node]]  # fmt: skip
+    refuse_unknown("", list(values), top, elsewhere=" or ".join(owners))
     for name in (n for n in ("seed", "paths") if n not in values):
         raise ConfigError(name, "is missing")
     refuse_unknown("paths", list(values["paths"] or {}), ["output_dir"])
@@ -180,16 +187,31 @@ def check_keys(values: dict[str, Any]) -> None:
                 raise ConfigError(
                     key, f"needs {what}; this run's {other} is {target.rpartition('.')[2]}"
                 )
-    layout = class_attribute(values["data"]["_target_"], "layout") or []
-    shown = dict.fromkeys(
-        re.sub(r"\{(\w+)[^}]*\}", r"<\1>", _CONDITION.fullmatch(t)[3]) for t in layout
-    )
+    found = [_CONDITION.fullmatch(t) for t in class_attribute(values["data"]["_target_"], "layout")
+             or []]  # fmt: skip
+    layout = [m[3] for m in found if m[1] is None or str(values["data"].get(m[1])) == m[2]]
+    shown = dict.fromkeys(re.sub(r"\{(\w+)[^}]*\}", r"<\1>", path) for path in layout)
     expected = f"; it must hold {', '.join(shown)} (data/README.md)" if layout else ""
     paths = data_paths(values["data"])
     if paths and not paths[0][1].is_dir():
-        raise ConfigError("data.root", f"no directory {paths[0][1]}{expected}")
+        hint = _demo_hint(paths[0][1])
+        raise ConfigError("data.root", f"no directory {paths[0][1]}{expected}{hint}")
     for key, path in (p for p in paths[1:] if not p[1].exists()):
         raise ConfigError(key, f"{path} does not exist{expected}")
+
+
+def _demo_hint(root: Path) -> str:
+    """ "; make it: rotlearn-make-demo-data ..." where `root` is where a demo dataset goes
+    (`<out>/demo/<name>`, a writer in rotlearn.data.demo), else ""."""
+    import importlib.util
+
+    writer = Path(importlib.util.find_spec("rotlearn").origin).parent / "data" / "demo"
+    writer = writer / f"{root.name}.py"
+    if root.parent.name != "demo" or not writer.is_file():
+        return ""
+    if "def write_demo(" not in writer.read_text(encoding="utf-8"):
+        return ""
+    return f"; make it: rotlearn-make-demo-data --out {root.parent} --only {root.name}"
 
 
 @cache
