@@ -59,7 +59,7 @@ reproduce-cpu: $(STAMP) ## paper Figs. 3 and 4 sized for this CPU (about 25 min)
 		hydra.sweep.dir=outputs/reproduce-cpu/synthetic_phi_max_cpu
 	@echo "reports: outputs/reproduce-cpu/*/report.md"
 
-reproduce-beliefs: $(STAMP) ## issue 17 beliefs on heteroscedastic data, CPU-sized (about 20 min), with report
+reproduce-beliefs: $(STAMP) ## issue 17 beliefs on heteroscedastic data, CPU-sized (about 20-30 min), with report
 	$(BIN)/rotlearn-train -m experiment=beliefs_cpu trainer.enable_progress_bar=false \
 		hydra.sweep.dir=outputs/reproduce-beliefs
 	@echo "report: outputs/reproduce-beliefs/report.md"
