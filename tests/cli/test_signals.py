@@ -38,6 +38,8 @@ def test_a_signal_leaves_an_interrupted_status_and_a_resume_command_that_works(t
 
     status = json.loads((run / "status.json").read_text())
     assert status["status"] == "INTERRUPTED" and status["signal"] == sig.name
+    finished = status["last_finished_epoch"] + 1  # counted from 0 in the record, 1 in the words
+    assert status["error"].startswith(f"stopped by {sig.name} after {finished} finished epoch")
     assert status["last_finished_epoch"] == checkpoint_epoch(last) < 2
     assert status["resume_command"] == f"rotlearn-train ckpt_path={run.resolve()}"
     assert not (run / "metrics.json").exists()
@@ -50,6 +52,19 @@ def test_a_signal_leaves_an_interrupted_status_and_a_resume_command_that_works(t
     assert json.loads((run / "metrics.json").read_text())["epochs"] == 3
     earlier = json.loads((run / "history" / "1" / "status.json").read_text())
     assert earlier["status"] == "INTERRUPTED"  # the interrupted attempt's record is kept
+
+
+@pytest.mark.parametrize(("last", "words"), [(None, "before its first epoch"),
+                                              (0, "after 1 finished epoch;"),
+                                              (4, "after 5 finished epochs;")])  # fmt: skip
+def test_an_interruption_counts_the_epochs_it_finished(tmp_path, last, words):
+    """The record keeps Lightning's epoch index (from 0); the message said "after epoch 1" of a
+    run that had finished 2, while metrics.json's `epochs` counts from 1."""
+    from rotlearn.cli.training import RunInterrupted
+
+    stop = RunInterrupted(tmp_path, "SIGTERM", last)
+    assert stop.message.startswith(f"stopped by SIGTERM {words}") and stop.code == 143
+    assert stop.status["last_finished_epoch"] == last
 
 
 # --- sweeps ------------------------------------------------------------------------------------

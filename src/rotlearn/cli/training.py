@@ -220,12 +220,16 @@ def build(cfg: DictConfig) -> tuple[pl.LightningModule, pl.LightningDataModule, 
 
 class RunInterrupted(SystemExit):
     """A signal stopped the run; the exit code is the shell's 128 + signal number (SIGTERM 143,
-    SIGINT 130). `status` is what `train` wrote into the run's status.json."""
+    SIGINT 130). `status` is what `train` wrote into the run's status.json (its
+    `last_finished_epoch` counted from 0, as Lightning counts; the message counts the epochs)."""
 
     def __init__(self, run_dir: Path, signal_name: str, last_epoch: int | None) -> None:
         self.run_dir, self.signal_name, self.last_epoch = run_dir, signal_name, last_epoch
         self.resume_command = f"rotlearn-train ckpt_path={run_dir.resolve()}"
-        after = f"after epoch {last_epoch}" if last_epoch is not None else "before its first epoch"
+        done = None if last_epoch is None else last_epoch + 1  # Lightning counts epochs from 0
+        after = (
+            f"after {done} finished epoch{'s' * (done != 1)}" if done else "before its first epoch"
+        )
         self.message = f"stopped by {signal_name} {after}; resume: {self.resume_command}"
         super().__init__(128 + int(signal.Signals[signal_name]))
 
