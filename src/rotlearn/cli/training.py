@@ -54,6 +54,12 @@ log = logging.getLogger("rotlearn")
 # and scalars are logged once per epoch on purpose.
 for _pattern in (".*does not have many workers.*", ".*smaller than the logging interval.*"):
     warnings.filterwarnings("ignore", _pattern)
+# A resume continues in the run's own checkpoints/ and csv/ (a new run never writes into an
+# existing folder: rotlearn refuses it), which Lightning warns of on every resume, the CSV logger
+# saying that the earlier rows "will be deleted": they are kept (tests/cli/test_resume.py).
+warnings.filterwarnings(
+    "ignore", message=r"(Checkpoint|Experiment logs) directory .* exists and is not empty"
+)
 # Lightning's own use of a torch API that torch deprecates (its loops flatten every batch), which
 # nobody but Lightning can act on.
 warnings.filterwarnings(
