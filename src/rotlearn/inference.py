@@ -176,12 +176,16 @@ class RotationEstimate:
 
 def _data_method(config: dict[str, Any], name: str) -> Any:
     """Method `name` of the run's datamodule class (`config["data"]["_target_"]`: the config is
-    the user's, or passed `trusted_config` when `load` read it from a file), or None."""
+    the user's, or passed `trusted_config` when `load` read it from a file), or None (none
+    named, or its module needs an extra that is not installed: inputs are then taken as given)."""
     data = config.get("data") if isinstance(config, Mapping) else None
     target = str(data.get("_target_", "")) if isinstance(data, Mapping) else ""
     module, _, attr = target.rpartition(".")
-    return getattr(getattr(importlib.import_module(module), attr, None), name, None) if module \
-        else None  # fmt: skip
+    try:
+        found = importlib.import_module(module) if module else None
+    except ImportError:
+        return None
+    return getattr(getattr(found, attr, None), name, None)
 
 
 class Predictor:
