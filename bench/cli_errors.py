@@ -74,6 +74,7 @@ CASES: dict[str, tuple[str, list[str]]] = {
     "eval with no mapping for ood": ("rotlearn-eval", ["ckpt={synthetic_run}", "ood=null"]),
     "predict with a folder that is no run": ("rotlearn-predict", ["{not_a_run}", "pairs.txt"]),
     "predict with a sweep directory": ("rotlearn-predict", ["{sweep}", "pairs.txt"]),
+    "predict with a folder of runs": ("rotlearn-predict", ["{runs}", "pairs.txt"]),
 }
 
 
@@ -85,6 +86,7 @@ def scenario(root: Path) -> dict[str, str]:
     from rotlearn.config.checks import plain
 
     paths = {name: root / name for name in ("not_a_run", "sweep", "synthetic_run", "kitti")}
+    paths["runs"] = root  # a folder of runs that is no sweep, as outputs/ is
     paths["not_a_run"].mkdir(parents=True)
     (paths["not_a_run"] / "notes.txt").write_text("not a run\n")
     for job in ("0", "1"):

@@ -32,8 +32,9 @@ def checkpoint_file(path: str | os.PathLike) -> Path:
     `checkpoints/last.ckpt`. Looks at the file system only (nothing is read or imported).
 
     Raises:
-        FileNotFoundError: saying what `path` is instead: nothing, a sweep directory (naming its
-            job directories, one of which to pass), or a folder that holds no rotlearn run.
+        FileNotFoundError: saying what `path` is instead: nothing, a sweep directory or a folder
+            of runs such as outputs/ (naming the runs below it, one of which to pass), or a
+            folder that holds no rotlearn run.
     """
     path = Path(path)
     if not path.is_dir():
@@ -44,13 +45,14 @@ def checkpoint_file(path: str | os.PathLike) -> Path:
     if last.is_file():
         return last
     jobs = sorted(p.parent.parent for p in path.glob("*/checkpoints/last.ckpt"))
+    sweep = any((path / name).is_file() for name in SWEEP_FILES)
     if jobs:
         shown = ", ".join(str(job) for job in jobs[:8])
         more = f" and {len(jobs) - 8} more" if len(jobs) > 8 else ""
-        raise FileNotFoundError(
-            f"{path} is a sweep directory, not one run: pass one of its jobs, {shown}{more}"
-        )
-    if any((path / name).is_file() for name in SWEEP_FILES):
+        what = "is a sweep directory, not one run: pass one of its jobs" if sweep else \
+            "holds runs, not one run: pass one of them"  # fmt: skip
+        raise FileNotFoundError(f"{path} {what}, {shown}{more}")
+    if sweep:
         raise FileNotFoundError(f"{path} is a sweep directory; none of its jobs has a checkpoint")
     raise FileNotFoundError(
         f"{path} is not a rotlearn run: it has no checkpoints/last.ckpt (pass a run directory, "

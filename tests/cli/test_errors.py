@@ -112,6 +112,8 @@ EXPECTED = {
                                      r"by one, ood\.<key>=value \(quantiles, .*\), not ood=null"),
     "predict with a folder that is no run": (2, r"^rotlearn-predict: .*not_a_run is not a "
                                              r"rotlearn run"),
+    "predict with a folder of runs": (2, r"^rotlearn-predict: .*folders\d* holds runs, not one "
+                                      r"run: pass one of them, .*synthetic_run$"),
     "predict with a sweep directory": (2, r"^rotlearn-predict: .*sweep is a sweep directory, not "
                                        r"one run: pass one of its jobs, .*sweep/0, .*sweep/1$"),
 }  # fmt: skip
