@@ -51,13 +51,13 @@ def _set(node: DictConfig | None) -> dict[str, Any]:
 
 def _run_ood(callbacks: Any) -> Any:
     """A run's OOD callback node (`callbacks.ood`), else conf/callbacks/ood.yaml's (a run
-    trained without it), without its `autoencoder_ckpt`: a path outside the run, which an
-    evaluation never opens (its own command line's `ood.autoencoder_ckpt=` is used)."""
+    trained without it), with its `autoencoder_ckpt` null: a path outside the run, which an
+    evaluation never opens (its own command line's `ood.autoencoder_ckpt=` is used). Null, not
+    dropped: a report of the run and its evaluation would tell them apart by the key alone."""
     ood = callbacks.get("ood") if isinstance(callbacks, Mapping) else None
     ood = OmegaConf.load(DEFAULT_OOD).ood if ood is None else ood
     ood = OmegaConf.to_container(ood) if isinstance(ood, DictConfig) else ood
-    return {k: v for k, v in ood.items() if k != "autoencoder_ckpt"} if isinstance(ood, dict) \
-        else ood  # fmt: skip
+    return {**ood, "autoencoder_ckpt": None} if isinstance(ood, dict) else ood
 
 
 def evaluation_config(cfg: DictConfig, saved: SavedRun) -> DictConfig:

@@ -386,6 +386,9 @@ def ood_markdown(rep: str, frame: pd.DataFrame) -> str:
         f"# OOD evaluation ({rep} head)",
         intro,
         "## Table I",
+        "Each score at its Table I quantile (`callbacks.ood.table`, e.g. DT at the paper's "
+        "q = 0.75, even where other quantiles were asked; a score not listed there: the largest "
+        "asked q <= 0.75). Every quantile asked is in the next table.",
         markdown_table(table_one_rows(rep, frame), TABLE_ONE_COLUMNS),
         "## Every score and quantile",
         markdown_table(frame, detail),
