@@ -202,16 +202,14 @@ def check_keys(values: dict[str, Any]) -> None:
 
 def _demo_hint(root: Path) -> str:
     """ "; make it: rotlearn-make-demo-data ..." where `root` is where a demo dataset goes
-    (`<out>/demo/<name>`, a writer in rotlearn.data.demo), else ""."""
-    import importlib.util
-
-    writer = Path(importlib.util.find_spec("rotlearn").origin).parent / "data" / "demo"
-    writer = writer / f"{root.name}.py"
-    if root.parent.name != "demo" or not writer.is_file():
+    (`<out>/demo/<name>`, with a `write_demo` in rotlearn.data.demo.<name>, read from its source
+    as `rotlearn-make-demo-data` finds its writers), else ""."""
+    name = root.name
+    if root.parent.name != "demo" or not name.isidentifier():
         return ""
-    if "def write_demo(" not in writer.read_text(encoding="utf-8"):
+    if parameters(f"rotlearn.data.demo.{name}.write_demo") is None:
         return ""
-    return f"; make it: rotlearn-make-demo-data --out {root.parent} --only {root.name}"
+    return f"; make it: rotlearn-make-demo-data --out {root.parent} --only {name}"
 
 
 @cache
