@@ -272,3 +272,17 @@ def test_the_end_of_a_run_lists_what_it_wrote(tmp_path, monkeypatch, caplog, fol
     said = [r.getMessage() for r in caplog.records]
     assert f"run directory: run {listed}" in said
     assert any(line.startswith("open TensorBoard: ") for line in said) == tensorboard
+
+
+def test_a_sweep_offers_tensorboard_only_where_its_jobs_logged_there(tmp_path, monkeypatch):
+    """The end of a sweep offered `tensorboard --logdir <sweep>` with logger=csv too, as a run's
+    end did (`tensorboard_command`, which both now use)."""
+    from rotlearn.cli.callbacks import tensorboard_command
+
+    monkeypatch.chdir(tmp_path)
+    sweep = tmp_path / "sweep"
+    (sweep / "0" / "csv").mkdir(parents=True)
+    assert tensorboard_command(sweep) is None and tensorboard_command(sweep / "0") is None
+    (sweep / "1" / "tensorboard").mkdir(parents=True)
+    assert tensorboard_command(sweep).endswith("tensorboard --logdir sweep")
+    assert tensorboard_command(sweep / "1").endswith("tensorboard --logdir sweep/1")

@@ -13,6 +13,7 @@ import contextlib
 import errno
 import json
 import logging
+import sys
 from collections import Counter
 from pathlib import Path
 from typing import Any
@@ -32,6 +33,7 @@ __all__ = [
     "planned_jobs",
     "record_job",
     "summarise_jobs",
+    "tensorboard_command",
 ]
 
 log = logging.getLogger("rotlearn")
@@ -207,6 +209,21 @@ class JobStatusCallback(Callback):
         record_job(job_dir, "FAILED" if failed else "COMPLETED", error=message)
 
 
+def tensorboard_command(folder: str | Path) -> str | None:
+    """How to open TensorBoard on a run or sweep `folder` (relative to the working directory
+    where it lies below it): the venv's `tensorboard --logdir <folder>`; None where neither it
+    nor a job of it holds a `tensorboard/` folder (logger=csv or logger=none)."""
+    folder = Path(folder)
+    if not ((folder / "tensorboard").is_dir() or any(folder.glob("*/tensorboard"))):
+        return None
+    program = Path(sys.executable).parent / "tensorboard"
+    shown = [str(program) if program.exists() else "tensorboard", str(folder)]
+    for i, path in enumerate(shown):
+        with contextlib.suppress(ValueError):
+            shown[i] = str(Path(path).resolve().relative_to(Path.cwd()))
+    return f"{shown[0]} --logdir {shown[1]}"
+
+
 class ReportCallback(Callback):
     """Runs `rotlearn-report` on the sweep directory when a multirun ends. (Hydra skips this when
     a job failed; `rotlearn-report <dir>` then makes the same report, failures listed.)"""
@@ -223,4 +240,5 @@ class ReportCallback(Callback):
                         exc, sweep_dir)  # fmt: skip
             return
         log.info("report: %s", files["report"])
-        log.info("open TensorBoard on the sweep: tensorboard --logdir %s", sweep_dir)
+        if command := tensorboard_command(sweep_dir):  # none for logger=csv or logger=none
+            log.info("open TensorBoard on the sweep: %s", command)

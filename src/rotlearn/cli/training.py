@@ -13,7 +13,6 @@ import contextlib
 import logging
 import math
 import signal
-import sys
 import warnings
 from pathlib import Path
 from typing import Any
@@ -26,7 +25,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from rotlearn import config
 from rotlearn.checkpoint import load_checkpoint
-from rotlearn.cli.callbacks import PLANNED, record_job
+from rotlearn.cli.callbacks import PLANNED, record_job, tensorboard_command
 from rotlearn.cli.resume import checkpoint_to_resume
 from rotlearn.cli.rundir import is_child_rank
 from rotlearn.errors import ConfigError
@@ -335,10 +334,6 @@ def report(cfg: DictConfig, metrics: dict[str, Any]) -> None:
         shown = run_dir.resolve().relative_to(Path.cwd())
     except ValueError:
         shown = run_dir
-    tensorboard = Path(sys.executable).parent / "tensorboard"
-    tb = str(tensorboard) if tensorboard.exists() else "tensorboard"
-    with contextlib.suppress(ValueError):
-        tb = str(Path(tb).relative_to(Path.cwd()))
     if metrics.get("task") == "autoencoder":
         log.info(
             "test reconstruction error (auto-encoder, %s weights): mean L1 %.4f",
@@ -362,5 +357,5 @@ def report(cfg: DictConfig, metrics: dict[str, Any]) -> None:
     records = ["metrics.json", "checkpoints/", "tensorboard/", "csv/"]  # what the run wrote
     written = [r for r in records if run_dir.joinpath(r.rstrip("/")).exists()]
     log.info("run directory: %s (%s)", shown, ", ".join(written))
-    if "tensorboard/" in written:  # logger=csv or logger=none write no event files
-        log.info("open TensorBoard: %s --logdir %s", tb, shown)
+    if command := tensorboard_command(run_dir):  # none for logger=csv or logger=none
+        log.info("open TensorBoard: %s", command)
