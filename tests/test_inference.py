@@ -21,6 +21,7 @@ from rotlearn.checkpoint import UnsafeCheckpointError, load_checkpoint
 from rotlearn.cli.predict import main as predict_main
 from rotlearn.cli.predict import read_point_pairs
 from rotlearn.cli.train import build, train
+from rotlearn.errors import InputAdjustedWarning
 from rotlearn.geometry import quat_to_rotmat, so3_exp
 from tests.conftest import SMALL_NET
 
@@ -524,6 +525,27 @@ def test_load_names_what_it_takes(what):
         rotlearn.load(what)
 
 
+def test_predict_notes_only_the_changes_it_made_to_the_input(
+    trained_runs, tmp_path, capsys, monkeypatch
+):
+    """`rotlearn-predict` words rotlearn's `InputAdjustedWarning` as a note on the input file;
+    any other warning raised while predicting (a library's) stays a warning of its own."""
+    from rotlearn.data.synthetic import SyntheticWahbaDataModule
+
+    prepare = SyntheticWahbaDataModule.prepare_points
+
+    def advising(points):
+        warnings.warn("a library's advice", UserWarning, stacklevel=1)
+        return prepare(points)
+
+    monkeypatch.setattr(SyntheticWahbaDataModule, "prepare_points", staticmethod(advising))
+    npy = tmp_path / "pairs.npy"
+    np.save(npy, _points(1)[0].numpy())
+    with pytest.warns(UserWarning, match="a library's advice"):
+        assert predict_main([str(trained_runs["a"]), str(npy)]) == 0
+    assert "note:" not in capsys.readouterr().err
+
+
 def test_predict_answers_inputs_the_net_overflows_on_in_one_line(calibrated_run, tmp_path, capsys):
     path = tmp_path / "huge.npy"
     huge = np.full((1, 8, 6), 1e300)
@@ -547,7 +569,7 @@ def test_point_pairs_are_read_as_the_synthetic_training_pairs_with_unit_u(
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         expected = predictor(unit)  # unit u_i: no note
-    with pytest.warns(UserWarning, match=r"^30 of 32 u_i were not of unit length; each pair"):
+    with pytest.warns(InputAdjustedWarning, match=r"^30 of 32 u_i were not of unit length; each"):
         scaled = predictor(longer)  # one of the 16 lengths per input is 1
     assert torch.allclose(scaled.q, expected.q, atol=1e-5)
     assert torch.allclose(scaled.A, expected.A, rtol=1e-4, atol=1e-3)

@@ -9,6 +9,7 @@ _SUBJECT = re.compile(r"^(Value error, )?(\w+ )?(?=should )")  # pydantic's "Inp
 __all__ = [
     "ConfigError",
     "ConfigValueError",
+    "InputAdjustedWarning",
     "NonFiniteError",
     "batch_index",
     "validation_words",
@@ -41,6 +42,11 @@ class ConfigError(ValueError):
 
 
 ConfigValueError = ConfigError  # the former name of a component's complaint; the same class
+
+
+class InputAdjustedWarning(UserWarning):
+    """An input was changed to the form the model was trained on (e.g. u_i scaled to unit
+    length); `rotlearn-predict` prints it as a note on the input file."""
 
 
 class NonFiniteError(FloatingPointError):

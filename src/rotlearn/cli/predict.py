@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from rotlearn.errors import InputAdjustedWarning
 from rotlearn.io import UnreadableFileError, read_number_array, read_number_rows
 from rotlearn.paths import checkpoint_file
 
@@ -107,13 +108,16 @@ def main(argv: list[str] | None = None) -> int:
     try:
         predictor = load(args.checkpoint, device=args.device)
         with warnings.catch_warnings(record=True) as notes:  # e.g. u_i scaled to unit length
-            warnings.simplefilter("always", UserWarning)
+            warnings.simplefilter("always", InputAdjustedWarning)
             estimate = predictor(_read_input(predictor, args.input))
     except (OSError, ValueError, TypeError, FloatingPointError) as exc:  # FP: a non-finite output
         print(f"rotlearn-predict: {exc}", file=sys.stderr)
         return 2
-    for note in notes:
-        print(f"rotlearn-predict: note: {args.input[0]}: {note.message}", file=sys.stderr)
+    for note in notes:  # rotlearn's changes to the input as notes; any other warning as it was
+        if issubclass(note.category, InputAdjustedWarning):
+            print(f"rotlearn-predict: note: {args.input[0]}: {note.message}", file=sys.stderr)
+        else:
+            warnings.warn_explicit(note.message, note.category, note.filename, note.lineno)
     results = describe(estimate, getattr(predictor, "ood", None))
     if args.json:
         print(json.dumps(results if len(results) > 1 else results[0], indent=2))

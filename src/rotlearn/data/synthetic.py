@@ -22,7 +22,7 @@ from rotlearn.data.heteroscedastic import (
     repeat_rows,
     uniform_counts,
 )
-from rotlearn.errors import ConfigError
+from rotlearn.errors import ConfigError, InputAdjustedWarning
 from rotlearn.geometry import (
     quat_to_rotmat,
     random_rotvec_uniform_angle,
@@ -168,7 +168,7 @@ class SyntheticWahbaDataModule(DrawDataModule):
         """Matched pairs (u_i, v_i) (..., N, 6) as the network was trained on them: each pair
         divided by |u_i|, so that u_i is a unit vector (a direction, as every training u_i is)
         and v_i = R u_i + noise keeps its relation to it (its length says how noisy it is).
-        Warns (`UserWarning`) how many u_i were not of unit length (within 1e-3): a network
+        Warns (`InputAdjustedWarning`) how many u_i were not of unit length (within 1e-3): a network
         given longer vectors answers with a wrong rotation and a confident belief.
 
         Raises:
@@ -186,7 +186,7 @@ class SyntheticWahbaDataModule(DrawDataModule):
             warnings.warn(
                 f"{scaled} of {length.numel()} u_i were not of unit length; each pair (u_i, v_i) "
                 "was divided by |u_i|, as the network was trained on unit u_i",
-                UserWarning,
+                InputAdjustedWarning,
                 stacklevel=4,  # the caller of Predictor.__call__ (under no_grad)
             )
         return points / length
