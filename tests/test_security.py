@@ -338,6 +338,33 @@ def test_resume_refuses_payloads_in_saved_overrides(world, override):
     _assert_untouched(world, before)
 
 
+@pytest.mark.parametrize("choice", ["path", "package"])
+def test_resume_refuses_saved_overrides_that_load_configs_from_elsewhere(world, choice):
+    """Hydra reads `group=<path>` as the YAML file at that path from the group's folder: a
+    received run could choose a file of its own as its data config, whose `@package _global_`
+    sets Hydra's callbacks (which Hydra builds, past the allowlist); `group@package=option`
+    puts a config under such a node. Only an option's name is replayed."""
+    run = _resumable_run(world, "")
+    notes = run / "notes.yaml"
+    payload = {"_target_": "builtins.open", "file": str(world.victim), "mode": "w"}
+    body = {
+        "data": rotlearn.config.compose(["data=tiny"]).data,
+        "hydra": {"callbacks": {"pwn": payload}},
+    }
+    notes.write_text("# @package _global_\n" + OmegaConf.to_yaml(body))
+    where = os.path.relpath(run / "notes", config_dir() / "data")
+    saved = {"path": f"data={where}", "package": "+callbacks@hydra.callbacks=ood"}[choice]
+    (run / ".hydra" / "overrides.yaml").write_text(f"- data=tiny\n- {saved}\n")
+    before = world.snapshot()
+    with pytest.raises(SystemExit) as info:
+        resume_arguments([f"ckpt_path={run}"], runs_root=run.parent)
+    said = str(info.value)
+    assert f"override {saved!r}" in said and "overrides.yaml" in said, said
+    assert (f"chooses '{where}' for config group data, not an option's name" if choice == "path"
+            else "puts config group callbacks under hydra.callbacks") in said  # fmt: skip
+    _assert_untouched(world, before)
+
+
 @pytest.mark.parametrize(
     "text",
     [

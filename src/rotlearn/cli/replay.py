@@ -5,8 +5,9 @@ from `<run>/.hydra/overrides.yaml`. That file is data someone may have sent: an 
 `net._target_=torch.load`, `+net.f._target_=builtins.open` or `hydra.callbacks.x._target_=...`
 would run code when Hydra composes and instantiates the run. `saved_overrides` reads the file as
 plain YAML, bounded (a regular file inside the run, at most 256 KiB, no aliases: `rotlearn.io`),
-at most `MAX_OVERRIDES` strings, and refuses Hydra's own keys and sweeps (a run's saved overrides
-hold neither). `replayed_config` composes the config that will run from them and the user's new
+at most `MAX_OVERRIDES` strings, and refuses Hydra's own keys, sweeps, and config group choices
+that are not an option's name (a path to a YAML file, `group@package=`): a run's saved overrides
+hold none of these. `replayed_config` composes the config that will run from them and the user's new
 overrides, exactly as Hydra will, and checks it whole with `rotlearn.trust.trusted_config` BEFORE
 Hydra starts: nothing is written and nothing is built from a refused file. `quoted` makes a path
 (the run directory, the checkpoint) a safe override value whatever characters it holds.
@@ -34,6 +35,9 @@ MAX_OVERRIDE_CHARS = 8192  # one override's text
 # so an escaped `\${oc.env:...}` in their argument would do the same.
 CONFIG_RESOLVERS = ("hydra", "now", "oc.select", "oc.deprecated", "oc.dict.keys",
                     "oc.dict.values")  # fmt: skip
+# A config group option's name: Hydra finds `<group>/<name>.yaml` only where the group is (no
+# path separator; no leading dot); a name that is no option is refused with the nearest ones.
+_OPTION_NAME = re.compile(r"\w[\w.-]*")
 
 
 def quoted(value: str) -> str:
@@ -81,6 +85,40 @@ def _parse(overrides: list[str], source: Path) -> None:
                     "override may use only the resolvers that read the config (a received run "
                     "could read your environment this way); set that value on the command line"
                 )
+    _refuse_configs_from_elsewhere(parsed, source)
+
+
+def _refuse_configs_from_elsewhere(parsed: list[Any], source: Path) -> None:
+    """A saved override may choose a config group's option only by a name, and only where the
+    group puts it. Hydra reads `group=<path>` as a YAML file at that path relative to the
+    group's folder (`data=../../<received run>/notes` makes a file of the run the data config,
+    and its `# @package _global_` may set Hydra's own callbacks, which Hydra builds), and
+    `group@<package>=option` places a config under another node (`hydra.callbacks`): neither
+    is an option of rotlearn's, and neither is in a run's saved overrides. A key is a group as
+    Hydra's config repository sees it (conf/, rotlearn's schemas, plugins' search paths)."""
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
+        loader = GlobalHydra.instance().config_loader()
+        for override in parsed:
+            group = override.key_or_group
+            if "/" not in group and not loader.repository.group_exists(group):
+                continue  # a value key (`seed=3`): Hydra reads its value as a value
+            value = override.value()
+            chosen = value if isinstance(value, list) else [value]
+            paths = [v for v in chosen if v is not None and not _OPTION_NAME.fullmatch(str(v))]
+            if override.package is None and not paths:
+                continue  # a name: an option, or refused later with the nearest options
+            options = ", ".join(loader.get_group_options(group)) or "none"
+            raise UntrustedConfigError(
+                f"{source}: override {override.input_line!r} "
+                + (f"puts config group {group} under {override.package}"
+                   if override.package is not None else
+                   f"chooses {paths[0]!r} for config group {group}, not an option's name "
+                   f"(options: {options})")
+                + "; a run's saved overrides choose rotlearn's own configs by name"
+            )  # fmt: skip
 
 
 def _resolvers(value: Any, line: str, source: Path) -> Iterator[str]:
