@@ -12,6 +12,7 @@ from torch import Tensor
 
 from rotlearn.bingham.descriptors import MAX_DISPERSION, _check_A, eigh
 from rotlearn.bingham.normalizer import log_normalizer
+from rotlearn.geometry.autocast import float32_under_autocast
 
 __all__ = ["sample"]
 
@@ -38,6 +39,7 @@ def _round_size(remaining: int, rate: float) -> int:
     return math.ceil(expect + 4.0 * math.sqrt(expect) + 16)
 
 
+@float32_under_autocast
 def sample(
     A: Tensor, n: int, generator: torch.Generator | None = None, max_rounds: int = _MAX_ROUNDS
 ) -> Tensor:
