@@ -720,6 +720,13 @@ def test_rounds_must_be_positive():
         sym4_eigh_min(torch.eye(4), rounds=0)
 
 
+@pytest.mark.parametrize("gap_eps", [0.0, -1.0, 1.0, float("nan")])
+def test_gap_eps_must_lie_between_0_and_1(gap_eps):
+    """gap_eps <= 0 let the backward divide by a zero gap: NaN gradients for diag(0, 0, 1, 1)."""
+    with pytest.raises(ValueError, match=r"gap_eps must lie in \(0, 1\)"):
+        sym4_eigh_min(torch.diag(torch.tensor([0.0, 0.0, 1.0, 1.0])), gap_eps=gap_eps)
+
+
 def test_default_round_counts():
     assert DEFAULT_ROUNDS == {F32: 12, F64: 14}
 

@@ -131,6 +131,13 @@ def test_sixd_of_first_two_columns_is_identity_map(dtype):
     torch.testing.assert_close(sixd_to_rotmat(v), R, atol=ATOL[dtype], rtol=0)
 
 
+@pytest.mark.parametrize("gap_eps", [0.0, -1e-8, float("nan")])
+def test_special_orthogonalize_needs_a_positive_gap_eps(gap_eps):
+    """gap_eps <= 0 gave NaN gradients where s2 + s3 = 0 (diag(1, 1, -1))."""
+    with pytest.raises(ValueError, match=r"gap_eps must be > 0"):
+        special_orthogonalize(torch.diag(torch.tensor([1.0, 1.0, -1.0])), gap_eps=gap_eps)
+
+
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_special_orthogonalize_fixes_rotations(dtype):
     R = scipy_rotmats(8, 32).to(dtype)

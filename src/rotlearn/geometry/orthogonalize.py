@@ -63,7 +63,7 @@ def special_orthogonalize(M: Tensor, gap_eps: float = 1e-8) -> Tensor:
 
     Args:
         M: (..., 3, 3) matrices, any batch shape, float32 or float64.
-        gap_eps: lower bound on |s_i + s_j| in the backward (see `_SpecialOrthogonalize`).
+        gap_eps: lower bound on |s_i + s_j| in the backward (see `_SpecialOrthogonalize`), > 0.
 
     Returns:
         (..., 3, 3) rotation matrices in M's dtype; under autocast (CPU or CUDA) float32 (the
@@ -72,4 +72,6 @@ def special_orthogonalize(M: Tensor, gap_eps: float = 1e-8) -> Tensor:
         torch.compile.
     """
     require_shape(M, (3, 3), "M")
+    if not gap_eps > 0.0:  # 0 or less: the backward divides by zero at repeated singular values
+        raise ValueError(f"gap_eps must be > 0, got {gap_eps}")
     return _SpecialOrthogonalize.apply(M, gap_eps)[0]
