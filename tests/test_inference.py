@@ -491,6 +491,22 @@ def test_load_of_several_runs_is_their_ensemble_and_calibrates_on_held_out_data(
         rotlearn.load([trained_runs["a"], trained_runs["sixd"]])
 
 
+def test_calibrate_takes_one_rotation_per_input_and_needs_a_belief(trained_runs):
+    """Predictor.calibrate: numpy targets as numpy inputs are taken; a count of targets that is
+    not the inputs' is refused (one target was broadcast over five inputs and fitted, T = 2.7e6);
+    a head without a belief is named (it was "'NoneType' object has no attribute 'double'")."""
+    x = _points(5)
+    predictor = rotlearn.load(trained_runs["a"])
+    targets = predictor(x).R
+    fit = predictor.calibrate(x.numpy(), targets.numpy())
+    assert fit["num"] == 5 and math.isfinite(fit["temperature"])
+    for wrong in (targets[:1], targets[:3], targets[..., :2]):
+        with pytest.raises(ValueError, match=r"^targets must be \(5, 3, 3\) rotations or \(5, 4\)"):
+            predictor.calibrate(x, wrong)
+    with pytest.raises(ValueError, match="this model's head defines no belief"):
+        rotlearn.load(trained_runs["sixd"]).calibrate(x, targets)
+
+
 NO_CUDA = r"device cuda:99: this machine has (no CUDA device|\d+ CUDA device)"
 
 

@@ -74,6 +74,7 @@ __all__ = [
 
 # Input numbers sent through the network at once: the Predictor splits larger batches into
 # chunks of about this many (at least one sample), so its memory stays bounded for any batch.
+NO_BELIEF = "this model's head defines no belief (only rep=a and the Fisher head do)"
 CHUNK_ELEMENTS = 2**20
 
 
@@ -126,10 +127,7 @@ class RotationEstimate:
 
     def _belief(self) -> Tensor:
         if self.A is None:
-            raise ValueError(
-                "this model's head defines no belief (only rep=a and the Fisher head do): "
-                "nothing to sample or score"
-            )
+            raise ValueError(f"{NO_BELIEF}: nothing to sample or score")
         return self.A
 
     def sample(self, n: int, generator: torch.Generator | None = None) -> Tensor:
@@ -327,17 +325,26 @@ class Predictor:
 
         Args:
             inputs: held-out inputs as `__call__` takes them (not the test data).
-            targets: their true rotations (B, 3, 3) or quaternions (B, 4) (x, y, z, w).
+            targets: their true rotations (B, 3, 3) or quaternions (B, 4) (x, y, z, w), a
+                tensor or numpy array, one per input.
 
         Returns:
             {"temperature", "nll_before", "nll_after", "num"}.
+
+        Raises:
+            ValueError: the head defines no belief, or targets is not one rotation per input.
         """
         x = self._validate(inputs)
         x = x.unsqueeze(0) if x.ndim == (3 if self.image_size is not None else 2) else x
+        q = torch.as_tensor(targets).to(torch.float64).cpu()
+        if q.shape not in ((len(x), 4), (len(x), 3, 3)):
+            raise ValueError(f"targets must be ({len(x)}, 3, 3) rotations or ({len(x)}, 4) "
+                             f"quaternions, one per input; got {tuple(q.shape)}")  # fmt: skip
+        q = q if q.shape[-1] == 4 else rotmat_to_quat(q)
         size = max(1, self.chunk_elements // max(1, x[:1].numel()))
+        if not self.head.defines_belief:
+            raise ValueError(f"{NO_BELIEF}: nothing to calibrate")
         A = torch.cat([self._untempered(c).A.double().cpu() for c in x.split(size)])
-        q = targets if targets.shape[-1] == 4 else rotmat_to_quat(targets)
-        q = q.to(torch.float64).cpu()
         fit = bingham.fit_temperature(A, q)
         self.temperature = float(fit.temperature)
         levels = bingham.hpd_level(A / self.temperature, q, 1000, torch.Generator().manual_seed(1))
