@@ -2,7 +2,7 @@
 
 import logging
 
-from rotlearn.logs import logger_at_least
+from rotlearn.logs import logger_at_least, progress
 
 
 def test_logger_at_least_quiets_tensorboards_reader_and_restores_its_level(tmp_path, caplog):
@@ -20,3 +20,15 @@ def test_logger_at_least_quiets_tensorboards_reader_and_restores_its_level(tmp_p
     with caplog.at_level(logging.INFO):  # outside, TensorBoard's own level again
         EventAccumulator(str(tmp_path)).Reload()
     assert any("Directory watcher" in r.getMessage() for r in caplog.records)
+
+
+def test_progress_draws_a_bar_only_where_the_trainers_is_on():
+    import lightning.pytorch as pl
+    from tqdm.auto import tqdm
+
+    batches = [1, 2, 3]
+    quiet = pl.Trainer(enable_progress_bar=False, logger=False, enable_checkpointing=False)
+    assert progress(batches, "scoring", quiet) is batches
+    shown = progress(batches, "scoring", pl.Trainer(logger=False, enable_checkpointing=False))
+    assert isinstance(shown, tqdm) and list(shown) == batches
+    assert isinstance(progress(batches, "scoring"), tqdm)  # no trainer: shown

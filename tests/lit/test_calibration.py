@@ -150,11 +150,17 @@ def test_records_are_never_written_outside_the_run(make_cfg, tmp_path):
 
 
 def test_an_image_pair_run_calibrates_before_its_ood_evaluation_and_eval_reuses_t(
-    make_cfg, tmp_path
+    make_cfg, tmp_path, monkeypatch
 ):
     """data=kitti with callbacks=ood: temperature.json and ood_thresholds.json sit side by side
     (the OOD evaluation ran with the temperature set), and rotlearn-eval applies the stored T
-    without refitting or writing into the run."""
+    without refitting or writing into the run. With trainer.enable_progress_bar=false neither
+    draws a progress bar (a log file got them, a line per batch)."""
+    import tqdm.auto
+
+    def no_bar(*args, **kwargs):
+        raise AssertionError("a progress bar with trainer.enable_progress_bar=false")
+
     from hydra import compose, initialize_config_dir
 
     from rotlearn.checkpoint import THRESHOLDS_FILE
@@ -177,8 +183,10 @@ def test_an_image_pair_run_calibrates_before_its_ood_evaluation_and_eval_reuses_
     model, datamodule, trainer = build(make_cfg(pairs, run_dir=run))
     spy = _SeesTheTemperature()
     trainer.callbacks.insert(0, spy)
-    trainer.fit(model, datamodule=datamodule)
-    trainer.test(model, datamodule=datamodule, verbose=False)
+    with monkeypatch.context() as patch:
+        patch.setattr(tqdm.auto, "tqdm", no_bar)
+        trainer.fit(model, datamodule=datamodule)
+        trainer.test(model, datamodule=datamodule, verbose=False)
     record = read_temperature(run / "checkpoints" / TEMPERATURE_FILE)
     assert record is not None and spy.seen["end"] == record["temperature"]
     assert (run / "checkpoints" / THRESHOLDS_FILE).is_file()

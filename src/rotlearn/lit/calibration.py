@@ -49,6 +49,7 @@ from rotlearn.checkpoint import TEMPERATURE_FILE
 from rotlearn.errors import ConfigError
 from rotlearn.geometry import rotmat_to_quat
 from rotlearn.io import write_json_atomic
+from rotlearn.logs import progress
 
 __all__ = ["PostHocCalibration", "validation_beliefs"]
 
@@ -66,26 +67,20 @@ def _finish(datamodule: Any, batch: Any, module: pl.LightningModule) -> Any:
     return datamodule.on_after_batch_transfer(batch, 0)
 
 
-def _progress(batches: Any) -> Any:
-    """`batches` with a progress bar on stderr that shows only when they take over 2 s."""
-    from tqdm.auto import tqdm
-
-    return tqdm(batches, desc="calibration: validation beliefs", unit="batch", delay=2.0,
-                leave=False, dynamic_ncols=True)  # fmt: skip
-
-
 def validation_beliefs(
-    module: pl.LightningModule, datamodule: Any
+    module: pl.LightningModule, datamodule: Any, trainer: pl.Trainer | None = None
 ) -> tuple[torch.Tensor, torch.Tensor] | None:
     """The untempered beliefs A (N, 4, 4) and targets q (N, 4) of the validation set, float64 on
     the CPU, predicted by `module.head(module.net(...))` in eval mode without gradients; None
-    where the datamodule has no validation samples."""
+    where the datamodule has no validation samples. A progress bar shows when this takes over
+    2 s, unless `trainer`'s is off (`rotlearn.logs.progress`)."""
     was_training = module.training
     module.eval()
     beliefs, targets = [], []
     try:
         with torch.inference_mode():
-            for batch in _progress(datamodule.val_dataloader()):
+            batches = datamodule.val_dataloader()
+            for batch in progress(batches, "calibration: validation beliefs", trainer):
                 batch = _finish(datamodule, batch, module)
                 prediction = module.head(module.net(batch["input"]))
                 beliefs.append(prediction.A.double().cpu())
@@ -128,7 +123,7 @@ class PostHocCalibration(pl.Callback):
             raise ConfigError("calibrate", why)
 
     def on_test_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
-        validation = validation_beliefs(pl_module, trainer.datamodule)
+        validation = validation_beliefs(pl_module, trainer.datamodule, trainer)
         if validation is None:
             if self.required:
                 raise ConfigError(

@@ -35,6 +35,7 @@ from torch import Tensor
 
 from rotlearn.data.corruption import corrupted_flags, erase_boxes
 from rotlearn.errors import ConfigError
+from rotlearn.logs import progress
 from rotlearn.ood.evaluation import (
     REFERENCE_SETS,
     calibrated_threshold,
@@ -81,13 +82,6 @@ def extra_source(source: Any, name: str, overrides: dict[str, Any]) -> Any:
     extra.sets = {}  # `setup` builds the splits again from the changed settings
     extra.setup("test")
     return extra
-
-
-def _progress(batches: Iterable[Any], what: str) -> Iterable[Any]:
-    """`batches` with a progress bar on stderr that shows only when they take over 2 s."""
-    from tqdm.auto import tqdm
-
-    return tqdm(batches, desc=what, unit="batch", delay=2.0, leave=False, dynamic_ncols=True)
 
 
 @config_target
@@ -282,7 +276,7 @@ class OODEvaluation(pl.Callback):
             )
         loaders, flags = self._loaders(source, pl_module.device, pl_module.dtype)
         loaders = {
-            name: _progress(batches, f"OOD scoring: {name.removeprefix('extra:')}")
+            name: progress(batches, f"OOD scoring: {name.removeprefix('extra:')}", trainer)
             for name, batches in loaders.items()
         }
         was_training = pl_module.training
