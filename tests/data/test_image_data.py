@@ -175,6 +175,20 @@ def test_a_thin_frame_is_refused_before_it_is_resized(tmp_path, monkeypatch):
         mav_module(root).read_pair(thin, thin)
 
 
+def test_a_square_size_over_the_pixel_budget_is_refused_before_resizing(tmp_path, monkeypatch):
+    """KITTI's resize to data.image_size had no budget: a received checkpoint's image_size=30000
+    made rotlearn-predict allocate 2.7 GB for the resize alone (then a cv2.error traceback)."""
+    from rotlearn.data import images
+
+    monkeypatch.setattr(images, "MAX_PIXELS", 10_000)  # the same rule at a test's scale
+    root = write_kitti(tmp_path, {"00": yaw_sequence(4, 1.0), "01": yaw_sequence(3, 1.0)})
+    frame = sorted((root / "sequences" / "00" / "image_2").glob("*.png"))[0]
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(frame))}: a \d+x\d+ frame resized to "
+                       r"101x101 is over the pixel budget \(10000 pixels\)$"):  # fmt: skip
+        kitti_module(root, image_size=101).read_pair(frame, frame)
+    assert images.resize_square(np.zeros((20, 26), np.uint8), 100).shape == (100, 100)
+
+
 # -- KITTI bad input ---------------------------------------------------------------------------
 
 

@@ -116,26 +116,32 @@ def read_image(path: Path, gray: bool = False) -> np.ndarray:
     return read_frame(path, gray)[0]
 
 
-def resize_square(image: np.ndarray, size: int) -> np.ndarray:
-    """KITTI (paper VI-C): resize to size x size, ignoring the aspect ratio (area filter)."""
+def _resized(image: np.ndarray, width: int, height: int) -> np.ndarray:
+    """`image` resized to width x height (area filter). ValueError where that is over
+    `MAX_PIXELS` (a size from a config: 30000 x 30000 would take 2.7 GB)."""
     cv2 = import_extra("cv2", "reading and resizing images")
 
-    return cv2.resize(image, (size, size), interpolation=cv2.INTER_AREA)
+    if width * height > MAX_PIXELS:
+        h, w = image.shape[:2]
+        raise ValueError(f"a {w}x{h} frame resized to {width}x{height} is over the pixel "
+                         f"budget ({MAX_PIXELS} pixels)")  # fmt: skip
+    return cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
+
+
+def resize_square(image: np.ndarray, size: int) -> np.ndarray:
+    """KITTI (paper VI-C): resize to size x size, ignoring the aspect ratio (area filter).
+    ValueError where size x size is over `MAX_PIXELS`."""
+    return _resized(image, size, size)
 
 
 def resize_center_crop(image: np.ndarray, resize: int, crop: int) -> np.ndarray:
     """MAV (paper section VI-D): the shorter side to `resize` (aspect kept), then the central
     crop x crop window, as torchvision's Resize(resize) -> CenterCrop(crop). ValueError where
     the resized frame would be over `MAX_PIXELS` (a thin frame, its shorter side scaled up)."""
-    cv2 = import_extra("cv2", "reading and resizing images")
-
     height, width = image.shape[:2]
     scale = resize / min(height, width)
     new_w, new_h = max(crop, round(width * scale)), max(crop, round(height * scale))
-    if new_w * new_h > MAX_PIXELS:  # a thin frame: its shorter side scaled up
-        raise ValueError(f"a {width}x{height} frame resized to {new_w}x{new_h} is over the pixel "
-                         f"budget ({MAX_PIXELS} pixels)")  # fmt: skip
-    resized = cv2.resize(image, (new_w, new_h), interpolation=cv2.INTER_AREA)
+    resized = _resized(image, new_w, new_h)
     top, left = round((new_h - crop) / 2), round((new_w - crop) / 2)
     return resized[top : top + crop, left : left + crop]
 
