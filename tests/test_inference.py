@@ -249,6 +249,21 @@ def test_large_batches_run_in_chunks_of_bounded_size(trained_runs):
         rotlearn.load(trained_runs["a"], chunk_elements=0)
 
 
+def test_a_cloud_over_one_chunk_is_refused_before_the_network(trained_runs, tmp_path, capsys):
+    """One sample cannot be split: a .npy of 5 million point pairs (120 MB, under the file cap)
+    ran PointNet's 1024-channel layer on all of them (about 20 GB), an allocation traceback
+    under a memory limit. A sample over chunk_elements numbers is refused in one line."""
+    predictor = rotlearn.load(trained_runs["a"], chunk_elements=16 * 6)
+    predictor.net.register_forward_hook(lambda *args: pytest.fail("the network ran"))
+    said = r"^a sample of 17 points \(102 numbers\) is over the 96 numbers a forward pass takes"
+    with pytest.raises(ValueError, match=said + r" \(chunk_elements\): subsample it"):
+        predictor(_points(2, 0).repeat(1, 2, 1)[:, :17])
+    path = tmp_path / "big.npy"
+    np.save(path, np.tile(_points(1)[0].numpy(), (2**20 // 16 // 6 + 1, 1)))  # 1 point over
+    assert predict_main([str(trained_runs["a"]), str(path)]) == 2
+    assert capsys.readouterr().err.startswith("rotlearn-predict: a sample of 174768 points")
+
+
 def test_thresholds_beside_the_checkpoint_give_keep_flags(trained_runs, tmp_path):
     import shutil
 

@@ -197,7 +197,8 @@ class Predictor:
         level_map: the recalibration of the tempered belief's credible levels, or None.
         device: where to run.
         chunk_elements: input numbers per forward pass; larger batches are split into chunks
-            of whole samples (at least one), so memory is bounded whatever the batch size.
+            of whole samples (at least one), so memory is bounded whatever the batch size. A
+            point sample (one cloud pair) of more numbers cannot be split and is refused.
     """
 
     def __init__(
@@ -256,6 +257,13 @@ class Predictor:
         if inputs.numel() == 0:
             raise ValueError(
                 f"inputs are empty (no samples or no points): shape {tuple(inputs.shape)}"
+            )
+        if self.image_size is None and inputs.shape[-2:].numel() > self.chunk_elements:
+            points, width = inputs.shape[-2:]
+            raise ValueError(
+                f"a sample of {points} points ({points * width} numbers) is over the "
+                f"{self.chunk_elements} numbers a forward pass takes (chunk_elements): "
+                "subsample it, or load(..., chunk_elements=...) for more"
             )
         finite = torch.isfinite(inputs).flatten(1) if inputs.ndim > 2 else torch.isfinite(inputs)
         if not bool(finite.all()):
