@@ -104,6 +104,26 @@ def test_weights_that_share_one_storage_are_refused(crafted, tmp_path):
     assert path in str(info.value)
 
 
+@pytest.mark.parametrize("kind", ["sparse", "meta"])
+def test_weights_must_be_dense_tensors_with_data(crafted, tmp_path, kind):
+    """A sparse weight (any size it declares) or one on the meta device (no data) gave a
+    traceback from the storage check ('Cannot access storage of SparseTensorImpl', 'item()
+    cannot be called on meta tensors'); it is refused, naming the file and the weight."""
+    names = []
+
+    def edit(c):
+        name = next(n for n, v in c["state_dict"].items() if v.ndim == 2)
+        weight = c["state_dict"][name]
+        names.append(name)
+        c["state_dict"][name] = (weight.to_sparse() if kind == "sparse"
+                                 else torch.empty(weight.shape, device="meta"))  # fmt: skip
+
+    path = crafted(edit)
+    with unchanged(tmp_path), pytest.raises(ValueError, match="dense tensors") as info:
+        rotlearn.load(path)
+    assert path in str(info.value) and names[0] in str(info.value)
+
+
 @pytest.mark.parametrize("dtype", [torch.int64, torch.bool, torch.complex64])
 def test_weights_must_be_floating_point(crafted, tmp_path, dtype):
     def edit(c):

@@ -469,7 +469,8 @@ def check_weights(
     Raises:
         ValueError: naming `where` and the first names at fault: missing or unexpected names,
             another shape, a floating tensor stored as integers or bools (or the reverse),
-            a floating weight that is NaN or infinite in the module's dtype, or weights that
+            a floating weight that is NaN or infinite in the module's dtype, a sparse weight or
+            one without data (meta device), or weights that
             hold more bytes than they store (a file of kilobytes whose views of one value
             would make a model of gigabytes).
     """
@@ -484,6 +485,12 @@ def check_weights(
         raise ValueError(
             f"{where}: the stored weights do not fit the saved config's model "
             f"({'; '.join(p for p in parts if p)})"
+        )
+    odd = sorted(full(n) for n, t in stored.items() if t.layout != torch.strided or t.is_meta)
+    if odd:  # a sparse tensor has no storage to measure; a meta one no data
+        raise ValueError(
+            f"{where}: weights must be dense tensors with data; sparse or on the meta device: "
+            f"{_listed(odd)}"
         )
     storages = {s.data_ptr(): s.nbytes() for s in (t.untyped_storage() for t in stored.values())}
     held = sum(t.numel() * t.element_size() for t in stored.values())
