@@ -92,6 +92,27 @@ def test_curves_show_whole_epochs_plain_numbers_and_one_legend_entry_per_group(t
     assert curves_figure({"val": {"a": []}}) is None
 
 
+@pytest.mark.filterwarnings("ignore:constrained_layout not applied")  # a 400-letter label
+@pytest.mark.parametrize("label", ["$" + "\\sqrt{" * 200 + "x" + "}" * 200 + "$", "$\\nosuchcmd{$"])
+def test_a_label_is_drawn_as_written_not_read_as_tex_math(tmp_path, label):
+    """Labels come from config values, a received run's too: matplotlib read `$...$` as TeX math,
+    and a nested one raised RecursionError (an unknown command ParseFatalException) midway
+    through rotlearn-report, which left summary.csv without report.md."""
+    from rotlearn.report.figures import error_boxes_figure, score_boxes_figure
+
+    runs = {f"a data.camera={label}": [np.array([3.0, 2.0, 1.0])]}
+    curves = curves_figure({f"val {label}": runs})
+    boxes = error_boxes_figure({label: {label: np.array([1.0, 2.0, 3.0])}}, label)
+    scores = score_boxes_figure(
+        "dt", True, {label: np.array([1.0, 2.0]), "val": np.array([0.5, 1.5])}
+    )
+    for name, fig in {"curves": curves, "boxes": boxes, "scores": scores}.items():
+        save_figure(fig, tmp_path / f"{name}.png")
+        texts = [t.get_text() for t in fig.findobj(lambda a: hasattr(a, "get_parse_math"))]
+        assert any(label in t for t in texts), name
+    assert [t.get_text() for t in curves.legends[0].get_texts()] == [f"a data.camera={label}"]
+
+
 @pytest.mark.parametrize("umask", [0o022, 0o077])
 def test_a_saved_figure_follows_the_umask(tmp_path, umask):
     import os

@@ -73,9 +73,14 @@ def save_figure(fig: Any, path: str | os.PathLike, dpi: int = 100) -> Path:
 
 
 def _fit(fig: Any) -> None:
-    """Lay the figure out so that labels, titles and legends stay inside it and apart."""
+    """Lay the figure out so that labels, titles and legends stay inside it and apart, and draw
+    every text as written: a `$` in a label (a config value of a received run, as
+    `data.camera="$\\sqrt{...}$"`) is a dollar sign, not TeX math that matplotlib parses (a
+    RecursionError or ParseFatalException midway through a report)."""
     if fig.get_layout_engine() is None:
         fig.set_layout_engine("constrained")
+    for text in fig.findobj(lambda artist: hasattr(artist, "set_parse_math")):
+        text.set_parse_math(False)
 
 
 def _wrap(text: str, width: int = 40) -> str:
