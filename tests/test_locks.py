@@ -69,3 +69,24 @@ def test_a_symlinked_lock_file_is_never_written_through(tmp_path):
     with pytest.raises(ValueError, match="lock file"):
         hold_run(run)
     assert victim.read_text() == "precious\n"
+
+
+@pytest.mark.parametrize(
+    "holder",
+    [
+        {"pid": 1, "started": "yesterday"},
+        {"pid": 1, "started": 1e300},
+        {"pid": "1\x1b[2J\x07", "host": "h" * 3000, "started": None, "command": ["x"]},
+    ],
+)
+def test_a_stale_lock_file_a_run_came_with_is_shown_as_plain_text(tmp_path, caplog, holder):
+    """A received run may carry its .rotlearn.lock: a start time that is no time raised a
+    TypeError or OverflowError traceback; a field with terminal escapes or of any length was
+    printed as it was. The holder is said in one plain, bounded line."""
+    (tmp_path / LOCK_FILE).write_text(json.dumps(holder))
+    with caplog.at_level("WARNING", logger="rotlearn"):
+        hold_run(tmp_path)
+    release_run(tmp_path)
+    said = caplog.records[-1].getMessage()
+    assert "took over the stale lock of pid 1" in said and "since ?" in said
+    assert all(c.isprintable() for c in said) and len(said) < 1000

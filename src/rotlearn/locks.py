@@ -33,12 +33,24 @@ class RunLockedError(RuntimeError):
 
 
 def _describe(holder: dict[str, Any] | None) -> str:
+    """Who holds (or held) a run's lock, from its lock file: data a received run may carry, so
+    each field is shown as plain text of at most 200 characters (control characters dropped),
+    and a start time that is no time is "?"."""
     if not holder:
         return "another process (it has not yet written who it is)"
-    started = holder.get("started")
-    when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(started)) if started else "?"
-    command = holder.get("command") or "?"
-    return f"pid {holder.get('pid', '?')} on {holder.get('host', '?')} since {when} ({command})"
+    try:
+        when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(float(holder.get("started"))))
+    except (TypeError, ValueError, OverflowError, OSError):  # not a number of seconds
+        when = "?"
+    pid, host, command = (_shown(holder.get(key)) for key in ("pid", "host", "command"))
+    return f"pid {pid} on {host} since {when} ({command})"
+
+
+def _shown(value: Any) -> str:
+    text = (
+        "".join(c for c in str(value)[:200] if c.isprintable()) if value not in (None, "") else ""
+    )
+    return text or "?"
 
 
 def _read_holder(handle: IO[str]) -> dict[str, Any] | None:
