@@ -231,6 +231,22 @@ def test_the_evaluation_runs_on_the_devices_its_command_line_gives(finished_run,
         assert "strategy" not in trainer
 
 
+def test_the_evaluation_runs_the_loader_processes_its_command_line_gives(finished_run, tmp_path):
+    """A checkpoint's data.num_workers=64 made rotlearn-eval run 317 processes at once."""
+    from hydra import compose, initialize_config_dir
+
+    from rotlearn.cli.evaluate import evaluation_config
+    from rotlearn.paths import config_dir
+
+    saved = load_run(finished_run)
+    OmegaConf.update(saved.config, "data.num_workers", 64, force_add=True)
+    for given, workers in (([], None), (["data.num_workers=3"], 3)):
+        with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
+            cfg = compose("eval", [f"ckpt={finished_run}", f"paths.output_dir={tmp_path}", *given])
+        data = evaluation_config(cfg, saved).data
+        assert data.get("num_workers") == workers  # None: the datamodule's own default
+
+
 def test_a_run_cannot_send_the_loader_outside_it_through_a_symlink(finished_run, tmp_path):
     from rotlearn.checkpoint import TEMPERATURE_FILE
     from tests.conftest import copy_run

@@ -64,7 +64,8 @@ def evaluation_config(cfg: DictConfig, saved: SavedRun) -> DictConfig:
     """The saved run config (already checked: `rotlearn.checkpoint.load_run`) with the
     evaluation's overrides, OOD callback and output paths. Of the saved trainer config only the
     keys in `SAVED_TRAINER_KEYS` are kept; the devices and the rest come from the evaluation's
-    own command line (a checkpoint never chooses how many processes are launched)."""
+    own command line, as `data.num_workers` does (a checkpoint never chooses how many processes
+    are launched: a received one said 64 loader workers, and eval ran 317 processes)."""
     if saved.task == "autoencoder":
         use = f"it scores a head run's test pairs with ood.autoencoder_ckpt={cfg.ckpt}"
         raise ConfigError("ckpt", f"{cfg.ckpt} is an auto-encoder, not a rotation model: {use}")
@@ -79,6 +80,7 @@ def evaluation_config(cfg: DictConfig, saved: SavedRun) -> DictConfig:
     out = cfg.paths.output_dir
     run.callbacks = {"ood": OmegaConf.merge(_run_ood(run.get("callbacks")), _set(cfg.ood))}
     run.data.pop("cache_dir", None)  # caches go where this command line says, or under data.root
+    run.data.pop("num_workers", None)  # loader processes: this command line's, or the default
     run.data = OmegaConf.merge(run.data, _set(cfg.data))
     trainer = {k: v for k, v in run.trainer.items() if k in SAVED_TRAINER_KEYS}
     trainer["_target_"] = "lightning.pytorch.Trainer"
