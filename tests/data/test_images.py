@@ -131,6 +131,31 @@ def test_a_shipped_frame_cache_that_does_not_fit_is_rebuilt(tmp_path):
     np.testing.assert_array_equal(cached(), genuine)
 
 
+def test_a_shipped_cache_that_fits_is_not_trusted_over_the_frames(tmp_path):
+    """A dataset archive can ship a cache whose manifest matches (the same paths, sizes and
+    modification times, which an archive keeps) beside frames other than its PNGs: a model
+    trained on pixels no one looked at. The manifest also records each file's inode change
+    time, which unpacking sets and no archive carries: a shipped cache is rebuilt."""
+    import shutil
+
+    root = write_kitti(tmp_path / "data", {"00": yaw_sequence(4, 1.0), "01": yaw_sequence(3, 1.0)})
+
+    def cached() -> np.ndarray:
+        dm = KittiOdometryDataModule(str(root), train_sequences=["01"], test_sequences=["00"],
+                                     image_size=8, num_workers=0)  # fmt: skip
+        dm.setup()
+        return np.load(next((root / ".rotlearn_cache").glob("00_*.npy")))
+
+    genuine = cached()
+    np.testing.assert_array_equal(cached(), genuine)  # reused as it is on this machine
+    array = next((root / ".rotlearn_cache").glob("00_*.npy"))
+    np.save(array, 255 - genuine)  # the poisoned frames, in the cache the archive ships
+    packed = shutil.copytree(root, tmp_path / "archive")  # copy2: sizes and mtimes kept
+    shutil.rmtree(root)
+    shutil.move(packed, root)  # unpacked where the data was: the same paths
+    np.testing.assert_array_equal(cached(), genuine)
+
+
 def test_a_sequence_mixing_bit_depths_is_refused_naming_the_frame(tmp_path):
     root = write_kitti(tmp_path, {"00": yaw_sequence(4, 1.0), "01": yaw_sequence(3, 1.0)})
     frame = root / "sequences" / "00" / "image_2" / "000002.png"

@@ -179,11 +179,12 @@ def read_mesh(path: str | os.PathLike):
 def sample_meshes(paths: list[Path], num_points: int, cache: Path, seed: int = 0) -> np.ndarray:
     """Surface samples of meshes, (M, num_points, 3) float32, cached in `cache` (.npy + .json).
 
-    The cache is reused only if its manifest (read bounded) lists the same files, each of the
-    same size and modification time (`rotlearn.io.cache_manifest`: an edited mesh is sampled
-    again), point count, seed and reader, and its array holds (M, num_points, 3) float32 within
-    `MAX_COORDINATE`; anything else in the cache folder (a named pipe, a huge or foreign file)
-    is rebuilt over. Each mesh is checked by `read_mesh`; an error leaves no cache behind.
+    The cache is reused only if its manifest (read bounded) lists the same files, each of the same
+    size, modification time and inode change time (`rotlearn.io.cache_manifest`: an edited mesh
+    is sampled again, a cache shipped with the dataset rebuilt), point count, seed and reader,
+    and its array holds (M, num_points, 3) float32 within `MAX_COORDINATE`; anything else in the
+    cache folder (a named pipe, a huge or foreign file) is rebuilt over. Each mesh is checked by
+    `read_mesh`; an error leaves no cache behind.
     """
     recipe = {"num_points": num_points, "seed": seed, "reader": "rotlearn.data.shapenet.read_obj"}
     manifest = cache_manifest(paths, recipe, "mesh")
