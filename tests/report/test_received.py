@@ -72,6 +72,30 @@ def test_a_plot_file_a_received_config_names_stays_in_the_report_folder(
     assert (sweep / "0" / "metrics.json").read_text() == records
 
 
+def test_received_config_text_reads_as_written_in_the_report(tmp_path):
+    """Settings and keys come from the runs' configs: `<img onerror=...>` and a key holding
+    `<script>` reached report.md as raw HTML, `[x](javascript:...)` as a link, and line breaks
+    in a value as new rows and headings. Rendered, the report shows them as text."""
+    from markdown_it import MarkdownIt
+
+    sweep = tmp_path / "sweep"
+    hostile = {
+        "rep": {"name": "a <img src=x onerror=alert(1)>"},
+        "optim": {"lr": "[click me](javascript:alert(document.cookie))"},
+        "zz\n\n<script>alert(2)</script>\n\n# Heading from a key": "x\r\r<script>alert(3)</script>",
+    }
+    for seed in (0, 1):
+        run = _run(sweep / str(seed), seed=seed, error=1.0 + seed)
+        config = yaml.safe_load((run / ".hydra" / "config.yaml").read_text())
+        config.update(hostile if seed == 0 else {})
+        (run / ".hydra" / "config.yaml").write_text(yaml.safe_dump(config))
+    assert main([str(sweep)]) == 0
+    html = MarkdownIt("commonmark").enable("table").render((sweep / "report.md").read_text())
+    assert "<script" not in html and "<img src=x" not in html
+    assert 'href="javascript' not in html and html.count("<h1>") == 1
+    assert "onerror=alert(1)" in html  # shown, as text
+
+
 def test_a_job_folder_or_file_that_leads_out_of_the_sweep_is_not_read(tmp_path, caplog):
     """A received sweep's job folder that is a symlink to a run elsewhere (`sweep/1 -> victim`)
     was read as one of its jobs: the other run's metrics were copied into summary.csv. So was an

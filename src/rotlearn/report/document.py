@@ -153,7 +153,8 @@ def _grouping_note(done: pd.DataFrame, grouping: list[str], layout: Mapping[str,
         )
     keys = ", ".join(grouping) if grouping else "none differ"
     return (
-        f"{len(settings)} setting(s) of completed runs, {rule}: {keys}. Other groupings: "
+        f"{len(settings)} setting(s) of completed runs, {tables.markdown_text(rule)}: "
+        f"{tables.markdown_text(keys)}. Other groupings: "
         "rotlearn-report"
         " --group-by KEY ... or --pool KEY ..."
     )
@@ -209,7 +210,7 @@ def _plots(done, runs, layout, out: Path, files: dict[str, Path]) -> list[str]:
             done = done[done[x].notna()]
             done = done.assign(series=label_without(runs.loc[done.index], [x]))
             rows, values = tables.setting_order(done, "series"), _sorted(done[x])
-            md += [f"## Median test error (degrees) per {label}", "",
+            md += [f"## Median test error (degrees) per {tables.markdown_text(label)}", "",
                    tables.box_table(done, x, label, rows, values), ""]  # fmt: skip
             groups = {
                 row: {v: _errors(done[(done["series"] == row) & (done[x] == v)]) for v in values}
@@ -218,7 +219,7 @@ def _plots(done, runs, layout, out: Path, files: dict[str, Path]) -> list[str]:
             fig = figures.error_boxes_figure(groups, label)
             if fig is not None:
                 files[Path(name).stem] = figures.save_figure(fig, out / name, dpi=110)
-                md += [f"![log10 test error per {label}]({name})", ""]
+                md += [f"![log10 test error per {tables.markdown_text(label)}]({name})", ""]
         elif kind == "curves":
             name = plot["file"]
             metrics = [str(t) for t in plot.get("metrics") or CURVE_METRICS]
@@ -310,7 +311,7 @@ def _beliefs(done: pd.DataFrame, out: Path, files: dict[str, Path]) -> list[str]
         md += ["Reliability of the credible regions (coverage against level; on the diagonal: "
                "calibrated, below it: over-confident, above it: too wide):", "",
                f"![reliability diagram]({OUTPUT_FILES['reliability']})", ""]  # fmt: skip
-        md += [f"- {r}" for r in remedies] + ([""] if remedies else [])
+        md += [f"- {tables.markdown_text(r)}" for r in remedies] + ([""] if remedies else [])
     return md
 
 
@@ -469,12 +470,16 @@ def _ood_sections(frames, layout, out: Path, files: dict[str, Path]) -> list[str
     paper = layout.get("paper")
     if isinstance(paper, Mapping) and paper.get("rows"):
         ours = ood[ood["score"] != tables.ORACLE]  # the oracle has no paper row
-        where = ", ".join(f"{k}={v}" for k, v in (paper.get("where") or {}).items())
-        md += [f"### Side by side with the paper ({paper.get('source', 'paper')})", "",
+        where = tables.markdown_text(
+            ", ".join(f"{k}={v}" for k, v in (paper.get("where") or {}).items())
+        )
+        source = tables.markdown_text(paper.get("source", "paper"))
+        md += [f"### Side by side with the paper ({source})", "",
                "Each cell: ours (the paper's); ours over a method's runs (seeds) as mean "
                "[min-max], AUROC as mean (min-max). The paper's numbers are on real data at full "
-               "size" + (f"; compared: our runs with {where}" if where else "") + ". "
-               + str(paper.get("note", "")), "", tables.paper_table(ours, paper), ""]  # fmt: skip
+               "size" + (f"; compared: our runs with {where}" if where else "")
+               + ". " + tables.markdown_text(paper.get("note", "")), "",
+               tables.paper_table(ours, paper), ""]  # fmt: skip
     quantiles = options.get("quantiles")
     quantiles = [float(q) for q in quantiles] if isinstance(quantiles, list) else None
     md += ["## OOD scores on each test set", "",
@@ -615,8 +620,9 @@ def _ood_figures(
     if examples:
         md += ["### Example test pairs with their scores", ""]
         for run, path in examples:
-            md += [f"{run['setting']} (job {run['job']}):", "",
-                   f"![examples {run['setting']}]({os.path.relpath(path, out)})", ""]  # fmt: skip
+            setting = tables.markdown_text(run["setting"])
+            md += [f"{setting} (job {tables.markdown_text(run['job'])}):", "",
+                   f"![examples {setting}]({os.path.relpath(path, out)})", ""]  # fmt: skip
     return ["## OOD figures", "", *md] if md else []
 
 

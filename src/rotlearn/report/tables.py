@@ -4,12 +4,14 @@
 A leaf of floor 4 (pandas and floors 0-1): floor-3 callbacks write their tables with it.
 Numbers are rounded for reading (`digits`, or a format per column); NaN and missing values read
 "-"; an infinite value reads "inf" and the table then ends with a line that says what it means
-(`INFINITE_NOTE`); a "|" inside a cell is escaped.
+(`INFINITE_NOTE`); every cell and header is text as written (`markdown_text`).
 """
 
 from __future__ import annotations
 
 import math
+import re
+import unicodedata
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -25,6 +27,7 @@ __all__ = [
     "box_table",
     "failed_table",
     "markdown_table",
+    "markdown_text",
     "mean_range",
     "ood_markdown",
     "paper_table",
@@ -49,6 +52,22 @@ def _missing(value: Any) -> bool:
     return value is None or (isinstance(value, float) and math.isnan(value)) or value is pd.NA
 
 
+_MARKDOWN = re.compile(r"([\\\[\]|#])")  # a backslash, links and images, table cells, headings
+
+
+def markdown_text(value: Any) -> str:
+    """`value` as Markdown text that reads as written, whatever a received run's config says:
+    line breaks and other control characters become spaces (no new rows, headings or blocks),
+    `&`, `<`, `>` HTML entities (no raw HTML: `<script>`, `<img onerror=...>`), and a
+    backslash, `[`, `]`, `|` and `#` backslash-escaped (no links such as
+    `[x](javascript:...)`, no table cells, no headings)."""
+    text = "".join(
+        " " if unicodedata.category(c)[0] in "CZ" and c != " " else c for c in str(value)
+    )
+    text = text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
+    return _MARKDOWN.sub(r"\\\1", text)
+
+
 def _cell(value: Any, fmt: Format | None, digits: int) -> str:
     if _missing(value):
         return "-"
@@ -58,7 +77,7 @@ def _cell(value: Any, fmt: Format | None, digits: int) -> str:
         text = f"{value:.{digits}f}"
     else:
         text = str(value)
-    return text.replace("|", "\\|").replace("\n", " ")
+    return markdown_text(text)
 
 
 def markdown_table(
@@ -81,7 +100,8 @@ def markdown_table(
         columns = list(dict.fromkeys(k for r in records for k in r))
     pairs = [(c, c) if isinstance(c, str) else (c[0], c[1]) for c in columns]
     formats = dict(formats or {})
-    lines = ["| " + " | ".join(header for _, header in pairs) + " |", "|" + "---|" * len(pairs)]
+    headers = [markdown_text(header) for _, header in pairs]
+    lines = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(pairs)]
     infinite = False
     for record in records:
         values = [record.get(key) for key, _ in pairs]
