@@ -88,6 +88,7 @@ def test_each_kind_has_its_cap(tmp_path, monkeypatch):
         ("config.yaml", "[" * 10_000 + "]" * 10_000, "not plain YAML data"),  # the parser's limit
         ("config.yaml", "!!python/object/apply:os.system ['true']", "not plain YAML data"),
         ("config.yaml", "a: [unclosed", "not plain YAML data"),
+        ("config.yaml", "pad: [" + "0," * 70_000 + "0]", r"more than 65536 YAML values"),
     ],
 )
 def test_a_malformed_record_or_config_is_named(tmp_path, name, text, reason):

@@ -95,6 +95,8 @@ MAX_BYTES: dict[str, int] = {
 MAX_LINE_CHARS = _MIB  # a line of a text file of rows (`word_rows`): split into words, ~24x
 MAX_DEPTH = 64  # nesting of a JSON or YAML document (rotlearn's own files nest a few levels)
 MAX_NODES = 2**20  # values in one loaded document or checkpoint (a tensor counts as one)
+MAX_YAML_NODES = 2**16  # values in one YAML document (a run's config holds a few hundred): a
+# 4 MiB config of 2 million list items took eval 5 minutes and 2.7 GB to merge and a report more
 
 
 class UnreadableFileError(ValueError):
@@ -428,7 +430,7 @@ def read_table(path: str | os.PathLike, root: str | os.PathLike | None = None) -
 def parse_yaml(text: str, where: str) -> Any:
     """Plain data of a YAML document: no tags beyond YAML's own (safe loading), no aliases (a
     file rotlearn writes has none; an alias can multiply a small file into gigabytes), nesting
-    at most `MAX_DEPTH`.
+    at most `MAX_DEPTH`, at most `MAX_YAML_NODES` values (scalars and collections).
 
     Raises:
         UnreadableFileError: naming `where` (and the line) when it is not such YAML.
@@ -436,9 +438,11 @@ def parse_yaml(text: str, where: str) -> Any:
     import yaml
 
     loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
-    depth = 0
+    depth = nodes = 0
     try:
         for event in yaml.parse(text, Loader=loader):
+            if isinstance(event, yaml.NodeEvent) and (nodes := nodes + 1) > MAX_YAML_NODES:
+                raise UnreadableFileError(f"{where}: more than {MAX_YAML_NODES} YAML values")
             if isinstance(event, yaml.AliasEvent):
                 line = event.start_mark.line + 1 if event.start_mark else "?"
                 raise UnreadableFileError(
