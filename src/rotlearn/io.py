@@ -83,7 +83,8 @@ MAX_BYTES: dict[str, int] = {
     "JSON record": 16 * _MIB,  # status.json, metrics.json, timing.json, jobs.json, test_errors.json
     "YAML config": 4 * _MIB,  # .hydra/config.yaml and hydra.yaml
     "overrides file": 256 * _KIB,  # .hydra/overrides.yaml: one run's command line
-    "CSV table": 256 * _MIB,  # ood.csv, ood_samples.csv, csv/metrics.csv
+    "CSV table": 256 * _MIB,  # ood.csv, ood_samples.csv
+    "metrics log": 64 * _MIB,  # csv/metrics.csv (a row per logging step; a run's is kilobytes)
     "text file": 256 * _MIB,  # a dataset's text files (poses, frame lists, point clouds)
     "number array": 256 * _MIB,  # a .npy array of numbers (rotlearn-predict's point pairs)
     "camera frame": _GIB,  # an image file: twice a frame of 2^26 pixels (the pixel budget,
@@ -409,21 +410,31 @@ def read_cached_array(
     return array
 
 
-def read_table(path: str | os.PathLike, root: str | os.PathLike | None = None) -> Any:
-    """A CSV file as a pandas DataFrame, read bounded (`read_text`, "CSV table").
+def read_table(
+    path: str | os.PathLike,
+    root: str | os.PathLike | None = None,
+    kind: str = "CSV table",
+    columns: Sequence[str] | None = None,
+) -> Any:
+    """A UTF-8 CSV file as a pandas DataFrame, read bounded (`read_bytes`, `kind`), parsed from
+    the bytes read (no copy as text).
+
+    Args:
+        columns: only these columns, those the file has (None: every column).
 
     Raises:
-        FileNotFoundError, UnreadableFileError: as `read_text`; ValueError naming the file when
-            pandas cannot parse it.
+        FileNotFoundError, UnreadableFileError: as `read_bytes`; UnreadableFileError naming the
+            file when it is not UTF-8 or pandas cannot parse it.
     """
     import io
 
     import pandas as pd
 
-    text = read_text(path, "CSV table", root)
+    data = read_bytes(path, kind, root)
+    wanted = None if columns is None else set(columns).__contains__
     try:
-        return pd.read_csv(io.StringIO(text))
-    except (ValueError, pd.errors.ParserError) as exc:
+        return pd.read_csv(io.BytesIO(data), encoding="utf-8", usecols=wanted)
+    except (ValueError, pd.errors.ParserError) as exc:  # UnicodeDecodeError is a ValueError
         raise UnreadableFileError(f"{path}: not a CSV table ({exc})") from None
 
 

@@ -169,6 +169,15 @@ def _metrics_csv(sweep: Path) -> str:
     return f"{sweep / '0' / 'csv' / 'metrics.csv'}: column val/err_mean is not numeric"
 
 
+def _huge_metrics_csv(sweep: Path) -> str:
+    """Just under the CSV cap of 256 MiB, rows of zeros took 3.3 GB to parse (a traceback after
+    summary.csv); a metrics log has its own cap, far below, and only two columns are parsed."""
+    (sweep / "0" / "csv").mkdir()
+    with open(sweep / "0" / "csv" / "metrics.csv", "w") as f:
+        f.write("epoch,val/err_mean,x\n" + "0,0,0\n" * (2**26 // 6 + 1))
+    return f"{sweep / '0' / 'csv' / 'metrics.csv'}: too large for a metrics log"
+
+
 def _ood_csv(sweep: Path) -> str:
     (sweep / "0" / "ood.csv").write_text("a,b\n1,2\n")
     return f"{sweep / '0' / 'ood.csv'} unreadable (not an OOD table (no column score"
@@ -180,7 +189,9 @@ def _ood_samples(sweep: Path) -> str:
     return f"{sweep / '1' / 'ood_samples.csv'} unreadable (no set corrupted"
 
 
-@pytest.mark.parametrize("craft", [_jobs_status, _metrics_csv, _ood_csv, _ood_samples])
+@pytest.mark.parametrize(
+    "craft", [_jobs_status, _metrics_csv, _huge_metrics_csv, _ood_csv, _ood_samples]
+)
 def test_a_crafted_file_of_a_run_is_named_in_a_warning_and_left_out(tmp_path, capsys, caplog,
                                                                     craft):  # fmt: skip
     """A jobs.json whose status is a mapping (AttributeError), a metrics.csv with text for a

@@ -168,9 +168,9 @@ def _curve(run: Path, key: str) -> np.ndarray | None:
     csv = run / "csv" / "metrics.csv"
     if os.path.lexists(csv):
         try:
-            frame = read_table(csv, root=run)  # bounded: a regular file inside the run
-        except (OSError, ValueError) as exc:
-            log.warning("%s (ignored)", exc)
+            frame = read_table(csv, run, "metrics log", ("epoch", key))  # bounded, in the run
+        except (OSError, ValueError, MemoryError) as exc:
+            log.warning("%s (ignored)", exc if str(exc) else f"{csv}: {type(exc).__name__}")
             frame = pd.DataFrame()
         if key in frame and "epoch" in frame:
             numeric = [c for c in ("epoch", key) if not pd.api.types.is_numeric_dtype(frame[c])]
