@@ -113,6 +113,18 @@ def test_a_label_is_drawn_as_written_not_read_as_tex_math(tmp_path, label):
     assert [t.get_text() for t in curves.legends[0].get_texts()] == [f"a data.camera={label}"]
 
 
+def test_a_text_longer_than_max_text_is_cut_and_keeps_apart_from_its_neighbour():
+    """A received config value of 100000 characters took 50 s to draw in a legend; a figure's
+    text is cut to MAX_TEXT characters, ending in a hash of the whole."""
+    from rotlearn.report.figures import MAX_TEXT
+
+    long = "a note=" + "A" * 100_000
+    runs = {long + "1": [np.array([3.0, 2.0])], long + "2": [np.array([2.0, 1.0])]}
+    legend = [t.get_text() for t in curves_figure({"val": runs}).legends[0].get_texts()]
+    assert all(len(t) == MAX_TEXT and t.startswith("a note=AAA") for t in legend)
+    assert len(set(legend)) == 2  # the hashes tell the two apart
+
+
 @pytest.mark.parametrize("umask", [0o022, 0o077])
 def test_a_saved_figure_follows_the_umask(tmp_path, umask):
     import os

@@ -24,8 +24,10 @@ import numpy as np
 
 from rotlearn.bingham.calibration import CREDIBLE_LEVELS
 from rotlearn.io import atomic_write
+from rotlearn.report.identity import shortened
 
 __all__ = [
+    "MAX_TEXT",
     "UNCALIBRATED_ECE",
     "box_groups",
     "calibration_remedy",
@@ -43,6 +45,7 @@ __all__ = [
 ]
 
 UNCALIBRATED_ECE = 0.1  # above this ECE the reliability diagram says what to do
+MAX_TEXT = 2000  # characters of one text of a figure (a label, a title, the remedies' box)
 LABELS = {"dt": "DT", "eigengap": "gap", "raw_norm": "norm", "autoencoder": "AE"}
 
 
@@ -76,11 +79,13 @@ def _fit(fig: Any) -> None:
     """Lay the figure out so that labels, titles and legends stay inside it and apart, and draw
     every text as written: a `$` in a label (a config value of a received run, as
     `data.camera="$\\sqrt{...}$"`) is a dollar sign, not TeX math that matplotlib parses (a
-    RecursionError or ParseFatalException midway through a report)."""
+    RecursionError or ParseFatalException midway through a report), at most `MAX_TEXT`
+    characters (a received value of 100000 took 50 s to draw in a legend)."""
     if fig.get_layout_engine() is None:
         fig.set_layout_engine("constrained")
     for text in fig.findobj(lambda artist: hasattr(artist, "set_parse_math")):
         text.set_parse_math(False)
+        text.set_text(shortened(text.get_text(), MAX_TEXT))
 
 
 def _wrap(text: str, width: int = 40) -> str:

@@ -29,6 +29,7 @@ __all__ = [
     "select",
     "set_keys",
     "short_value",
+    "shortened",
     "swept_keys",
 ]
 
@@ -194,7 +195,13 @@ def run_name(
     name = ",".join(parts).replace("/", "_") or "defaults"
     if name in (".", ".."):
         name = "defaults"
-    if len(name) > MAX_NAME_LENGTH:
-        digest = hashlib.sha1(name.encode()).hexdigest()[:8]
-        name = f"{name[: MAX_NAME_LENGTH - 9]}~{digest}"
-    return name
+    return shortened(name, MAX_NAME_LENGTH)
+
+
+def shortened(text: str, limit: int) -> str:
+    """`text` cut to `limit` characters where it is longer, ending in `~` and a hash of the
+    whole (two long texts that differ only past the cut stay apart)."""
+    if len(text) <= limit:
+        return text
+    digest = hashlib.sha1(text.encode()).hexdigest()[:8]
+    return f"{text[: limit - 9]}~{digest}"
