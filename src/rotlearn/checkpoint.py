@@ -470,9 +470,8 @@ def check_weights(
         ValueError: naming `where` and the first names at fault: missing or unexpected names,
             another shape, a floating tensor stored as integers or bools (or the reverse),
             a floating weight that is NaN or infinite in the module's dtype, a sparse weight or
-            one without data (meta device), or weights that
-            hold more bytes than they store (a file of kilobytes whose views of one value
-            would make a model of gigabytes).
+            one without data (meta device), or weights that hold more bytes than they store (a
+            file of kilobytes whose views of one value would make a model of gigabytes).
     """
     import torch
 

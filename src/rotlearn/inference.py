@@ -74,8 +74,8 @@ __all__ = [
 
 # Input numbers sent through the network at once: the Predictor splits larger batches into
 # chunks of about this many (at least one sample), so its memory stays bounded for any batch.
-NO_BELIEF = "this model's head defines no belief (only rep=a and the Fisher head do)"
 CHUNK_ELEMENTS = 2**20
+NO_BELIEF = "this model's head defines no belief (only rep=a and the Fisher head do)"
 
 
 @dataclass(frozen=True)
@@ -342,6 +342,8 @@ class Predictor:
         Raises:
             ValueError: the head defines no belief, or targets is not one rotation per input.
         """
+        if not self.head.defines_belief:
+            raise ValueError(f"{NO_BELIEF}: nothing to calibrate")
         x = self._validate(inputs)
         x = x.unsqueeze(0) if x.ndim == (3 if self.image_size is not None else 2) else x
         q = torch.as_tensor(targets).to(torch.float64).cpu()
@@ -350,8 +352,6 @@ class Predictor:
                              f"quaternions, one per input; got {tuple(q.shape)}")  # fmt: skip
         q = q if q.shape[-1] == 4 else rotmat_to_quat(q)
         size = max(1, self.chunk_elements // max(1, x[:1].numel()))
-        if not self.head.defines_belief:
-            raise ValueError(f"{NO_BELIEF}: nothing to calibrate")
         A = torch.cat([self._untempered(c).A.double().cpu() for c in x.split(size)])
         fit = bingham.fit_temperature(A, q)
         self.temperature = float(fit.temperature)

@@ -1,11 +1,12 @@
 """Image decoding, resizing and the once-only uint8 frame cache shared by the image datasets.
 
 A frame cache is an `.npy` array (N, C, S, S) uint8 beside a `.json` manifest (the source files,
-their sizes, modification and inode change times, and the preprocessing; `rotlearn.io.
-cache_manifest`: a cache shipped with a dataset does not match). It is reused, memory-mapped, while
-the manifest matches and the array is (N, C, S, S) uint8 for the N frames (a dataset may ship a
-foreign or hostile cache); otherwise it is rebuilt with a progress bar. It is written to a temporary
-file and renamed into place, so an error or an interrupt never leaves a half-written cache.
+their sizes, modification and inode change times, and the preprocessing:
+`rotlearn.io.cache_manifest`; a cache shipped with a dataset does not match). It is reused,
+memory-mapped, while the manifest matches and the array is (N, C, S, S) uint8 for the N frames
+(a dataset may ship a foreign or hostile cache); otherwise it is rebuilt with a progress bar. It
+is written to a temporary file and renamed into place, so an error or an interrupt never leaves a
+half-written cache.
 """
 
 from __future__ import annotations
