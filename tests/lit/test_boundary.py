@@ -3,9 +3,11 @@ run; the trainer's checkpoint I/O writes durably and deletes only the run's chec
 
 from __future__ import annotations
 
+import copy
 import errno
 import os
 
+import lightning.pytorch as pl
 import pytest
 import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
@@ -77,6 +79,44 @@ def test_a_state_naming_anything_else_is_refused(run, key, value):
     with pytest.raises(UnsafeCheckpointError, match=key) as info:
         checked_checkpoint_states(checkpoint, [callback], run, "x/last.ckpt")
     assert "x/last.ckpt" in str(info.value)
+
+
+def _genuine_training_state() -> dict:
+    """The loops', optimizer's and scheduler's states of a checkpoint, as Lightning saves them."""
+    model = torch.nn.Linear(2, 2)
+    optimizer = torch.optim.Adam(model.parameters())
+    scheduler = torch.optim.lr_scheduler.StepLR(optimizer, 1)
+    trainer = pl.Trainer(logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                         enable_model_summary=False)  # fmt: skip
+    return {"loops": {"fit_loop": trainer.fit_loop.state_dict()},
+            "optimizer_states": [optimizer.state_dict()],
+            "lr_schedulers": [scheduler.state_dict()],
+            "callbacks": {"EpochLosses": {"losses": []}}}  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("path", "junk", "said"),
+    [
+        (("callbacks", "EpochLosses"), "junk", "callbacks: the state of EpochLosses must be a"),
+        (("loops", "fit_loop", "epoch_progress"), "junk", "loops.fit_loop.epoch_progress must"),
+        (("loops",), [1], "loops must be a mapping of loop states down to numbers"),
+        (("optimizer_states", 0), "junk", r"optimizer_states\[0\] must be a mapping with state"),
+        (("optimizer_states", 0, "param_groups"), {}, r"optimizer_states\[0\] must be"),
+        (("lr_schedulers", 0), 3, r"lr_schedulers\[0\] must be a mapping"),
+    ],
+)
+def test_a_training_state_of_the_wrong_shape_is_refused_before_the_resume(run, path, junk, said):
+    """Lightning restores these inside `fit`: a callback state or a loop counter that was text
+    gave an AttributeError or TypeError traceback after the resume had moved the run's records
+    and marked it FAILED. They are checked with the checkpoint callbacks' states, first."""
+    checkpoint = _genuine_training_state()
+    checked_checkpoint_states(copy.deepcopy(checkpoint), [_best(run)], run, "last.ckpt")
+    node = checkpoint
+    for key in path[:-1]:
+        node = node[key]
+    node[path[-1]] = junk
+    with pytest.raises(UnsafeCheckpointError, match=rf"^last\.ckpt: {said}"):
+        checked_checkpoint_states(checkpoint, [_best(run)], run, "last.ckpt")
 
 
 def test_a_symlink_resolving_out_of_the_run_is_refused(run, tmp_path):

@@ -125,21 +125,51 @@ def checked_checkpoint_states(
     Raises:
         UnsafeCheckpointError: naming the checkpoint, the callback's state and the path at
             fault: a path outside the state's own checkpoint folder, not a `.ckpt` file, not
-            local, resolving (symlinks followed) outside the run; or a state of the wrong shape.
+            local, resolving (symlinks followed) outside the run; or a state of the wrong shape
+            (any callback's, the loops', optimizers' and schedulers': `_training_state_problem`).
     """
     states = checkpoint.get("callbacks") or {}
     if not isinstance(states, dict):
         raise UnsafeCheckpointError(f"{where}: callbacks must be a mapping of states")
+    if odd := next((str(k) for k, state in states.items() if not isinstance(state, dict)), None):
+        raise UnsafeCheckpointError(
+            f"{where}: callbacks: the state of {odd[:200]} must be a mapping"
+        )
+    if (problem := _training_state_problem(checkpoint)) is not None:
+        raise UnsafeCheckpointError(f"{where}: {problem}")
     run = Path(os.path.realpath(run_dir))
     for callback in callbacks:
         if not isinstance(callback, ModelCheckpoint) or callback.state_key not in states:
             continue
-        state = states[callback.state_key]
         here = f"{where}: the {type(callback).__name__} state (monitor {callback.monitor})"
-        if not isinstance(state, dict):
-            raise UnsafeCheckpointError(f"{here} must be a mapping")
-        states[callback.state_key] = _rebased(state, callback, run, here)
+        states[callback.state_key] = _rebased(states[callback.state_key], callback, run, here)
     return checkpoint
+
+
+def _training_state_problem(checkpoint: dict[str, Any]) -> str | None:
+    """What is wrong with the loops', optimizers' and schedulers' states Lightning restores on
+    resume (a traceback from inside `fit`, after the run's records had moved, otherwise), or
+    None: `loops` a mapping of mappings down to numbers (progress counters), `optimizer_states`
+    mappings with a `state` mapping and a `param_groups` list of mappings, `lr_schedulers`
+    mappings."""
+    stack = [("loops", checkpoint.get("loops") or {})]
+    while stack:
+        key, node = stack.pop()
+        if isinstance(node, dict):
+            stack.extend((f"{key}.{k}", v) for k, v in node.items())
+        elif not (node is None or isinstance(node, int | float)) or key == "loops":
+            return f"{key} must be a mapping of loop states down to numbers"
+    for i, state in enumerate(checkpoint.get("optimizer_states") or []):
+        mapping = state if isinstance(state, dict) else {}
+        groups = mapping.get("param_groups")
+        if not isinstance(mapping.get("state"), dict) or not (
+            isinstance(groups, list) and all(isinstance(g, dict) for g in groups)
+        ):
+            return f"optimizer_states[{i}] must be a mapping with state and param_groups"
+    for i, state in enumerate(checkpoint.get("lr_schedulers") or []):
+        if not isinstance(state, dict):
+            return f"lr_schedulers[{i}] must be a mapping"
+    return None
 
 
 class CheckpointStateGuard(pl.Callback):
