@@ -306,18 +306,23 @@ def _beliefs(done: pd.DataFrame, out: Path, files: dict[str, Path]) -> list[str]
           "perfect, 0.5 chance).", "", tables.beliefs_table(done, rows, order), ""]  # fmt: skip
     curves, remedies = _reliability_curves(done)
     if curves:
-        fig = figures.reliability_figure(curves, remedy="\n".join(remedies) or None)
+        said = "\n".join(f"{setting}: {remedy}" for setting, remedy in remedies)
+        fig = figures.reliability_figure(curves, remedy=said or None)
         files["reliability"] = figures.save_figure(fig, out / OUTPUT_FILES["reliability"])
         md += ["Reliability of the credible regions (coverage against level; on the diagonal: "
                "calibrated, below it: over-confident, above it: too wide):", "",
                f"![reliability diagram]({OUTPUT_FILES['reliability']})", ""]  # fmt: skip
-        md += [f"- {tables.markdown_text(r)}" for r in remedies] + ([""] if remedies else [])
+        md += [f"- {tables.markdown_text(setting)}: {remedy}" for setting, remedy in remedies]
+        md += [""] if remedies else []
     return md
 
 
-def _reliability_curves(done: pd.DataFrame) -> tuple[list[dict[str, Any]], list[str]]:
+def _reliability_curves(
+    done: pd.DataFrame,
+) -> tuple[list[dict[str, Any]], list[tuple[str, str]]]:
     """Coverage against level of each setting (mean over its runs), the untempered belief
-    dashed in the same colour; and what to do about each uncalibrated setting."""
+    dashed in the same colour; and what to do about each uncalibrated setting (setting,
+    remedy)."""
     curves, remedies = [], []
     for i, setting in enumerate(tables.setting_order(done)):
         runs = done[done["setting"] == setting]
@@ -345,7 +350,7 @@ def _reliability_curves(done: pd.DataFrame) -> tuple[list[dict[str, Any]], list[
                     mean_ece, bool(tempered), loss in ("bingham", "fisher_nll"), choices.get("rep")
                 )
                 if remedy:
-                    remedies.append(f"{setting}: {remedy}")
+                    remedies.append((str(setting), remedy))
     return curves, remedies
 
 
