@@ -70,3 +70,14 @@ def test_runs_without_belief_metrics_get_no_beliefs_section(tmp_path):
     files = make_report(sweep)
     assert "reliability" not in files
     assert "Beliefs" not in (sweep / "report.md").read_text()
+
+
+def test_a_remedy_names_its_setting_escaped_and_reads_plainly(tmp_path):
+    """The remedy's line escapes the setting (received text), not rotlearn's own words: the raw
+    report.md read 'ECE 0.30 &gt; 0.1' once every remedy was escaped whole."""
+    sweep = tmp_path / "remedy"
+    _run(sweep / "0", "a", "chordal", _belief(0.3))
+    _run(sweep / "1", "sixd", "chordal", {"test/raw_norm_auroc_noisiest": 0.6})
+    make_report(sweep)
+    md = (sweep / "report.md").read_text()
+    assert "- a: uncalibrated (ECE 0.30 > 0.1); try calibrate=true" in md, md
