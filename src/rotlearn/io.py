@@ -62,6 +62,7 @@ __all__ = [
     "resolve_inside",
     "rewrite_in_place",
     "strict_int",
+    "sync_folder",
     "text_lines",
     "tree_problem",
     "word_rows",
@@ -489,8 +490,8 @@ def read_yaml(
 # ---- durable writes -----------------------------------------------------------------------------
 
 
-def _fsync_dir(folder: Path) -> None:
-    """Make a rename in `folder` durable (where the platform can: not on Windows)."""
+def sync_folder(folder: Path) -> None:
+    """Make the renames in `folder` durable (where the platform can: not on Windows)."""
     try:
         fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
     except OSError:
@@ -561,7 +562,7 @@ def atomic_write(path: str | os.PathLike) -> Iterator[Path]:
         finally:
             os.close(fd)
         os.replace(tmp, path)
-        _fsync_dir(path.parent)
+        sync_folder(path.parent)
     except BaseException as exc:
         with contextlib.suppress(OSError):
             tmp.unlink()

@@ -208,6 +208,35 @@ def test_a_crafted_file_of_a_run_is_named_in_a_warning_and_left_out(tmp_path, ca
     assert (sweep / "report.md").is_file() and (sweep / "summary.csv").is_file()
 
 
+def test_a_report_that_fails_midway_leaves_the_folder_as_it_was(tmp_path, monkeypatch):
+    """The report was written file by file: an error midway (a figure, here) left a new
+    summary.csv beside an old report.md. It is written in a folder of its own inside the
+    report's and moved into place only whole; the folder goes either way."""
+    from rotlearn.report import document
+
+    sweep = tmp_path / "sweep"
+    for seed in (0, 1):
+        _run(sweep / str(seed), seed=seed, error=1.0 + seed)
+    make_report(sweep)
+    before = {p.name: p.read_bytes() for p in sweep.iterdir() if p.is_file()}
+    assert {"summary.csv", "report.md"} <= set(before)
+    _run(sweep / "2", seed=2, error=5.0)  # a third run: every file would change
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("a figure that cannot be drawn")
+
+    monkeypatch.setattr(document, "_beliefs", broken)
+    with pytest.raises(RuntimeError, match="cannot be drawn"):
+        make_report(sweep)
+    assert {p.name: p.read_bytes() for p in sweep.iterdir() if p.is_file()} == before
+    assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == ["0", "1", "2"]
+    monkeypatch.undo()
+    files = make_report(sweep)
+    assert files["report"] == sweep / "report.md"
+    assert (sweep / "summary.csv").read_bytes() != before["summary.csv"]  # the third run in it
+    assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == ["0", "1", "2"]
+
+
 def test_a_sweep_whose_report_is_refused_ends_with_a_warning_and_its_results(tmp_path, caplog):
     """The report at a multirun's end (`ReportCallback`) raised the layout's refusal past Hydra
     once the jobs were done; it now warns, naming the file and the command to run again."""

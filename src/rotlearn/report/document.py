@@ -36,6 +36,8 @@ from __future__ import annotations
 import logging
 import math
 import os
+import shutil
+import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -43,7 +45,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from rotlearn.io import read_json, read_table, write_text_atomic
+from rotlearn.io import read_json, read_table, sync_folder, write_text_atomic
 from rotlearn.report import figures, tables
 from rotlearn.report.runs import RUN_MARKS, collect_runs, label_without
 from rotlearn.report.tensorboard import read_curve
@@ -97,7 +99,23 @@ def make_report(
             raise FileExistsError(f"{out / name}: a folder is where the report writes a file; "
                                   "move it away or pass --out")  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
-    files = {"summary": write_text_atomic(out / OUTPUT_FILES["summary"], runs.to_csv(index=False))}
+    stage = Path(tempfile.mkdtemp(prefix=".rotlearn-report-", dir=out))  # whole, or not at all
+    try:
+        files = _write_report(runs, roots, out, stage, group_by, pool)
+        for path in (p for p in files.values() if p is not None):  # complete: moved in place
+            os.replace(path, out / path.name)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+    sync_folder(out)
+    return {what: None if path is None else out / path.name for what, path in files.items()}
+
+
+def _write_report(runs, roots, out: Path, stage: Path, group_by, pool) -> dict[str, Path]:
+    """summary.csv, report.md and the figures of `make_report`, written into `stage` (a folder
+    inside the report folder `out`, which the report's links are relative to)."""
+    files = {
+        "summary": write_text_atomic(stage / OUTPUT_FILES["summary"], runs.to_csv(index=False))
+    }
     done, recon = (_having(runs, m) for m in ("test/err_mean", "test/recon_mean"))
     completed = runs.loc[done.index.union(recon.index)]  # with a test score
     failed = runs[runs["status"] != "COMPLETED"]
@@ -113,21 +131,21 @@ def make_report(
     ]
     if not done.empty:
         md += ["## Final test error (degrees), over trials", "", tables.percentile_table(done), ""]
-        md += _plots(done, runs, layout, out, files)
-        md += _beliefs(done, out, files)
+        md += _plots(done, runs, layout, stage, files)
+        md += _beliefs(done, stage, files)
     if not recon.empty:  # auto-encoders (the OOD baseline): their test score
         table = tables.percentile_table(recon, "test/recon_mean", None, "test L1 mean")
         md += ["## Final test reconstruction error (mean L1 per pixel), over trials", "", table, ""]
     frames = _ood_frames(done)
     if frames:
-        md += _ood_sections(frames, layout, out, files)
+        md += _ood_sections(frames, layout, stage, files, out)
     if not failed.empty:
         md += ["## Failed, interrupted or never-run jobs", "",
                "PENDING: never ran; RUNNING: started, never finished (killed); INTERRUPTED: "
                "stopped by a signal, resumable with the command shown; NOT READ: its folder "
                "leads out of the sweep (a link), so the report did not read it.", "",
                tables.failed_table(failed), ""]  # fmt: skip
-    files["report"] = write_text_atomic(out / OUTPUT_FILES["report"], "\n".join(md))
+    files["report"] = write_text_atomic(stage / OUTPUT_FILES["report"], "\n".join(md))
     return files
 
 
@@ -457,8 +475,9 @@ OOD_NOTE = (
 )
 
 
-def _ood_sections(frames, layout, out: Path, files: dict[str, Path]) -> list[str]:
-    """Table I, the paper comparison, per-score and per-set tables and the OOD figures."""
+def _ood_sections(frames, layout, out: Path, files: dict[str, Path], report: Path) -> list[str]:
+    """Table I, the paper comparison, per-score and per-set tables and the OOD figures (written
+    into `out`; links to the runs' own images relative to the report's folder `report`)."""
     samples = [_samples(run, frame) for run, frame in frames]
     ood = _ood_table(frames, samples)
     files["ood_table"] = write_text_atomic(out / OUTPUT_FILES["ood_table"], ood.to_csv(index=False))
@@ -500,7 +519,7 @@ def _ood_sections(frames, layout, out: Path, files: dict[str, Path]) -> list[str
                "quantile. Each extra set is the clean test set plus the pairs of scenes not "
                "trained on, which count as OOD.", "",
                tables.sets_table(frames, set_names), ""]  # fmt: skip
-    return md + _ood_figures(frames, samples, out, set_names, files)
+    return md + _ood_figures(frames, samples, out, set_names, files, report)
 
 
 def _samples(run: pd.Series, frame: pd.DataFrame) -> dict[str, dict] | None:
@@ -561,7 +580,7 @@ def _mean_curve(curves: list[list[dict[str, Any]]]) -> list[dict[str, float]]:
 
 
 def _ood_figures(
-    frames, samples: list, out: Path, set_names: Mapping[str, str], files: dict
+    frames, samples: list, out: Path, set_names: Mapping[str, str], files: dict, report: Path
 ) -> list[str]:
     """Per head and score, from each run's `ood_samples.csv`: precision-recall over q on each
     flagged set but the clean one (`ood_pr.png`), error against score on the half-erased set
@@ -627,7 +646,7 @@ def _ood_figures(
         for run, path in examples:
             setting = tables.markdown_text(run["setting"])
             md += [f"{setting} (job {tables.markdown_text(run['job'])}):", "",
-                   f"![examples {setting}]({os.path.relpath(path, out)})", ""]  # fmt: skip
+                   f"![examples {setting}]({os.path.relpath(path, report)})", ""]  # fmt: skip
     return ["## OOD figures", "", *md] if md else []
 
 
