@@ -237,6 +237,21 @@ def test_a_report_that_fails_midway_leaves_the_folder_as_it_was(tmp_path, monkey
     assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == ["0", "1", "2"]
 
 
+def test_a_plot_named_like_another_output_is_written_beside_it(tmp_path):
+    """A received layout may name a plot `summary.png`: the report's record of its files is
+    keyed by stem, so the staged summary.csv went unlisted and was never moved into place.
+    Every staged file is."""
+    sweep = tmp_path / "sweep"
+    for job, lr in enumerate((0.1, 0.01)):
+        layout = {"plots": [{"kind": "box", "x": "optim.lr", "file": "summary.png"}]}
+        run = _run(sweep / str(job), report=layout, error=1.0 + job)
+        config = yaml.safe_load((run / ".hydra" / "config.yaml").read_text())
+        (run / ".hydra" / "config.yaml").write_text(yaml.safe_dump({**config, "optim": {"lr": lr}}))
+        (run / "test_errors.json").write_text(json.dumps([1.0 + job, 2.0 + job]))
+    make_report(sweep)
+    assert (sweep / "summary.csv").is_file() and (sweep / "summary.png").is_file()
+
+
 def test_a_sweep_whose_report_is_refused_ends_with_a_warning_and_its_results(tmp_path, caplog):
     """The report at a multirun's end (`ReportCallback`) raised the layout's refusal past Hydra
     once the jobs were done; it now warns, naming the file and the command to run again."""

@@ -102,7 +102,7 @@ def make_report(
     stage = Path(tempfile.mkdtemp(prefix=".rotlearn-report-", dir=out))  # whole, or not at all
     try:
         files = _write_report(runs, roots, out, stage, group_by, pool)
-        for path in (p for p in files.values() if p is not None):  # complete: moved in place
+        for path in sorted(stage.iterdir()):  # complete: every file written moved into place
             os.replace(path, out / path.name)
     finally:
         shutil.rmtree(stage, ignore_errors=True)
