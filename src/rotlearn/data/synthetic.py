@@ -8,6 +8,7 @@ Batches are drawn on the model's device (see `rotlearn.data.draws`). Optionally 
 from __future__ import annotations
 
 import math
+import warnings
 from typing import TYPE_CHECKING, Annotated
 
 import torch
@@ -168,8 +169,8 @@ class SyntheticWahbaDataModule(DrawDataModule):
         """Matched pairs (u_i, v_i) (..., N, 6) as the network was trained on them: each pair
         divided by |u_i|, so that u_i is a unit vector (a direction, as every training u_i is)
         and v_i = R u_i + noise keeps its relation to it (its length says how noisy it is).
-        Warns (`InputAdjustedWarning`) how many u_i were not of unit length (within 1e-3): a network
-        given longer vectors answers with a wrong rotation and a confident belief.
+        Warns (`InputAdjustedWarning`) how many u_i were not of unit length (within 1e-3): a
+        network given longer vectors answers with a wrong rotation and a confident belief.
 
         Raises:
             ValueError: a u_i of length 0 (no direction), naming the first pair.
@@ -181,8 +182,6 @@ class SyntheticWahbaDataModule(DrawDataModule):
             raise ValueError(f"{where}: u_i = 0 has no direction (the network reads unit u_i)")
         scaled = int(((length - 1).abs() > 1e-3).sum())
         if scaled:
-            import warnings
-
             warnings.warn(
                 f"{scaled} of {length.numel()} u_i were not of unit length; each pair (u_i, v_i) "
                 "was divided by |u_i|, as the network was trained on unit u_i",
