@@ -426,3 +426,16 @@ def test_a_file_where_a_folder_goes_is_named(tmp_path):
     pattern = rf"{target}: {tmp_path / '.rotlearn_cache'} is a file, not a folder"
     with pytest.raises(WriteError, match=pattern):
         write_text_atomic(target, "x")
+
+
+def test_a_csv_table_that_is_not_utf8_is_named_with_its_line(tmp_path):
+    """read_table parses the bytes read (no copy as text); a byte that is not UTF-8 is still
+    named by the file's line and byte, not by pandas' buffer position."""
+    from rotlearn.io import read_table
+
+    path = tmp_path / "ood.csv"
+    path.write_bytes(b"a,b\n1,2\n3,\xff\n")
+    with pytest.raises(UnreadableFileError, match=r"ood\.csv:3: not UTF-8 text \(byte 10\)$"):
+        read_table(path)
+    path.write_bytes(b"a,b,c\n1,2,3\n")
+    assert list(read_table(path, columns=("a", "c", "missing")).columns) == ["a", "c"]

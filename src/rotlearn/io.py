@@ -188,8 +188,13 @@ def read_text(path: str | os.PathLike, kind: str, root: str | os.PathLike | None
     try:
         return data.decode("utf-8")
     except UnicodeDecodeError as exc:
-        line = data[: exc.start].count(b"\n") + 1
-        raise UnreadableFileError(f"{path}:{line}: not UTF-8 text (byte {exc.start})") from None
+        raise _not_utf8(path, data, exc) from None
+
+
+def _not_utf8(path: str | os.PathLike, data: bytes, exc: UnicodeDecodeError) -> UnreadableFileError:
+    """The error naming the file and the line of `data` (the whole file) where UTF-8 fails."""
+    line = data[: exc.start].count(b"\n") + 1
+    return UnreadableFileError(f"{path}:{line}: not UTF-8 text (byte {exc.start})")
 
 
 def tree_problem(tree: Any) -> str | None:
@@ -435,7 +440,13 @@ def read_table(
     wanted = None if columns is None else set(columns).__contains__
     try:
         return pd.read_csv(io.BytesIO(data), encoding="utf-8", usecols=wanted)
-    except (ValueError, pd.errors.ParserError) as exc:  # UnicodeDecodeError is a ValueError
+    except UnicodeDecodeError as exc:  # its position is pandas' buffer's, not the file's
+        try:
+            data.decode("utf-8")
+        except UnicodeDecodeError as whole:
+            raise _not_utf8(path, data, whole) from None
+        raise UnreadableFileError(f"{path}: not a CSV table ({exc})") from None
+    except (ValueError, pd.errors.ParserError) as exc:
         raise UnreadableFileError(f"{path}: not a CSV table ({exc})") from None
 
 
