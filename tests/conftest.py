@@ -224,6 +224,13 @@ def randn(seed: int, shape: tuple[int, ...], dtype: torch.dtype = torch.float64)
     return torch.randn(shape, generator=gen(seed), dtype=dtype)
 
 
+def point_pairs(n: int = 3, seed: int = 0, points: int = 16) -> torch.Tensor:
+    """(n, points, 6) pairs of unit vectors (u_i, v_i), as the synthetic training pairs are (a
+    predictor rescales other u_i, with an `InputAdjustedWarning`)."""
+    x = torch.randn(n, points, 2, 3, generator=gen(seed))
+    return (x / torch.linalg.vector_norm(x, dim=-1, keepdim=True)).flatten(-2)
+
+
 def scipy_rotmats(seed: int, n: int) -> torch.Tensor:
     """Haar-random rotations from scipy (independent of rotlearn), float64."""
     from scipy.spatial.transform import Rotation  # here: the solver's tests run without scipy

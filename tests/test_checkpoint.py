@@ -26,7 +26,7 @@ from rotlearn.checkpoint import (
     saved_config,
 )
 from rotlearn.io import MAX_BYTES, MAX_NODES
-from tests.conftest import doubling, unchanged, within
+from tests.conftest import doubling, point_pairs, unchanged, within
 
 
 @pytest.fixture
@@ -325,7 +325,7 @@ def test_loggers_and_training_callbacks_of_a_saved_config_are_neither_checked_no
     torch.save(checkpoint, path)
     saved = load_run(run)
     assert "logger" not in saved.config and "mine" not in saved.config.callbacks
-    assert rotlearn.load(run)(torch.randn(2, 16, 6)).R.shape == (2, 3, 3)
+    assert rotlearn.load(run)(point_pairs(2)).R.shape == (2, 3, 3)
     assert not (tmp_path / "pwned").exists() and not (run / "pwned").exists()
     config["callbacks"]["ood"] = {"_target_": "os.system", "command": "touch pwned"}
     torch.save(checkpoint, path)

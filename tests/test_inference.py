@@ -23,7 +23,7 @@ from rotlearn.cli.predict import read_point_pairs
 from rotlearn.cli.train import build, train
 from rotlearn.errors import InputAdjustedWarning
 from rotlearn.geometry import quat_to_rotmat, so3_exp
-from tests.conftest import SMALL_NET
+from tests.conftest import SMALL_NET, point_pairs
 
 FAST = ["data=tiny", "trainer=cpu", "trainer.enable_progress_bar=false", *SMALL_NET]
 
@@ -47,13 +47,6 @@ def trained_runs(tmp_path_factory) -> dict[str, Path]:
     return runs
 
 
-def _points(n: int = 3, generator_seed: int = 0) -> torch.Tensor:
-    """(n, 16, 6) pairs of unit vectors (u_i, v_i), as the synthetic training pairs are."""
-    g = torch.Generator().manual_seed(generator_seed)
-    x = torch.randn(n, 16, 2, 3, generator=g)
-    return (x / torch.linalg.vector_norm(x, dim=-1, keepdim=True)).flatten(-2)
-
-
 def test_a_run_trained_with_a_usual_lightning_callback_loads(make_cfg, tmp_path):
     """A run's saved config names every callback it trained with; weight averaging (tried for
     issue 25 from the command line) is one of Lightning's usual ones, so its run loads instead of
@@ -64,7 +57,7 @@ def test_a_run_trained_with_a_usual_lightning_callback_loads(make_cfg, tmp_path)
                     swa, "+callbacks.swa.swa_lrs=0.001", "+callbacks.swa.swa_epoch_start=1"],
                    run_dir=out)  # fmt: skip
     train(cfg)
-    estimate = rotlearn.load(out)(_points())
+    estimate = rotlearn.load(out)(point_pairs())
     assert estimate.R.shape == (3, 3, 3)
 
 
@@ -75,7 +68,7 @@ def test_predictor_reproduces_the_trained_model(trained_runs, make_cfg):
     model, _, _ = build(cfg)
     model.load_state_dict(load_checkpoint(run)["state_dict"])
     model.eval()
-    x = _points()
+    x = point_pairs()
     with torch.no_grad():
         expected = model(x)
     estimate = predictor(x)
@@ -89,12 +82,12 @@ def test_predictor_reproduces_the_trained_model(trained_runs, make_cfg):
 
 
 def test_heads_without_a_belief_give_no_dispersion(trained_runs):
-    estimate = rotlearn.load(trained_runs["sixd"] / "checkpoints" / "best.ckpt")(_points())
+    estimate = rotlearn.load(trained_runs["sixd"] / "checkpoints" / "best.ckpt")(point_pairs())
     assert estimate.R.shape == (3, 3, 3) and estimate.dispersion is None and estimate.dt is None
 
 
 def test_a_single_input_is_a_batch_of_one(trained_runs):
-    estimate = rotlearn.load(trained_runs["a"])(_points(1)[0].numpy())
+    estimate = rotlearn.load(trained_runs["a"])(point_pairs(1)[0].numpy())
     assert estimate.R.shape == (1, 3, 3)
 
 
@@ -131,10 +124,10 @@ def test_missing_or_foreign_checkpoints_are_named(tmp_path):
 
 
 BAD_INPUTS = {
-    "NaN": lambda: _points().index_put_(
+    "NaN": lambda: point_pairs().index_put_(
         (torch.tensor([1]), torch.tensor([2])), torch.tensor(np.nan)
     ),
-    "Inf": lambda: _points().index_put_(
+    "Inf": lambda: point_pairs().index_put_(
         (torch.tensor([0]), torch.tensor([0])), torch.tensor(np.inf)
     ),
     "too few dims": lambda: torch.randn(6),
@@ -166,6 +159,7 @@ def test_bad_inputs_are_refused_with_a_reason(trained_runs, case):
     dtype=st.sampled_from([torch.float16, torch.float32, torch.float64, torch.int32, torch.uint8]),
     poison=st.sampled_from([None, np.nan, np.inf, -np.inf, 1e30]),
 )
+@pytest.mark.filterwarnings("ignore::rotlearn.errors.InputAdjustedWarning")  # Gaussian u_i
 def test_fuzzed_inputs_give_rotations_or_a_clear_refusal(trained_runs, shape, dtype, poison):
     predictor = rotlearn.load(trained_runs["a"])
     x = torch.randn(*shape).to(dtype) if shape else torch.randn(()).to(dtype)
@@ -182,7 +176,7 @@ def test_fuzzed_inputs_give_rotations_or_a_clear_refusal(trained_runs, shape, dt
 
 
 def test_predict_command_reads_text_and_npy_pairs(trained_runs, tmp_path, capsys):
-    points = _points(1)[0].numpy()
+    points = point_pairs(1)[0].numpy()
     text = tmp_path / "pairs.txt"
     text.write_text("# ux uy uz vx vy vz\n" + "\n".join(" ".join(map(str, r)) for r in points))
     npy = tmp_path / "pairs.npy"
@@ -239,7 +233,7 @@ def test_large_batches_run_in_chunks_of_bounded_size(trained_runs):
     chunked = rotlearn.load(trained_runs["a"], chunk_elements=16 * 6 * 7)
     seen: list[int] = []
     chunked.net.register_forward_hook(lambda module, args, out: seen.append(args[0].shape[0]))
-    points = _points(n=50)
+    points = point_pairs(n=50)
     reference, estimate = whole(points), chunked(points)
     assert seen == [7] * 7 + [1]
     for key in ("R", "q", "dispersion", "dt"):
@@ -257,9 +251,9 @@ def test_a_cloud_over_one_chunk_is_refused_before_the_network(trained_runs, tmp_
     predictor.net.register_forward_hook(lambda *args: pytest.fail("the network ran"))
     said = r"^a sample of 17 points \(102 numbers\) is over the 96 numbers a forward pass takes"
     with pytest.raises(ValueError, match=said + r" \(chunk_elements\): subsample it"):
-        predictor(_points(2, 0).repeat(1, 2, 1)[:, :17])
+        predictor(point_pairs(2, 0).repeat(1, 2, 1)[:, :17])
     path = tmp_path / "big.npy"
-    np.save(path, np.tile(_points(1)[0].numpy(), (2**20 // 16 // 6 + 1, 1)))  # 1 point over
+    np.save(path, np.tile(point_pairs(1)[0].numpy(), (2**20 // 16 // 6 + 1, 1)))  # 1 point over
     assert predict_main([str(trained_runs["a"]), str(path)]) == 2
     assert capsys.readouterr().err.startswith("rotlearn-predict: a sample of 174768 points")
 
@@ -278,7 +272,7 @@ def test_thresholds_beside_the_checkpoint_give_keep_flags(trained_runs, tmp_path
     assert ckpt.read_bytes() == before  # the checkpoint itself is never rewritten
     predictor = rotlearn.load(run)  # a file written before the reference set was recorded
     assert predictor.ood == {"score": "dt", "threshold": -5.0, "q": 0.75}
-    estimate = predictor(_points())
+    estimate = predictor(point_pairs())
     assert torch.equal(estimate.keep, estimate.dt < -5.0)
     write_thresholds(run / "checkpoints", {"score": "dt", "threshold": -5.0, "q": 0.75,
                                            "reference": "train"})  # fmt: skip
@@ -335,7 +329,7 @@ def calibrated_run(trained_runs, tmp_path) -> Path:
 
 
 def test_load_applies_the_checkpoints_temperature_to_the_belief(trained_runs, calibrated_run):
-    x = _points(4)
+    x = point_pairs(4)
     plain = rotlearn.load(trained_runs["a"])(x)
     predictor = rotlearn.load(calibrated_run)
     assert predictor.temperature == 2.5
@@ -375,7 +369,7 @@ def test_a_temperature_fitted_for_another_checkpoint_is_ignored_with_a_warning(
 def test_estimates_sample_and_score_their_belief(calibrated_run, trained_runs):
     from rotlearn import bingham
 
-    estimate = rotlearn.load(calibrated_run)(_points(3))
+    estimate = rotlearn.load(calibrated_run)(point_pairs(3))
     draws = estimate.sample(50, generator=torch.Generator().manual_seed(0))
     assert draws.shape == (3, 50, 4)
     torch.testing.assert_close(draws.norm(dim=-1), torch.ones(3, 50))
@@ -393,7 +387,7 @@ def test_estimates_sample_and_score_their_belief(calibrated_run, trained_runs):
         estimate.log_prob(torch.zeros(3, 5))
     with pytest.raises(ValueError, match="2 entries for 3 estimates"):
         estimate.log_prob(estimate.q[:2])
-    no_belief = rotlearn.load(trained_runs["sixd"])(_points(2))
+    no_belief = rotlearn.load(trained_runs["sixd"])(point_pairs(2))
     assert no_belief.A is None and no_belief.F is None
     with pytest.raises(ValueError, match="defines no belief"):
         no_belief.sample(3)
@@ -462,7 +456,7 @@ def test_predictor_refuses_a_bad_temperature(trained_runs):
 
 def test_predict_command_reports_the_temperature(calibrated_run, tmp_path, capsys):
     path = tmp_path / "pairs.npy"
-    np.save(path, _points(1)[0].numpy())
+    np.save(path, point_pairs(1)[0].numpy())
     assert predict_main([str(calibrated_run), str(path), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["temperature"] == 2.5
     assert predict_main([str(calibrated_run), str(path)]) == 0
@@ -475,7 +469,7 @@ def test_load_of_several_runs_is_their_ensemble_and_calibrates_on_held_out_data(
     """rotlearn.load([run, its copy]): the product of two identical beliefs (A doubled, the
     same rotation, no disagreement); Predictor.calibrate fits its temperature and level map. The
     same run listed twice is refused (its belief would count twice)."""
-    x = _points(64)
+    x = point_pairs(64)
     single = rotlearn.load(trained_runs["a"])(x)
     for twice in ([trained_runs["a"]] * 2, [trained_runs["a"], trained_runs["a"] / "checkpoints"
                                               / "last.ckpt"]):  # fmt: skip
@@ -510,7 +504,7 @@ def test_calibrate_takes_one_rotation_per_input_and_needs_a_belief(trained_runs)
     """Predictor.calibrate: numpy targets as numpy inputs are taken; a count of targets that is
     not the inputs' is refused (one target was broadcast over five inputs and fitted, T = 2.7e6);
     a head without a belief is named (it was "'NoneType' object has no attribute 'double'")."""
-    x = _points(5)
+    x = point_pairs(5)
     predictor = rotlearn.load(trained_runs["a"])
     targets = predictor(x).R
     fit = predictor.calibrate(x.numpy(), targets.numpy())
@@ -532,7 +526,7 @@ def test_predict_refuses_a_device_it_cannot_use_in_one_line(
     calibrated_run, tmp_path, capsys, device, message
 ):
     path = tmp_path / "pairs.npy"
-    np.save(path, _points(1)[0].numpy())
+    np.save(path, point_pairs(1)[0].numpy())
     assert predict_main([str(calibrated_run), str(path), "--device", device]) == 2
     err = capsys.readouterr().err
     assert re.search(message, err) and err.count("\n") == 1
@@ -571,7 +565,7 @@ def test_predict_notes_only_the_changes_it_made_to_the_input(
 
     monkeypatch.setattr(SyntheticWahbaDataModule, "prepare_points", staticmethod(advising))
     npy = tmp_path / "pairs.npy"
-    np.save(npy, _points(1)[0].numpy())
+    np.save(npy, point_pairs(1)[0].numpy())
     with pytest.warns(UserWarning, match="a library's advice"):
         assert predict_main([str(trained_runs["a"]), str(npy)]) == 0
     assert "note:" not in capsys.readouterr().err
@@ -594,7 +588,7 @@ def test_point_pairs_are_read_as_the_synthetic_training_pairs_with_unit_u(
     """The training u_i are unit vectors: a network given longer ones (the quickstart's example
     once drew them from a normal distribution) answered 25 deg off with a belief sure to 1 deg.
     Each pair is divided by |u_i| (v_i = R u_i + noise keeps its relation), with a note."""
-    unit = _points(2)
+    unit = point_pairs(2)
     longer = unit * torch.linspace(0.25, 4.0, 16).unsqueeze(-1)  # each pair scaled alike
     predictor = rotlearn.load(trained_runs["a"])
     with warnings.catch_warnings():
