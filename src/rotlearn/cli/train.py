@@ -98,12 +98,11 @@ def _requeued() -> bool:
 
 
 def _refuse_an_invalid_new_run(argv: list[str]) -> list[str]:
-    """Before Hydra creates anything for a new run (or sweep): compose the command line once
-    (`rotlearn.config.command_line_config`: a bad option or key exits naming it; a sweep with
-    the first value of each swept key), check what files alone tell, refuse a folder Hydra
-    would not use or a run or sweep directory that already exists and is not empty, check
-    every value (`rotlearn.config.validate`'s two passes, the folders checked between them; a
-    sweep's other values too, `rotlearn.config.sweep_values`), then build a single run's
+    """Before Hydra creates anything for a new run (or sweep): check the command line
+    (`rotlearn.config.command_line`: a bad option, key or value exits naming it; a sweep's
+    other values too), refusing between its checks from files alone and its values' a folder
+    Hydra would not use or a run or sweep directory that already exists and is not empty, then
+    build a single run's
     datamodule and (on the meta device: nothing allocated) its model, so that a bad value
     leaves nothing behind (SystemExit naming the key).
     Returns the arguments for Hydra, with `+` before each component argument that its YAML does
@@ -113,18 +112,15 @@ def _refuse_an_invalid_new_run(argv: list[str]) -> list[str]:
     from omegaconf.errors import OmegaConfBaseException
 
     from rotlearn.cli.rundir import refuse_an_existing_output_dir, runs_a_sweep
-    from rotlearn.config import ConfigError, command_line_config, sweep_values
-    from rotlearn.config.checks import check_keys, check_values, plain
+    from rotlearn.config import ConfigError, command_line
+
+    def refuse_existing(cfg: DictConfig, args: list[str]) -> None:
+        refuse_an_existing_output_dir(cfg, args, "train", "rotlearn-train", _requeued)
 
     if any(a.startswith("-") and a not in ("-m", "--multirun") for a in argv):
         return argv
     try:
-        cfg, argv = command_line_config(argv, "new-run")
-        jobs = [plain(cfg), *sweep_values(argv, "new-run")]  # a sweep: each other value too
-        for values in jobs:
-            check_keys(values)  # from files alone, fast
-        refuse_an_existing_output_dir(cfg, argv, "train", "rotlearn-train", _requeued)
-        check_values(*jobs)  # imports the components (torch, Lightning): seconds
+        cfg, argv = command_line(argv, "new-run", before_values=refuse_existing)
     except (HydraException, OmegaConfBaseException):
         return argv
     except ConfigError as exc:

@@ -9,10 +9,10 @@ test::
 `compose` is Hydra's compose API with rotlearn's answer to an unknown option (`rep=aa`: the real
 options and the nearest) and key (`optim.lrr=1e-3`, with or without `+`: the nearest key and the
 allowed ones, `rotlearn.config.checks`); an argument a component takes is set without `+` even
-where its YAML does not list it. `rotlearn-train` and `rotlearn-eval` check their command line the
-same way before Hydra starts (`command_line_config`, then `validate`; `command_line` does both),
-so a refused command writes nothing. Each YAML
-starts from its component's defaults: `schema/` + its target in Hydra's ConfigStore
+where its YAML does not list it. The commands check their command line the same way before Hydra
+starts (`command_line`: rotlearn-train, with a sweep's other values; `command_line_config`, then
+`validate`: rotlearn-eval and a resume), so a refused command writes nothing. Each YAML starts
+from its component's defaults: `schema/` + its target in Hydra's ConfigStore
 (`register_schemas`, which rotlearn's Hydra plugin runs wherever Hydra composes, so a plain
 `hydra.compose` on conf/ works; the configs' resolvers, `${rl.loguniform:...}` and
 `${rl.gpu_precision:}`, register with this module: `rotlearn.config.resolvers`).
@@ -31,7 +31,7 @@ from __future__ import annotations
 import difflib
 import itertools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from functools import cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -320,12 +320,18 @@ def compose(
 
 
 def command_line(
-    args: Sequence[str], output_dir: str = "new-run", config_name: str = "train"
-) -> list[str]:
+    args: Sequence[str],
+    output_dir: str = "new-run",
+    config_name: str = "train",
+    before_values: Callable[[DictConfig, list[str]], None] | None = None,
+) -> tuple[DictConfig, list[str]]:
     """Compose and validate the config of a command line before Hydra starts; returns the
-    arguments for Hydra, with `+` before each component argument that its YAML does not list. A
-    sweep (-m) is checked with the first value of each swept key and with each other value
-    (`sweep_values`). (Composing alone: `command_line_config`.)
+    composed config (with its `hydra` node) and the arguments for Hydra, with `+` before each
+    component argument that its YAML does not list. A sweep (-m) is checked with the first value
+    of each swept key and with each other value (`sweep_values`). `before_values(cfg, args)`
+    runs between the checks from files alone and the values' (which import the components:
+    seconds); rotlearn-train refuses an existing output folder there. (Composing alone:
+    `command_line_config`.)
 
     Raises:
         ConfigError: naming the option or key at fault; Hydra's and OmegaConf's own errors where
@@ -335,8 +341,10 @@ def command_line(
     jobs = [plain(cfg), *sweep_values(args, output_dir, config_name)]
     for values in jobs:  # from files alone first (fast), as `validate`
         check_keys(values)
+    if before_values is not None:
+        before_values(cfg, hydra_args)
     check_values(*jobs)
-    return hydra_args
+    return cfg, hydra_args
 
 
 def _sweep_jobs(args: Sequence[str]) -> list[list[str]]:
