@@ -21,6 +21,7 @@ from rotlearn.data import (
     match_poses,
     read_kitti_poses,
 )
+from rotlearn.errors import ConfigError
 from rotlearn.geometry import angle_deg, relative_rotation, so3_exp
 from tests.conftest import pose_line, rot_y, write_kitti, write_mav, yaw_sequence
 
@@ -187,6 +188,26 @@ def test_a_square_size_over_the_pixel_budget_is_refused_before_resizing(tmp_path
                        r"101x101 is over the pixel budget \(10000 pixels\)$"):  # fmt: skip
         kitti_module(root, image_size=101).read_pair(frame, frame)
     assert images.resize_square(np.zeros((20, 26), np.uint8), 100).shape == (100, 100)
+
+
+def test_a_batch_over_the_budget_is_refused_before_any_frame_is_read(tmp_path):
+    """A received checkpoint chooses an evaluation's frame size and batches: image_size=8192
+    with KITTI's default batches asked for 13 and 26 GB (the pixel budget stops only sizes over
+    8192). A batch of pairs is at most MAX_BATCH_BYTES, refused in the constructor, so the
+    pre-flight build of `rotlearn-train` and an evaluation stop before any frame is cached."""
+    root = write_kitti(tmp_path / "kitti", {"00": yaw_sequence(4, 1.0), "01": yaw_sequence(3, 1.0)})
+    with pytest.raises(ConfigError, match=r"^config key batch_size: 32 pairs of 6 x 8192 x 8192 "
+                       r"bytes take 12 GiB, over the 4 GiB a batch may take \(MAX_BATCH_BYTES\); "
+                       r"lower it or image_size$"):  # fmt: skip
+        kitti_module(root, image_size=8192)
+    with pytest.raises(ConfigError, match=r"^config key eval_batch_size: 64 pairs of 6 x 4096 "):
+        kitti_module(root, image_size=4096, batch_size=1)
+    kitti_module(root, image_size=4096, batch_size=1, eval_batch_size=16)  # 1.5 GiB: taken
+    mav = write_mav(tmp_path / "mav")
+    with pytest.raises(ConfigError, match=r"^config key eval_batch_size: 200 pairs of 2 x 4096 "):
+        mav_module(mav, resize=4096, image_size=4096, eval_batch_size=200)
+    mav_module(mav, resize=4096, image_size=4096)  # 2 GiB for the default 64: taken
+    assert not list(tmp_path.rglob(".rotlearn_cache"))
 
 
 # -- KITTI bad input ---------------------------------------------------------------------------

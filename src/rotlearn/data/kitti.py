@@ -152,6 +152,7 @@ class KittiOdometryDataModule(ImagePairDataModule):
             if not names:
                 raise ConfigError(key, "no sequence left (train minus test sequences)")
         self.delta, self.image_size = int(delta), int(image_size)
+        self.refuse_oversized_batches(pair_channels, self.image_size)
         if deltas is not None and len(set(deltas)) != len(deltas):
             raise ConfigError("deltas", f"must be distinct, got {list(deltas)!r}")
         self.deltas = [int(d) for d in deltas] if deltas is not None else None

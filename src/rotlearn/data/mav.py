@@ -295,6 +295,7 @@ class MAVDataModule(ImagePairDataModule):
         self.test_scenes = [plain_name(s, key="test_scenes") for s in test_scenes]
         self.test_fraction, self.pose_tolerance_ms = float(test_fraction), float(pose_tolerance_ms)
         self.resize, self.image_size = int(resize), int(image_size)
+        self.refuse_oversized_batches(pair_channels, self.image_size)
         self.cache_dir = Path(cache_dir) if cache_dir else self.root / ".rotlearn_cache"
         self._frames: _Frames | None = None
         self._scenes: dict[str, tuple[np.ndarray, np.ndarray]] = {}

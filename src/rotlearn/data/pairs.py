@@ -31,6 +31,7 @@ from torch.utils.data import DataLoader, Dataset, get_worker_info
 from rotlearn.data import augment
 from rotlearn.data.corruption import corrupted_flags, draw_erasing_boxes, erase_boxes
 from rotlearn.data.draws import SPLITS, draw_seed
+from rotlearn.errors import ConfigError
 from rotlearn.geometry import rotmat_to_quat
 
 if TYPE_CHECKING:  # constraints of the config values, checked by rotlearn.config
@@ -40,6 +41,10 @@ __all__ = ["ImagePairDataModule", "ImagePairs", "PairIndex"]
 
 # The start method Python uses on this platform by default (the first listed), for loader workers.
 _PLATFORM_START = multiprocessing.get_all_start_methods()[0]
+# One loader batch of uint8 pairs at most (the model sees 4x that as float32): the paper's
+# (64 pairs of 6 x 224 x 224) is 19 MB. A received run's config chooses the frame size and the
+# batch of an evaluation; 8192-pixel frames in batches of 64 would ask for 26 GB.
+MAX_BATCH_BYTES = 2**32
 
 
 @dataclass
@@ -217,6 +222,19 @@ class ImagePairDataModule(pl.LightningDataModule):
         self.swap_pairs = float(swap_pairs)
         self.photometric = augment.check_photometric(photometric)
         self.sets: dict[str, ImagePairs] = {}
+
+    def refuse_oversized_batches(self, channels: int, size: int) -> None:
+        """ConfigError on `batch_size` or `eval_batch_size` where a batch of pairs of
+        `channels` x `size` x `size` bytes (uint8) would be over `MAX_BATCH_BYTES`; the
+        subclasses call it once they know their frame size, before any frame is read."""
+        for key in ("batch_size", "eval_batch_size"):
+            if (total := getattr(self, key) * channels * size**2) > MAX_BATCH_BYTES:
+                raise ConfigError(
+                    key,
+                    f"{getattr(self, key)} pairs of {channels} x {size} x {size} bytes take "
+                    f"{total / 2**30:.3g} GiB, over the {MAX_BATCH_BYTES / 2**30:g} GiB a batch "
+                    "may take (MAX_BATCH_BYTES); lower it or image_size",
+                )
 
     def load(self, split: str) -> PairIndex | None:  # pragma: no cover
         """The pairs of "train" or "test", in a fixed order (frame caches built as needed);
