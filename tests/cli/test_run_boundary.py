@@ -199,6 +199,13 @@ OVERRIDE_ATTACKS = {
     "+logger.tb={_target_:rotlearn.lit.TensorBoardRunLogger,save_dir:HOME/tb,name:x}": (
         "logger.tb.save_dir"
     ),
+    # Lightning formats a file name's `{name}` as `name=<value>`: a path once formatted
+    "callbacks.last_checkpoint.filename='{HOME/victim/important}'": (
+        "callbacks.last_checkpoint.filename"
+    ),
+    "callbacks.checkpoint.filename='{../../../../../home/victim/important}'": (
+        "callbacks.checkpoint.filename"
+    ),
 }
 
 
@@ -210,6 +217,28 @@ def test_replayed_overrides_that_write_outside_the_run_are_refused(received, ove
     assert (OVERRIDE_ATTACKS[override] in message and "outside the run" in message) or (
         "paths.output_dir" in message and "own directory" in message
     ), message
+
+
+def test_a_folder_reached_by_dropping_a_link_and_its_dotdot_is_outside(received):
+    """Lightning normalises `default_root_dir` (the OOD tables' folder): `x/..` is dropped
+    whatever `x` links to, so a path that resolves inside the run through a link deep into it
+    was written outside it."""
+    (received.run / "a" / "a" / "a" / "a" / "a" / "a").mkdir(parents=True)
+    (received.run / "x").symlink_to("a/a/a/a/a/a")
+    path = f"{received.run}/x/{'../' * 5}home/outside"
+    received.add_overrides(f"trainer.default_root_dir={path}")
+    received.snapshot()
+    assert f"resolves to {received.home / 'outside'}, outside the run" in refused(received)
+
+
+@pytest.mark.parametrize("key, value", [("version", "'leak-$HOME'"), ("save_dir", "'~/runs'")])
+def test_a_path_that_lightning_expands_is_refused(received, key, value):
+    """Lightning expands `$VAR` in a logger's folder and a leading `~`: a received run's
+    `version='leak-$SECRET'` wrote the resuming user's secret into a folder name."""
+    received.add_overrides(f"logger.csv.{key}={value}")
+    received.snapshot()
+    message = refused(received)
+    assert f"logger.csv.{key}" in message and "which Lightning expands" in message
 
 
 def test_the_users_own_command_line_may_write_elsewhere(received):

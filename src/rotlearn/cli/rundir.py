@@ -98,7 +98,8 @@ def output_paths(cfg: DictConfig) -> list[tuple[tuple[str, ...], str]]:
     """Every place the config makes a run write, as (the config keys that make up the path, the
     path), values resolved: each `paths.*` value; every node's `output_dir`,
     `default_root_dir`, `cache_dir`, `log_dir`, `root_dir`; a logger's
-    `save_dir/name/version/sub_dir`; a checkpoint callback's `dirpath` and `dirpath/filename`.
+    `save_dir/name/version/sub_dir`; a checkpoint callback's `dirpath` and `dirpath/filename`
+    (also with the file name's braces dropped, as Lightning formats `{name}`).
     The `hydra` node is Hydra's own and left out."""
     tree = {
         str(k): OmegaConf.to_container(v, resolve=True) if OmegaConf.is_config(v) else v
@@ -126,9 +127,11 @@ def output_paths(cfg: DictConfig) -> list[tuple[tuple[str, ...], str]]:
                           os.path.join(*(str(node[p]) for p in parts))))  # fmt: skip
         if _text(node.get("dirpath")) is not None:
             found.append(((f"{key}.dirpath",), str(node["dirpath"])))
-            if _text(node.get("filename")) is not None:
-                path = os.path.join(str(node["dirpath"]), str(node["filename"]))
-                found.append(((f"{key}.dirpath", f"{key}.filename"), path))
+            if _text(node.get("filename")) is not None:  # as written, and as formatted:
+                name = str(node["filename"])  # `{name}` becomes `name=<value>` ({/tmp/x}: /tmp/x)
+                for form in dict.fromkeys([name, name.replace("{", "").replace("}", "")]):
+                    path = os.path.join(str(node["dirpath"]), form)
+                    found.append(((f"{key}.dirpath", f"{key}.filename"), path))
     return found
 
 
@@ -160,7 +163,9 @@ def check_placement(
 
     Raises:
         ConfigError: naming the key(s), the path and where it resolves (symlinks and `..`
-            followed); also when `paths.output_dir` is not the run directory itself.
+            followed, and also `..` taken lexically, as Lightning normalises a folder); a path
+            with a `$` or a leading `~` (past the run directory's own path), which Lightning
+            expands; also when `paths.output_dir` is not the run directory itself.
     """
     run = Path(os.path.realpath(run_dir))
     trusted = set(trusted)
@@ -175,14 +180,22 @@ def check_placement(
             f"directory {run}"
         )  # fmt: skip
     for keys, path in output_paths(cfg):
-        real = Path(os.path.realpath(path))
-        if real.is_relative_to(run) or all(set_by_user(k) for k in keys):
+        if all(set_by_user(k) for k in keys):
             continue
-        raise ConfigError(
-            " + ".join(keys),
-            f"{path} resolves to {real}, outside the run {run}; a resumed run writes only "
-            "inside its own directory (set the key on your own command line to write elsewhere)",
-        )
+        tail = path.removeprefix(str(output_dir))  # the run's own path is the user's
+        if os.path.expanduser(os.path.expandvars(tail)) != tail:
+            raise ConfigError(" + ".join(keys), f"{path} holds '$' or a leading '~', which "
+                              "Lightning expands from this machine's environment; a resumed "
+                              "run's paths are written out")  # fmt: skip
+        for form in (path, os.path.normpath(path)):  # Lightning normalises default_root_dir
+            real = Path(os.path.realpath(form))
+            if not real.is_relative_to(run):
+                raise ConfigError(
+                    " + ".join(keys),
+                    f"{path} resolves to {real}, outside the run {run}; a resumed run writes "
+                    "only inside its own directory (set the key on your own command line to "
+                    "write elsewhere)",
+                )
 
 
 @contextlib.contextmanager
