@@ -75,10 +75,28 @@ def test_resume_arguments_continue_the_run_with_its_own_overrides(tmp_path):
         "trainer.max_epochs=9",
         f"ckpt_path='{(new / 'checkpoints' / 'last.ckpt').resolve()}'",  # quoted for Hydra
         f"hydra.run.dir='{new.resolve()}'",
+        "hydra.mode=RUN",
     ]
     assert resume_arguments([f"ckpt_path={old}"])[0] == "rep=sixd"
     assert resume_arguments(["rep=a"]) == ["rep=a"]
     assert resume_arguments(["ckpt_path=null"]) == ["ckpt_path=null"]
+
+
+def test_a_run_of_an_experiment_that_sweeps_resumes_as_that_run(tmp_path):
+    """experiment=beliefs sets hydra.mode=MULTIRUN; a run of it with hydra.mode=RUN (which
+    Hydra does not save among the overrides) was resumed as a new one-job sweep under
+    outputs/multirun, its own records moved to history/1 and never written again."""
+    tiny = ["data.num_val=16", "data.num_test=16", "data.batches_per_epoch=1",
+            "data.eval_batch_size=16", "data.batch_size=8", "trainer.enable_progress_bar=false",
+            "logger=csv", *SMALL_NET]  # fmt: skip
+    run = tmp_path / "outputs" / "runs" / "r"
+    args = ["experiment=beliefs", "variant=a_bingham", "trainer.max_epochs=1", *tiny]
+    done = run_cli([*args, "hydra.mode=RUN", f"hydra.run.dir={run}"], tmp_path)
+    assert done.returncode == 0, done.stderr[-3000:]
+    done = run_cli([f"ckpt_path={run}", "trainer.max_epochs=2"], tmp_path)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert json.loads((run / "metrics.json").read_text())["epochs"] == 2
+    assert sorted(p.name for p in (tmp_path / "outputs").iterdir()) == ["runs"]
 
 
 @pytest.mark.parametrize(

@@ -394,7 +394,8 @@ def plan_resume(argv: list[str], runs_root: Path = Path("outputs/runs")) -> Resu
         previous = _saved_overrides(run_dir)  # read here, in one step, before they are used
         _refuse_rewriting_a_completed_run(run_dir, previous, new)
         args = [*previous, *new, f"ckpt_path={quoted(str(ckpt.resolve()))}",
-                f"hydra.run.dir={quoted(str(run_dir))}"]  # fmt: skip
+                f"hydra.run.dir={quoted(str(run_dir))}",
+                "hydra.mode=RUN"]  # one run, even of an experiment that sweeps  # fmt: skip
         args = _check_the_config_that_runs(run_dir, args, new, ckpt.resolve())
     except RunLockedError as exc:
         raise _refuse(f"refusing to resume: {exc}") from None
