@@ -79,6 +79,23 @@ def test_every_channel_count_becomes_rgb_or_gray(tmp_path, ext):
             np.testing.assert_array_equal(got_gray, as_gray)
 
 
+@pytest.mark.parametrize("suffix", [".png", ".jpg"])
+def test_a_frames_exif_orientation_is_not_applied(tmp_path, suffix):
+    """A frame's pose is the sensor's: a PNG or JPEG whose EXIF says "turned 180 degrees" or
+    "90 degrees" was read turned (OpenCV applies the orientation), its label unchanged."""
+    from PIL import Image
+
+    rgb = np.random.default_rng(0).integers(0, 256, (16, 24, 3), dtype=np.uint8)
+    plain = tmp_path / f"plain{suffix}"
+    Image.fromarray(rgb).save(plain, quality=95)
+    for orientation in (3, 6):
+        exif = Image.Exif()
+        exif[0x0112] = orientation
+        path = tmp_path / f"turned{orientation}{suffix}"
+        Image.fromarray(rgb).save(path, exif=exif, quality=95)
+        np.testing.assert_array_equal(read_frame(path)[0], read_frame(plain)[0])
+
+
 def test_floating_point_frames_are_refused_naming_them(tmp_path):
     path = _written(tmp_path, "f.tiff", COLOUR.astype(np.float32) / 255)
     with unchanged(tmp_path), pytest.raises(ValueError, match=r"f\.tiff: float32 samples"):

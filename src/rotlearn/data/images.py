@@ -41,8 +41,9 @@ __all__ = [
 
 Preprocess = Callable[[np.ndarray], np.ndarray]
 _SPARE_BYTES = 2**28  # a frame cache leaves this much of its disk free (256 MiB)
-DECODER = 2  # in each cache's manifest: caches of an earlier decoder (16-bit frames read as black)
-# are rebuilt
+# In each cache's manifest: caches of an earlier decoder are rebuilt (1: 16-bit frames read as
+# black; 2: frames turned as their EXIF orientation says)
+DECODER = 3
 
 
 def read_frame(path: Path, gray: bool = False) -> tuple[np.ndarray, str]:
@@ -51,7 +52,8 @@ def read_frame(path: Path, gray: bool = False) -> tuple[np.ndarray, str]:
     The file is read once, up to `rotlearn.io.MAX_BYTES["camera frame"]` bytes (a regular
     file only), and its header checked against the pixel budget before anything is decoded
     (`rotlearn.data.image_header.check_frame`): what is decoded is what was checked, even if
-    the file is replaced meanwhile. It is decoded at its own bit depth and channel count, then
+    the file is replaced meanwhile. It is decoded as stored (an EXIF orientation is a display
+    hint, not applied: a pose is the sensor's), at its own bit depth and channel count, then
     converted: 16-bit values are scaled to 8 bits (v / 257, rounded), except when every value
     fits in 8 bits (8-bit values stored in 16-bit files, as some exports write them: OpenCV's
     own 8-bit reading would shift them to black), which are kept; colour to gray with OpenCV's
@@ -72,9 +74,8 @@ def read_frame(path: Path, gray: bool = False) -> tuple[np.ndarray, str]:
     data = read_bytes(path, "camera frame")  # one read: the header checked is the one decoded
     check_frame(path, data)
     try:
-        image = cv2.imdecode(
-            np.frombuffer(data, np.uint8), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR
-        )
+        flags = cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR | cv2.IMREAD_IGNORE_ORIENTATION
+        image = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
     except cv2.error as exc:  # a header OpenCV reads otherwise than check_frame: not a traceback
         lines = str(exc).strip().splitlines()
         reason = f" ({lines[-1].strip()})" if lines else ""
