@@ -97,6 +97,19 @@ def test_mav_validation_is_the_scene_tail_without_any_test_frame(tmp_path):
     assert (np.minimum(test.first, test.second) >= tail).any()
 
 
+def test_mav_scenes_sharing_frames_never_train_on_a_validation_frame(tmp_path):
+    """A training scene whose pairs read frames of another scene's validation tail (both index
+    the flea3 cache) trained on those validation frames."""
+    root = write_mav(tmp_path / "mav", frames=30)
+    (root / "pairs" / "transition.csv").write_text("".join(f"{i},{i + 1}\n" for i in range(5, 19)))
+    dm = MAVDataModule(str(root), train_scenes=["outdoor", "transition"], test_scenes=["indoor"],
+                       val_fraction=0.3, resize=18, image_size=16, num_workers=0)  # fmt: skip
+    dm.setup()
+    train, val, test = (dm.sets[s].index for s in ("train", "val", "test"))
+    assert_disjoint(train, val, test)
+    assert len(train) > 0
+
+
 def test_shapenet_validation_clouds_are_held_out_training_clouds(demo_data):
     dm = ShapeNetDataModule(str(demo_data["pts"]), num_val=1, test_rotations=3)
     dm.setup()
@@ -126,16 +139,20 @@ def test_synthetic_validation_and_test_samples_differ():
     deltas=st.lists(st.integers(1, 6), min_size=1, max_size=3, unique=True),
     fraction=st.floats(0.0, 0.9),
     test_every=st.integers(2, 7),
+    shared=st.booleans(),
 )
-def test_the_tail_split_never_shares_a_frame(lengths, deltas, fraction, test_every):
-    """Whatever the sequences, gaps and fraction: validation and training share no frame, are at
-    least a pair distance apart, and no validation pair reads a frame of the test pairs."""
+def test_the_tail_split_never_shares_a_frame(lengths, deltas, fraction, test_every, shared):
+    """Whatever the sequences, gaps and fraction, and where sources read overlapping frames of
+    one cache (MAV's scenes): validation and training share no frame, are more than a pair
+    distance apart, and no validation pair reads a frame of the test pairs."""
     parts = []
     for i, n in enumerate(lengths):
         first = np.concatenate([np.arange(max(n - d, 0)) for d in deltas]).astype(np.int64)
         second = first + np.repeat(deltas, [max(n - d, 0) for d in deltas])
-        parts.append(PairIndex([Path(f"c{i}.npy")], np.zeros(len(first), np.int64), first,
-                               second, np.zeros((len(first), 3, 3)), [f"s{i}"]))  # fmt: skip
+        start, cache = (10 * i, "c.npy") if shared else (0, f"c{i}.npy")
+        rotations, source = np.zeros((len(first), 3, 3)), np.zeros(len(first), np.int64)
+        parts.append(PairIndex([Path(cache)], source, first + start, second + start, rotations,
+                               [f"s{i}"]))  # fmt: skip
     index = PairIndex.concat(parts)
     is_test = np.arange(len(index)) % test_every == 0
     test, rest = index.subset(is_test), index.subset(~is_test)

@@ -9,7 +9,8 @@ a pair distance of a training frame. Validation pairs that share a frame with a 
 of the training scene's pairs), so no test pair and no test frame is ever in validation.
 
 Frames are identified by (cache file, frame index): two sources reading the same cache (MAV's
-scenes share the flea3 cache) share frames.
+scenes share the flea3 cache) share frames, so a training pair of one source that reads a frame
+within the pair distance of another source's validation frames is dropped too.
 """
 
 from __future__ import annotations
@@ -93,8 +94,23 @@ def hold_out_tail(
         cut = hi + 1 - n_val
         keep_val[rows] = low[rows] >= cut
         keep_train[rows] = high[rows] < cut - gap
+    codes = [_codes(train.source, frames, train.caches, train.caches)
+             for frames in (train.first, train.second)]  # fmt: skip
     if exclude is not None and keep_val.any():
         taken = _frame_codes(exclude, train.caches)
-        for frames in (train.first, train.second):
-            keep_val &= ~np.isin(_codes(train.source, frames, train.caches, train.caches), taken)
+        for code in codes:
+            keep_val &= ~np.isin(code, taken)
+    if keep_val.any():  # another source's training pairs that reach a validation frame
+        validated = np.unique(np.concatenate([code[keep_val] for code in codes]))
+        reach = int((high - low).max())
+        for code in codes:
+            keep_train &= ~_within(code, validated, reach)
     return train.subset(keep_train), train.subset(keep_val)
+
+
+def _within(codes: np.ndarray, targets: np.ndarray, distance: int) -> np.ndarray:
+    """Which `codes` lie within `distance` frames of one of `targets` (sorted) of their cache."""
+    at = np.searchsorted(targets, codes)
+    below = targets[np.clip(at - 1, 0, len(targets) - 1)]
+    above = targets[np.clip(at, 0, len(targets) - 1)]
+    return (np.abs(codes - below) <= distance) | (np.abs(codes - above) <= distance)
