@@ -241,6 +241,24 @@ def test_a_path_that_lightning_expands_is_refused(received, key, value):
     assert f"logger.csv.{key}" in message and "which Lightning expands" in message
 
 
+def test_a_file_the_saved_overrides_name_is_opened_only_if_the_command_line_names_it(make_cfg):
+    """A received KITTI run's saved `callbacks.ood.autoencoder_ckpt=<path>` made its resume load
+    that checkpoint, outside the run, and write its scores into ood.csv (rotlearn-eval already
+    took the key from its own command line only)."""
+    from rotlearn.cli.resume import _refuse_files_to_open
+    from rotlearn.errors import ConfigError
+
+    ae = "/elsewhere/ae/checkpoints/last.ckpt"
+    cfg = make_cfg(["data=kitti", "data.root=/data", "callbacks=ood",
+                    f"callbacks.ood.autoencoder_ckpt={ae}"])  # fmt: skip
+    with pytest.raises(ConfigError, match=rf"autoencoder_ckpt: the run's saved overrides name "
+                       rf"{ae}; a resume opens a file they name only when your command line "
+                       rf"names it"):  # fmt: skip
+        _refuse_files_to_open(cfg, ["trainer.max_epochs=2"])
+    _refuse_files_to_open(cfg, [f"callbacks.ood.autoencoder_ckpt={ae}"])
+    _refuse_files_to_open(make_cfg(["data=kitti", "data.root=/data", "callbacks=ood"]), [])
+
+
 def test_the_users_own_command_line_may_write_elsewhere(received):
     plan = received.plan(f"trainer.default_root_dir={received.home / 'root'}")
     assert plan is not None and f"trainer.default_root_dir={received.home / 'root'}" in plan.args

@@ -308,6 +308,7 @@ def _check_the_config_that_runs(
     try:
         validate(cfg)
         check_placement(cfg, run_dir, trusted=user_keys(new))  # first: a path out is named so
+        _refuse_files_to_open(cfg, new)
         _check_it_is_the_config_the_run_trained(cfg, run_dir, new)
         checkpoint = load_checkpoint(ckpt)
         checked_checkpoint_states(checkpoint, _model_checkpoints(cfg), run_dir, ckpt)
@@ -322,6 +323,23 @@ def _check_the_config_that_runs(
             f"refusing to resume {run_dir}: {reason[0] if reason else type(exc).__name__}"
         ) from None
     return args
+
+
+# Keys that name a file a run opens (beyond its dataset, data.root): only the user's own
+# command line names one on a resume, as rotlearn-eval takes `ood.autoencoder_ckpt` from its own.
+FILE_KEYS = ("callbacks.ood.autoencoder_ckpt",)
+
+
+def _refuse_files_to_open(cfg: DictConfig, new: list[str]) -> None:
+    """ConfigError where the run's saved overrides, not the new command line, name a file to
+    open (`FILE_KEYS`): a received run would make the resume read a checkpoint outside it."""
+    from omegaconf import OmegaConf
+
+    for key in (k for k in FILE_KEYS if k not in user_keys(new)):
+        if (named := OmegaConf.select(cfg, key)) is not None:
+            raise ConfigError(key, f"the run's saved overrides name {named}; a resume opens a "
+                              f"file they name only when your command line names it: {key}="
+                              f"{named} to open it, {key}=null to go without")  # fmt: skip
 
 
 def _check_it_is_the_config_the_run_trained(cfg: DictConfig, run_dir: Path, new: list[str]):
