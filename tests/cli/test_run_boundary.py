@@ -328,6 +328,17 @@ TREE_ATTACKS = {
         ),
         "alias",
     ),
+    ".hydra/config.yaml a hard link to a file outside": (
+        lambda r: (
+            (r.run / ".hydra" / "config.yaml").unlink(),
+            os.link(r.victim, r.run / ".hydra" / "config.yaml"),
+        ),
+        "a hard link (one file with 2 names)",
+    ),
+    "folders 40 deep": (
+        lambda r: (r.run / Path(*["d"] * 40)).mkdir(parents=True),
+        "folders nested more than 32 deep",
+    ),
     "a truncated last.ckpt": (
         lambda r: r.ckpt.write_bytes(r.ckpt.read_bytes()[:50_000]),
         "last.ckpt is not a whole PyTorch checkpoint",

@@ -1,7 +1,7 @@
 """The run directory as the boundary, checked from the command line before Hydra writes anything.
 
-- `check_run_tree`: a run directory someone may have sent holds only regular files and folders,
-  and no symlink that resolves outside it.
+- `check_run_tree`: a run directory someone may have sent holds only regular files (each of one
+  name: no hard link) and folders, and no symlink that resolves outside it.
 - `output_paths` / `check_placement`: every place a run writes (`paths.*`,
   `trainer.default_root_dir`, each logger's folder, each checkpoint callback's folder and file
   name, `data.cache_dir`) lies inside the run; a resume refuses a config that would write
@@ -38,6 +38,7 @@ __all__ = [
 ]
 
 MAX_RUN_ENTRIES = 100_000  # files and folders a run directory may hold (a scan is bounded)
+MAX_RUN_DEPTH = 32  # levels of folders in a run (its own go a handful deep)
 _RANK_VARIABLES = ("LOCAL_RANK", "RANK", "SLURM_PROCID", "JSM_NAMESPACE_RANK")
 _LONE_PATH_KEYS = ("output_dir", "default_root_dir", "cache_dir", "log_dir", "root_dir")
 _LOGGER_PARTS = ("save_dir", "name", "version", "sub_dir")
@@ -60,33 +61,50 @@ def runs_a_sweep(argv: list[str], cfg: DictConfig | None = None) -> bool:
 
 
 def check_run_tree(run_dir: str | os.PathLike) -> None:
-    """Refuse a run directory that holds a symlink resolving outside it, or anything but
-    regular files and folders (a named pipe, a device, a socket), or more than
-    `MAX_RUN_ENTRIES` entries. Symlinks are not followed while scanning.
+    """Refuse a run directory that holds a symlink resolving outside it, a file with other
+    names (a hard link: a resume writing its config or log would write through to them), or
+    anything but regular files and folders (a named pipe, a device, a socket), or more than
+    `MAX_RUN_ENTRIES` entries or `MAX_RUN_DEPTH` levels of folders. Symlinks are not followed
+    while scanning.
 
     Raises:
         UnreadableFileError: naming the entry at fault.
     """
     run = Path(os.path.realpath(run_dir))
-    count = 0
-    for folder, dirs, files in os.walk(run, followlinks=False):
-        for name in [*dirs, *files]:
+    count, folders = 0, [(run, 0)]
+    while folders:
+        folder, depth = folders.pop()
+        if depth > MAX_RUN_DEPTH:
+            raise UnreadableFileError(f"{folder}: folders nested more than {MAX_RUN_DEPTH} deep; "
+                                      "not a run directory")  # fmt: skip
+        try:
+            entries = sorted(os.scandir(folder), key=lambda e: e.name)
+        except OSError as exc:
+            raise UnreadableFileError(f"{folder}: cannot be read ({exc.strerror})") from None
+        for entry in entries:
             count += 1
             if count > MAX_RUN_ENTRIES:
                 raise UnreadableFileError(
                     f"{run}: more than {MAX_RUN_ENTRIES} files and folders; not a run directory"
                 )
-            path = Path(folder) / name
-            if path.is_symlink():
+            path = Path(entry.path)
+            if entry.is_symlink():
                 target = Path(os.path.realpath(path))
                 if not target.is_relative_to(run):
                     raise UnreadableFileError(
                         f"{path}: a symlink to {target}, outside the run {run}; refused"
                     )
-            elif not (path.is_dir() or path.is_file()):
+            elif entry.is_dir(follow_symlinks=False):
+                folders.append((path, depth + 1))
+            elif not entry.is_file(follow_symlinks=False):
                 raise UnreadableFileError(
                     f"{path}: neither a regular file nor a folder (a FIFO, device or socket); "
                     "a run directory holds only files and folders"
+                )
+            elif (links := entry.stat(follow_symlinks=False).st_nlink) > 1:
+                raise UnreadableFileError(
+                    f"{path}: a hard link (one file with {links} names), which the run would "
+                    "write through to its other names; copy the run (cp -r) to resume the copy"
                 )
 
 
