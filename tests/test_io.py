@@ -8,6 +8,7 @@ import errno
 import os
 import pickle
 import stat
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,6 +22,7 @@ from rotlearn.io import (
     UnreadableFileError,
     WriteError,
     atomic_write,
+    folder_entries,
     read_bytes,
     read_json,
     read_number_array,
@@ -439,3 +441,23 @@ def test_a_csv_table_that_is_not_utf8_is_named_with_its_line(tmp_path):
         read_table(path)
     path.write_bytes(b"a,b,c\n1,2,3\n")
     assert list(read_table(path, columns=("a", "c", "missing")).columns) == ["a", "c"]
+
+
+def test_folder_entries_walks_deep_trees_without_recursion_and_never_follows_a_link(tmp_path):
+    """Python 3.11's os.walk and rglob recurse: 1100 nested folders in a received run ended a
+    resume and a report in a RecursionError. A link to a folder is listed, not entered."""
+    folders = [tmp_path / "t"]
+    for _ in range(1100):
+        folders.append(folders[-1] / "d")
+    for folder in folders:
+        folder.mkdir()
+    (folders[0] / "loop").symlink_to(folders[0])
+    names = [Path(e.path).relative_to(folders[0]) for e in folder_entries(folders[0], 2000, 2000)]
+    assert len(names) == 1101 and names[:2] == [Path("d"), Path("loop")]
+    with pytest.raises(UnreadableFileError, match=r"/d: folders nested more than 50 deep$"):
+        list(folder_entries(folders[0], 2000, 50))
+    with pytest.raises(UnreadableFileError, match=r"/t: more than 10 files and folders$"):
+        list(folder_entries(folders[0], 10, 2000))
+    (folders[0] / "loop").unlink()
+    for folder in reversed(folders):  # rmtree recurses too
+        folder.rmdir()

@@ -42,6 +42,7 @@ __all__ = [
     "atomic_write",
     "cache_file",
     "cache_manifest",
+    "folder_entries",
     "numbered_lines",
     "parse_number_rows",
     "parse_yaml",
@@ -213,6 +214,35 @@ def tree_problem(tree: Any) -> str | None:
             children = node.values() if isinstance(node, dict) else node
             stack.extend((child, depth + 1) for child in children)
     return None
+
+
+def folder_entries(
+    root: str | os.PathLike, max_entries: int, max_depth: int
+) -> Iterator[os.DirEntry]:
+    """Every entry below folder `root`, folders before what they hold, in name order within a
+    folder; symlinks are yielded, never followed. Without recursion (Python 3.11's `os.walk`
+    and `rglob` recurse: 1100 nested folders end them in a RecursionError).
+
+    Raises:
+        UnreadableFileError: naming `root` past `max_entries` entries, the folder past
+            `max_depth` levels, or a folder that cannot be read.
+    """
+    count, folders = 0, [(os.fspath(root), 0)]
+    while folders:
+        folder, depth = folders.pop()
+        if depth > max_depth:
+            raise UnreadableFileError(f"{folder}: folders nested more than {max_depth} deep")
+        try:
+            with os.scandir(folder) as found:
+                entries = sorted(found, key=lambda e: e.name)
+        except OSError as exc:
+            raise UnreadableFileError(f"{folder}: cannot be read ({exc.strerror})") from None
+        for entry in entries:
+            if (count := count + 1) > max_entries:
+                raise UnreadableFileError(f"{root}: more than {max_entries} files and folders")
+            yield entry
+            if entry.is_dir(follow_symlinks=False):
+                folders.append((entry.path, depth + 1))
 
 
 # pickle opcodes whose argument is the value they push (strings, bytes, numbers)

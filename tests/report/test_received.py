@@ -291,7 +291,11 @@ def test_a_runs_tensorboard_folder_is_read_only_within_its_bounds(tmp_path, capl
     (outside / "tensorboard" / "tb" / "val" / "events.out.tfevents.0.y").symlink_to(
         next((run / "tensorboard" / "tb" / "val").iterdir())
     )
-    for bad, said in ((many, f"over {MAX_EVENT_FILES} files"), (outside, "not a regular file")):
+    deep = tmp_path / "deep"  # 1100 levels ended the report in a RecursionError (rglob)
+    shutil.copytree(run, deep)
+    (deep / "tensorboard" / "tb" / Path(*["d"] * 20)).mkdir(parents=True)
+    for bad, said in ((many, f"over {MAX_EVENT_FILES} files"), (outside, "not a regular file"),
+                      (deep, "folders nested more than 8 deep")):  # fmt: skip
         caplog.clear()
         assert read_curve(bad, "val/err_mean") is None
         assert said in caplog.text and str(bad / "tensorboard") in caplog.text

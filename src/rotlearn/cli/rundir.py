@@ -24,7 +24,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from rotlearn.errors import ConfigError
-from rotlearn.io import UnreadableFileError
+from rotlearn.io import UnreadableFileError, folder_entries
 
 __all__ = [
     "check_placement",
@@ -71,41 +71,30 @@ def check_run_tree(run_dir: str | os.PathLike) -> None:
         UnreadableFileError: naming the entry at fault.
     """
     run = Path(os.path.realpath(run_dir))
-    count, folders = 0, [(run, 0)]
-    while folders:
-        folder, depth = folders.pop()
-        if depth > MAX_RUN_DEPTH:
-            raise UnreadableFileError(f"{folder}: folders nested more than {MAX_RUN_DEPTH} deep; "
-                                      "not a run directory")  # fmt: skip
-        try:
-            entries = sorted(os.scandir(folder), key=lambda e: e.name)
-        except OSError as exc:
-            raise UnreadableFileError(f"{folder}: cannot be read ({exc.strerror})") from None
-        for entry in entries:
-            count += 1
-            if count > MAX_RUN_ENTRIES:
+    try:
+        entries = list(folder_entries(run, MAX_RUN_ENTRIES, MAX_RUN_DEPTH))
+    except UnreadableFileError as exc:
+        raise UnreadableFileError(f"{exc}; not a run directory") from None
+    for entry in entries:
+        path = Path(entry.path)
+        if entry.is_symlink():
+            target = Path(os.path.realpath(path))
+            if not target.is_relative_to(run):
                 raise UnreadableFileError(
-                    f"{run}: more than {MAX_RUN_ENTRIES} files and folders; not a run directory"
+                    f"{path}: a symlink to {target}, outside the run {run}; refused"
                 )
-            path = Path(entry.path)
-            if entry.is_symlink():
-                target = Path(os.path.realpath(path))
-                if not target.is_relative_to(run):
-                    raise UnreadableFileError(
-                        f"{path}: a symlink to {target}, outside the run {run}; refused"
-                    )
-            elif entry.is_dir(follow_symlinks=False):
-                folders.append((path, depth + 1))
-            elif not entry.is_file(follow_symlinks=False):
-                raise UnreadableFileError(
-                    f"{path}: neither a regular file nor a folder (a FIFO, device or socket); "
-                    "a run directory holds only files and folders"
-                )
-            elif (links := entry.stat(follow_symlinks=False).st_nlink) > 1:
-                raise UnreadableFileError(
-                    f"{path}: a hard link (one file with {links} names), which the run would "
-                    "write through to its other names; copy the run (cp -r) to resume the copy"
-                )
+        elif entry.is_dir(follow_symlinks=False):
+            continue
+        elif not entry.is_file(follow_symlinks=False):
+            raise UnreadableFileError(
+                f"{path}: neither a regular file nor a folder (a FIFO, device or socket); "
+                "a run directory holds only files and folders"
+            )
+        elif (links := entry.stat(follow_symlinks=False).st_nlink) > 1:
+            raise UnreadableFileError(
+                f"{path}: a hard link (one file with {links} names), which the run would "
+                "write through to its other names; copy the run (cp -r) to resume the copy"
+            )
 
 
 def _text(value: Any) -> str | None:

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rotlearn.io import MAX_BYTES
+from rotlearn.io import MAX_BYTES, UnreadableFileError, folder_entries
 
 __all__ = [
     "ERROR_STATS",
@@ -50,6 +50,7 @@ _RENAMED = {"time/epoch_s": ("train", "learning/epoch_time_s")}
 # stage, so a run resumed dozens of times stays well below. TensorBoard's reader lists a folder
 # again for every file in it: 4,000 empty files (0 bytes) took 79 s to read.
 MAX_EVENT_FILES = 256
+MAX_EVENT_DEPTH = 8  # folder levels below tensorboard/ (<name>/<stage>: 2)
 
 
 def tensorboard_place(key: str) -> tuple[str, str]:
@@ -85,8 +86,14 @@ def _readable_events(run_dir: Path) -> bool:
     if not root.is_dir():
         return True  # nothing to read
     total, count, real_run = 0, 0, Path(os.path.realpath(run_dir))
-    for path in root.rglob("*"):
-        if path.is_dir() and not path.is_symlink():
+    try:
+        entries = list(folder_entries(root, 2 * MAX_EVENT_FILES, MAX_EVENT_DEPTH))
+    except UnreadableFileError as exc:
+        log.warning("%s; its events are not read", exc)
+        return False
+    for entry in entries:
+        path = Path(entry.path)
+        if entry.is_dir(follow_symlinks=False):
             continue
         if not (path.is_file() and Path(os.path.realpath(path)).is_relative_to(real_run)):
             log.warning("%s: not a regular file inside the run; its events are not read", path)
