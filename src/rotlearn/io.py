@@ -24,6 +24,7 @@ import pickletools
 import re
 import secrets
 import stat
+import unicodedata
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -47,6 +48,7 @@ __all__ = [
     "parse_number_rows",
     "parse_yaml",
     "plain_name",
+    "plain_names",
     "plain_pickle",
     "read_bytes",
     "read_cached_array",
@@ -916,17 +918,18 @@ def _name_problem(name: str) -> str | None:
         return "(empty, '.' or '..'): it could leave the dataset"
     if any(c in name for c in "/\\\0"):
         return "(it holds a path separator or NUL): it could leave the dataset"
-    if _UNPRINTABLE.search(name):
+    if _UNPRINTABLE.search(name) or any(unicodedata.category(c) == "Cf" for c in name):
         return (
-            "(a line break, a control character or bytes that are not UTF-8): a message "
-            "naming it would be garbled"
+            "(a line break, a control or format character such as a bidi override, or bytes "
+            "that are not UTF-8): a message naming it would be garbled"
         )
     return None
 
 
 def plain_name(name: object, where: str | None = None, key: str | None = None) -> str:
     """`name` as a string, if it is one plain file or folder name: not empty, '.' or '..', no
-    '/', '\\' or NUL, no control character, line break or undecodable byte. A plain name joined
+    '/', '\\' or NUL, no control or format character (a bidi override, a zero-width space),
+    line break or undecodable byte. A plain name joined
     to a folder stays in that folder (up to symlinks: `resolve_inside`).
 
     Args:
@@ -946,6 +949,20 @@ def plain_name(name: object, where: str | None = None, key: str | None = None) -
     if key is not None:
         raise ConfigError(key, message)
     raise ValueError(f"{where}: {message}")
+
+
+def plain_names(names: Iterable[object], key: str) -> list[str]:
+    """`plain_name` of each entry of the config list `key` (sequences, scenes), each once.
+
+    Raises:
+        ConfigError: on `key`, naming the entry that is not a plain name or is listed twice
+            (its pairs would be read and counted twice).
+    """
+    found = [plain_name(name, key=key) for name in names]
+    for i, name in enumerate(found):
+        if name in found[:i]:
+            raise ConfigError(key, f"lists {name!r} twice ({list(names)!r}); each once")
+    return found
 
 
 def resolve_inside(root: str | os.PathLike, path: str | os.PathLike, where: str) -> Path:

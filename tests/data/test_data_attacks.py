@@ -583,7 +583,7 @@ def test_plain_name_and_resolve_inside(tmp_path):
     assert plain_name("00", "f:1") == "00" and plain_name("a..b", "f:1") == "a..b"
     assert plain_name("évian é", "f:1") == "évian é"  # printable, not ASCII: plain
     for bad in ("", ".", "..", "../x", "x/..", "/etc", "a\\b", "x\0", "a\nb", "x\x1b[2J",
-                "x\udcff", "a\u2028b", "a\x85"):  # fmt: skip
+                "x\udcff", "a\u2028b", "a\x85", "abc\u202egnp.exe", "a\u200bb"):  # fmt: skip
         with pytest.raises(ValueError, match=r"f:1: .* not a plain"):
             plain_name(bad, "f:1")
     with pytest.raises(ConfigError) as err:

@@ -210,6 +210,15 @@ def test_a_batch_over_the_budget_is_refused_before_any_frame_is_read(tmp_path):
     assert not list(tmp_path.rglob(".rotlearn_cache"))
 
 
+def test_a_sequence_or_scene_listed_twice_is_refused(tmp_path):
+    """train_sequences=["02", "2"] read sequence 02 twice: 14 training pairs for its 7."""
+    root = write_kitti(tmp_path / "kitti", {"00": yaw_sequence(4, 1.0), "01": yaw_sequence(3, 1.0)})
+    with pytest.raises(ConfigError, match=r"^config key train_sequences: lists '01' twice"):
+        kitti_module(root, train_sequences=["01", "1"])
+    with pytest.raises(ConfigError, match=r"^config key test_scenes: lists 'outdoor' twice"):
+        mav_module(write_mav(tmp_path / "mav"), test_scenes=["outdoor", "outdoor"])
+
+
 # -- KITTI bad input ---------------------------------------------------------------------------
 
 

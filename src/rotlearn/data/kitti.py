@@ -25,7 +25,7 @@ from rotlearn.data.images import frame_cache, resize_square
 from rotlearn.data.pairs import ImagePairDataModule, PairIndex
 from rotlearn.errors import ConfigError
 from rotlearn.geometry import relative_rotation, special_orthogonalize
-from rotlearn.io import cache_file, plain_name, read_number_rows, resolve_inside
+from rotlearn.io import cache_file, plain_name, plain_names, read_number_rows, resolve_inside
 from rotlearn.trust import config_target
 
 if TYPE_CHECKING:  # constraints of the config values, checked by rotlearn.config
@@ -76,9 +76,10 @@ def _sequence_names(key: str, sequences: Sequence[int | str]) -> list[str]:
     """`sequence_name` of each entry of the config list `key`, each a plain folder name.
 
     Raises:
-        ConfigError: on `key`, for a name with a path separator, "." or "..".
+        ConfigError: on `key`, for a name with a path separator, "." or "..", or one listed
+            twice ("2" and "02" are one sequence).
     """
-    return [plain_name(sequence_name(s), key=key) for s in sequences]
+    return plain_names([sequence_name(s) for s in sequences], key)
 
 
 @config_target

@@ -38,6 +38,7 @@ from rotlearn.io import (
     cache_file,
     numbered_lines,
     plain_name,
+    plain_names,
     read_text_file,
     require_finite,
     resolve_inside,
@@ -291,8 +292,8 @@ class MAVDataModule(ImagePairDataModule):
         if image_size > resize:
             raise ConfigError("image_size", f"the crop {image_size} exceeds resize={resize}")
         self.root = Path(root)
-        self.train_scenes = [plain_name(s, key="train_scenes") for s in train_scenes]
-        self.test_scenes = [plain_name(s, key="test_scenes") for s in test_scenes]
+        self.train_scenes = plain_names(train_scenes, "train_scenes")
+        self.test_scenes = plain_names(test_scenes, "test_scenes")
         self.test_fraction, self.pose_tolerance_ms = float(test_fraction), float(pose_tolerance_ms)
         self.resize, self.image_size = int(resize), int(image_size)
         self.refuse_oversized_batches(pair_channels, self.image_size)
