@@ -219,6 +219,16 @@ def test_a_sequence_or_scene_listed_twice_is_refused(tmp_path):
         mav_module(write_mav(tmp_path / "mav"), test_scenes=["outdoor", "outdoor"])
 
 
+def test_a_split_leaving_no_training_pair_is_refused_naming_the_dataset(tmp_path):
+    """A MAV scene of one pair: it went to test, and training failed at its first batch with
+    PyTorch's "num_samples should be a positive integer value, but got num_samples=0"."""
+    root = write_mav(tmp_path / "mav")
+    (root / "pairs" / "outdoor.csv").write_text("0,1\n")
+    with pytest.raises(ValueError, match=rf"^data.root {re.escape(str(root))}: no training pair "
+                       r"left once the test and validation pairs are taken"):  # fmt: skip
+        mav_module(root).setup()
+
+
 # -- KITTI bad input ---------------------------------------------------------------------------
 
 

@@ -251,6 +251,12 @@ class ImagePairDataModule(pl.LightningDataModule):
 
         train, test = self.load("train"), self.load("test")
         train, val = hold_out_tail(train, self.val_fraction, exclude=test)
+        if not len(train):  # a sampler of no pairs fails later, naming no file or key
+            raise ValueError(
+                f"data.root {getattr(self, 'root', '?')}: no training pair left once the test "
+                "and validation pairs are taken; more frames, or a lower data.val_fraction or "
+                "data.test_fraction"
+            )
         held_out = self.load("val")
         if held_out is not None and len(held_out):
             val = PairIndex.concat([val, held_out])
