@@ -5,12 +5,14 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-__all__ = ["EVALUATED_FILE", "checkpoint_file", "config_dir"]
+__all__ = ["EVALUATED_FILE", "OOD_EXAMPLES_FILE", "checkpoint_file", "config_dir"]
 
 SWEEP_FILES = ("multirun.yaml", "jobs.json", "planned_jobs.json")  # what Hydra and rotlearn write
 # In an evaluation's directory (rotlearn-eval): the run config it evaluated, which rotlearn-report
 # reads in place of the evaluation's own config.
 EVALUATED_FILE = "evaluated.yaml"
+# A run's own figure (the OOD evaluation's example pairs): a report's plot never takes its name.
+OOD_EXAMPLES_FILE = "ood_examples.png"
 
 
 def config_dir() -> Path:

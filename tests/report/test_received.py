@@ -47,6 +47,8 @@ def _one_line(err: str, *parts: str) -> None:
         ({"kind": "curves", "file": "../outside/new_dir/dropped.png"}, "report.plots[0].file"),
         ({"kind": "box", "x": "seed", "label": "../../outside/x"}, "report.plots[0].label"),
         ({"kind": "curves", "file": "metrics.json"}, "report.plots[0].file"),
+        # a pooled report goes into the first run's folder: it replaced that run's own figure
+        ({"kind": "curves", "file": "ood_examples.png"}, "report.plots[0].file"),
     ],
 )
 def test_a_plot_file_a_received_config_names_stays_in_the_report_folder(

@@ -44,6 +44,7 @@ from rotlearn.ood.evaluation import (
     score_sets,
 )
 from rotlearn.ood.source import OODDataSource
+from rotlearn.paths import OOD_EXAMPLES_FILE
 from rotlearn.scores import SCORES, available_scores
 from rotlearn.trust import config_target
 
@@ -301,7 +302,7 @@ class OODEvaluation(pl.Callback):
         write_samples(run_dir, sets)
         example_figure = figures.examples_figure(*examples) if examples is not None else None
         if example_figure is not None:
-            figures.save_figure(example_figure, run_dir / "ood_examples.png")
+            figures.save_figure(example_figure, run_dir / OOD_EXAMPLES_FILE)
         checkpoints = getattr(trainer.checkpoint_callback, "dirpath", None)
         ood = calibrated_threshold(frame, "dt")
         if ood is not None and checkpoints and Path(checkpoints).is_dir():

@@ -46,6 +46,7 @@ import numpy as np
 import pandas as pd
 
 from rotlearn.io import read_json, read_table, sync_folder, write_text_atomic
+from rotlearn.paths import OOD_EXAMPLES_FILE
 from rotlearn.report import figures, tables
 from rotlearn.report.runs import RUN_MARKS, collect_runs, label_without
 from rotlearn.report.tensorboard import read_curve
@@ -639,7 +640,7 @@ def _ood_figures(
         files["ood_sets"] = figures.save_figure(fig, out / OUTPUT_FILES["ood_sets"], dpi=90)
         md += ["### Error per test set (paper Fig. 8b)", "",
                f"![error per test set]({OUTPUT_FILES['ood_sets']})", ""]  # fmt: skip
-    examples = [(run, Path(run["dir"]) / "ood_examples.png") for run, _ in frames]
+    examples = [(run, Path(run["dir"]) / OOD_EXAMPLES_FILE) for run, _ in frames]
     examples = [(run, path) for run, path in examples if path.is_file()]
     if examples:
         md += ["### Example test pairs with their scores", ""]

@@ -16,6 +16,7 @@ from typing_extensions import TypedDict
 
 from rotlearn import io
 from rotlearn.errors import ConfigError, validation_words
+from rotlearn.paths import OOD_EXAMPLES_FILE
 
 __all__ = ["DEFAULT_REPORT", "OpenNode", "ReportLayout", "layout_of", "report_layout"]
 
@@ -35,6 +36,8 @@ def _png_name(name: str) -> str:
     if not plain:
         raise ValueError("should be a plain file name ending in .png (the plot is written into "
                          "the report's folder)")  # fmt: skip
+    if name == OOD_EXAMPLES_FILE:  # a report into a run's own folder would replace it
+        raise ValueError(f"should not be {OOD_EXAMPLES_FILE}, a run's own figure")
     return name
 
 
