@@ -16,6 +16,7 @@ from rotlearn import io
 from rotlearn.checkpoint import UnsafeCheckpointError, load_checkpoint
 from rotlearn.io import WriteError
 from rotlearn.lit.boundary import RunCheckpointIO, checked_checkpoint_states
+from rotlearn.lit.state import rng_states
 
 
 @pytest.fixture
@@ -91,7 +92,8 @@ def _genuine_training_state() -> dict:
     return {"loops": {"fit_loop": trainer.fit_loop.state_dict()},
             "optimizer_states": [optimizer.state_dict()],
             "lr_schedulers": [scheduler.state_dict()],
-            "callbacks": {"EpochLosses": {"losses": []}}}  # fmt: skip
+            "callbacks": {"EpochLosses": {"losses": []}},
+            "rng_states": rng_states()}  # fmt: skip
 
 
 @pytest.mark.parametrize(
@@ -103,6 +105,9 @@ def _genuine_training_state() -> dict:
         (("optimizer_states", 0), "junk", r"optimizer_states\[0\] must be a mapping with state"),
         (("optimizer_states", 0, "param_groups"), {}, r"optimizer_states\[0\] must be"),
         (("lr_schedulers", 0), 3, r"lr_schedulers\[0\] must be a mapping"),
+        (("rng_states", "torch"), torch.zeros(3), r"rng_states cannot be restored \(TypeError: "),
+        (("rng_states", "python"), [3, [1, 2], None], r"rng_states cannot be restored "),
+        (("rng_states",), [], r"rng_states must be a mapping"),
     ],
 )
 def test_a_training_state_of_the_wrong_shape_is_refused_before_the_resume(run, path, junk, said):
@@ -115,8 +120,10 @@ def test_a_training_state_of_the_wrong_shape_is_refused_before_the_resume(run, p
     for key in path[:-1]:
         node = node[key]
     node[path[-1]] = junk
+    before = torch.get_rng_state()
     with pytest.raises(UnsafeCheckpointError, match=rf"^last\.ckpt: {said}"):
         checked_checkpoint_states(checkpoint, [_best(run)], run, "last.ckpt")
+    assert torch.equal(torch.get_rng_state(), before)  # a check restores nothing
 
 
 def test_a_symlink_resolving_out_of_the_run_is_refused(run, tmp_path):

@@ -32,6 +32,7 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from torch import Tensor
 
 from rotlearn.checkpoint import UnsafeCheckpointError, load_checkpoint, save_checkpoint
+from rotlearn.lit.state import rng_state_problem
 
 __all__ = [
     "CheckpointStateGuard",
@@ -151,7 +152,7 @@ def _training_state_problem(checkpoint: dict[str, Any]) -> str | None:
     resume (a traceback from inside `fit`, after the run's records had moved, otherwise), or
     None: `loops` a mapping of mappings down to numbers (progress counters), `optimizer_states`
     mappings with a `state` mapping and a `param_groups` list of mappings, `lr_schedulers`
-    mappings."""
+    mappings, `rng_states` what `rotlearn.lit.state.set_rng_states` restores."""
     stack = [("loops", checkpoint.get("loops") or {})]
     while stack:
         key, node = stack.pop()
@@ -169,7 +170,7 @@ def _training_state_problem(checkpoint: dict[str, Any]) -> str | None:
     for i, state in enumerate(checkpoint.get("lr_schedulers") or []):
         if not isinstance(state, dict):
             return f"lr_schedulers[{i}] must be a mapping"
-    return None
+    return rng_state_problem(checkpoint["rng_states"]) if "rng_states" in checkpoint else None
 
 
 class CheckpointStateGuard(pl.Callback):

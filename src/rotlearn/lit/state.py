@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 import torch
 
-__all__ = ["RunStateHooks", "rng_states", "set_rng_states"]
+__all__ = ["RunStateHooks", "rng_state_problem", "rng_states", "set_rng_states"]
 
 
 class RunStateHooks:
@@ -52,3 +52,20 @@ def set_rng_states(states: dict[str, Any]) -> None:
     np.random.set_state((name, keys.numpy().astype(np.uint32), pos, has_gauss, cached))  # noqa: NPY002
     if "cuda" in states and torch.cuda.is_available():
         torch.cuda.set_rng_state_all(states["cuda"])
+
+
+def rng_state_problem(states: Any) -> str | None:
+    """Why a checkpoint's `rng_states` cannot be restored (a traceback from inside `fit`, after a
+    resume had moved the run's records, otherwise), or None: they are set, then this process's
+    own states are put back."""
+    if not isinstance(states, dict):
+        return "rng_states must be a mapping"
+    current = rng_states()
+    try:
+        set_rng_states(states)
+    except Exception as exc:  # TypeError, ValueError, KeyError, RuntimeError: whatever it is
+        lines = str(exc).strip().splitlines()
+        return f"rng_states cannot be restored ({type(exc).__name__}: {lines[0] if lines else ''})"
+    finally:
+        set_rng_states(current)
+    return None
