@@ -52,6 +52,9 @@ if TYPE_CHECKING:  # constraints of the config values, checked by rotlearn.confi
 __all__ = ["MAVDataModule", "match_poses", "read_frame_list", "read_pair_file", "read_pose_file"]
 
 INT64_MAX = int(np.iinfo(np.int64).max)  # 2^63 - 1: the largest time stamp or frame index read
+# A scene's pairs file lists at most this many pairs: each pair costs about 600 bytes once its
+# targets and erasing boxes are built, so the 256 MiB text cap (67 M rows) would ask for 40 GB.
+MAX_PAIRS = 2**22
 
 
 def _shown(text: str) -> str:
@@ -214,7 +217,8 @@ def read_pair_file(
 
     Raises:
         ValueError: naming the file and line of a pair that refers to a frame that does not exist
-            (also an index beyond int64: refused as it is read).
+            (also an index beyond int64: refused as it is read), of a pair listed twice (it
+            would be trained on or tested twice), or past `MAX_PAIRS` pairs.
     """
     path = Path(path)
 
@@ -224,6 +228,8 @@ def read_pair_file(
 
     pairs, lines = pyarray.array("q"), pyarray.array("q")  # 8 bytes a number
     for lineno, fields in _rows(path, columns=2):
+        if len(lines) == MAX_PAIRS:
+            raise ValueError(f"{path}:{lineno}: more than {MAX_PAIRS} pairs; a scene lists fewer")
         pair = [strict_int(f, f"{path}:{lineno}") for f in fields]
         for text, i in zip(fields, pair, strict=True):
             if not -INT64_MAX - 1 <= i <= INT64_MAX:
@@ -238,6 +244,13 @@ def read_pair_file(
         row = pairs[bad[0]]
         i = int(row[(row < 0) | (row >= num_frames)][0])
         raise ValueError(f"{missing(lines[bad[0]], str(i))}; {len(bad)} such pair(s) in all")
+    _, first = np.unique(pairs, axis=0, return_index=True)
+    if len(first) < len(pairs):
+        again = int(np.setdiff1d(np.arange(len(pairs)), first)[0])
+        before = int(np.flatnonzero((pairs == pairs[again]).all(axis=1))[0])
+        a, b = pairs[again].tolist()
+        raise ValueError(f"{path}:{lines[again]}: the pair {a},{b} again (line {lines[before]}); "
+                         "each pair once")  # fmt: skip
     return pairs
 
 
