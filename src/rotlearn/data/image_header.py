@@ -18,11 +18,15 @@ from io import BytesIO
 from pathlib import Path
 from typing import BinaryIO
 
-__all__ = ["MAX_PIXELS", "check_frame", "image_size"]
+__all__ = ["MAX_JPEG_SCANS", "MAX_PIXELS", "check_frame", "image_size", "jpeg_scans"]
 
 MAX_PIXELS = 2**26  # 67 Mpx: an 8K x 8K frame; 16-bit RGB, 400 MB decoded (read_frame: 12 B/px)
 _JPEG_FRAMES = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
 _MAX_JPEG_SEGMENTS = 4096
+# Scans of a (progressive) JPEG: OpenCV decodes each over the whole frame, about 5 ms a scan at
+# 8192 x 8192, with no limit of its own (10,000 scans of 1.4 MB took 50 s); a genuine one has ~10.
+MAX_JPEG_SCANS = 500
+_ENTROPY_END = re.compile(rb"\xff(?=[^\x00\xd0-\xd7\xff])")  # a marker, not stuffing or restart
 # PNM as OpenCV's PxM reader reads it: "P1".."P6", a whitespace byte, then width and height, each
 # a run of digits ended by one byte of any other kind (taken with it: "20x12" is 20 x 12), before
 # each any whitespace and "#" comments, which end at "\n" or "\r".
@@ -73,6 +77,28 @@ def _jpeg(f: BinaryIO, head: bytes) -> tuple[int, int] | None:
             return None
         f.seek(length - 2, os.SEEK_CUR)
     return None
+
+
+def jpeg_scans(data: bytes) -> int:
+    """How many scans (SOS segments) the JPEG `data` holds, counted up to `MAX_JPEG_SCANS` + 1
+    (segments walked by their lengths, entropy-coded data skipped to the next marker)."""
+    pos, scans = 2, 0
+    for _ in range(_MAX_JPEG_SEGMENTS + MAX_JPEG_SCANS):
+        while pos < len(data) and data[pos] == 0xFF:  # a marker's 0xFF and fill bytes
+            pos += 1
+        if pos + 2 >= len(data) or data[pos - 1] != 0xFF or scans > MAX_JPEG_SCANS:
+            break
+        code, pos = data[pos], pos + 1
+        if code == 0xD9:  # end of image
+            break
+        if code in (0xD8, 0x01) or 0xD0 <= code <= 0xD7:  # markers without a length
+            continue
+        pos += int.from_bytes(data[pos : pos + 2], "big")
+        if code == 0xDA:
+            scans += 1
+            found = _ENTROPY_END.search(data, pos)
+            pos = found.start() if found else len(data)
+    return scans
 
 
 def _bmp(f: BinaryIO, head: bytes) -> tuple[int, int] | None:
@@ -199,7 +225,7 @@ def check_frame(path: str | os.PathLike, data: bytes | None = None) -> tuple[int
 
     Raises:
         ValueError: naming the file and its size in pixels when it is larger than the budget,
-            or as `image_size`.
+            a JPEG among `data` of more than `MAX_JPEG_SCANS` scans, or as `image_size`.
     """
     width, height, kind = image_size(path, data)
     if width * height > MAX_PIXELS:
@@ -209,4 +235,7 @@ def check_frame(path: str | os.PathLike, data: bytes | None = None) -> tuple[int
         )
     if width == 0 or height == 0:
         raise ValueError(f"{path}: a {kind} of {width} x {height} pixels (empty); not decoded")
+    if kind == "JPEG" and data is not None and jpeg_scans(data) > MAX_JPEG_SCANS:
+        raise ValueError(f"{path}: a JPEG of more than {MAX_JPEG_SCANS} scans (decoding each "
+                         "takes a pass over the whole frame); not decoded")  # fmt: skip
     return width, height
