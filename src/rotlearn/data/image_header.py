@@ -151,6 +151,8 @@ def _tiff(f: BinaryIO, head: bytes) -> tuple[int, int] | None:
         if len(entry) < 12:
             break
         tag, kind, n = struct.unpack(order + "HHI", entry[:8])
+        if tag in (258, 339):  # BitsPerSample, SampleFormat: refused before decoding (a float
+            _tiff_sample_type(f, order, tag, kind, n, entry[8:])  # frame of 7 KB took 3 GB)
         if tag not in _TIFF_SIZE_TAGS:
             continue
         name = f"{_TIFF_SIZE_TAGS[tag]} ({tag})"
@@ -166,6 +168,27 @@ def _tiff(f: BinaryIO, head: bytes) -> tuple[int, int] | None:
     if 256 in size and 257 in size:
         return size[256], size[257]
     return None
+
+
+def _tiff_sample_type(f: BinaryIO, order: str, tag: int, kind: int, n: int, field: bytes):
+    """Refuse a TIFF whose samples are over 16 bits (BitsPerSample, 258) or floating point
+    (SampleFormat 3, tag 339): what `rotlearn.data.images.read_frame` refuses once decoded."""
+    if kind != 3 or not 0 < n <= 64:  # not SHORTs: left to the decoder
+        return
+    if n <= 2:
+        data = field[: 2 * n]
+    else:  # the values lie elsewhere in the file
+        here = f.tell()
+        f.seek(struct.unpack(order + "I", field)[0])
+        data = f.read(2 * n)
+        f.seek(here)
+    values = struct.unpack(f"{order}{len(data) // 2}H", data[: len(data) // 2 * 2])
+    if tag == 258 and values and max(values) > 16:
+        raise _Refused(f"a TIFF of {max(values)}-bit samples; rotlearn reads 8- and 16-bit "
+                       "integer images")  # fmt: skip
+    if tag == 339 and 3 in values:
+        raise _Refused("a TIFF of floating-point samples; rotlearn reads 8- and 16-bit integer "
+                       "images")  # fmt: skip
 
 
 _READERS = {"PNG": _png, "JPEG": _jpeg, "BMP": _bmp, "PNM": _pnm, "WebP": _webp, "TIFF": _tiff}
