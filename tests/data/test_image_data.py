@@ -229,6 +229,26 @@ def test_a_split_leaving_no_training_pair_is_refused_naming_the_dataset(tmp_path
         mav_module(root).setup()
 
 
+def test_a_loader_worker_refuses_a_cache_rebuilt_since_the_run_read_it(tmp_path):
+    """A loader worker started with `spawn` (macOS, Windows) opens the caches again by path: a
+    cache another run had rebuilt meanwhile was read as this run's frames."""
+    import os
+    import pickle
+
+    root = write_kitti(tmp_path, {"00": yaw_sequence(4, 1.0), "01": yaw_sequence(3, 1.0)})
+    dm = kitti_module(root)
+    dm.setup()
+    pairs = dm.sets["test"]
+    assert pickle.loads(pickle.dumps(pairs)).arrays[0].shape == pairs.arrays[0].shape
+    worker = pickle.loads(pickle.dumps(pairs))  # what a spawned worker receives
+    cache = pairs.index.caches[0]
+    rebuilt = cache.with_name("rebuilt.npy")
+    np.save(rebuilt, np.load(cache)[::-1].copy())
+    os.replace(rebuilt, cache)
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(cache))}: the frame cache changed"):
+        worker.arrays  # noqa: B018
+
+
 # -- KITTI bad input ---------------------------------------------------------------------------
 
 

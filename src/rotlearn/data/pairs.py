@@ -17,6 +17,7 @@ caller (the OOD evaluation, the data-dependent initialisation, benchmarks) use.
 from __future__ import annotations
 
 import multiprocessing
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -89,6 +90,12 @@ class PairIndex:
         )
 
 
+def _file_identity(path: Path) -> tuple[int, ...]:
+    """What tells a file from one written in its place: device, inode, size, modification."""
+    found = os.stat(path)
+    return found.st_dev, found.st_ino, found.st_size, found.st_mtime_ns
+
+
 class ImagePairs(Dataset):
     """A fixed, ordered set of image pairs; fetched a whole batch at a time.
 
@@ -106,15 +113,30 @@ class ImagePairs(Dataset):
         self.q = rotmat_to_quat(torch.from_numpy(index.R)).float()
         self.corrupted = corrupted_flags(len(index), corrupt_fraction)
         self._arrays: list[np.ndarray] | None = None
+        self._opened: list[tuple[int, ...]] | None = None  # each cache file as first opened
         size = self.arrays[0].shape[-1] if len(index) else 1
         generator = torch.Generator().manual_seed(draw_seed(seed, SPLITS["test"], 7))
         self.boxes = draw_erasing_boxes(2 * len(index), size, size, generator).view(-1, 2, 4)
 
     @property
     def arrays(self) -> list[np.ndarray]:
-        """The memory-mapped caches, opened lazily in each process (loader workers included)."""
+        """The memory-mapped caches, opened lazily in each process (loader workers included).
+
+        Raises:
+            ValueError: naming a cache that is not the file first opened (a loader worker
+                started with `spawn` opens them again: another run may have rebuilt one)."""
         if self._arrays is None:
-            self._arrays = [np.load(path, mmap_mode="r") for path in self.index.caches]
+            arrays = [
+                np.load(path, mmap_mode="r", allow_pickle=False) for path in self.index.caches
+            ]
+            opened = [_file_identity(path) for path in self.index.caches]
+            for path, now, then in zip(
+                self.index.caches, opened, self._opened or opened, strict=True
+            ):
+                if now != then:
+                    raise ValueError(f"{path}: the frame cache changed after this run read it "
+                                     "(rebuilt by another run?); run again")  # fmt: skip
+            self._arrays, self._opened = arrays, opened
         return self._arrays
 
     def __getstate__(self) -> dict[str, Any]:
