@@ -22,6 +22,7 @@ from rotlearn.io import (
     UnreadableFileError,
     WriteError,
     atomic_write,
+    cache_manifest,
     folder_entries,
     read_bytes,
     read_json,
@@ -465,3 +466,22 @@ def test_folder_entries_walks_deep_trees_without_recursion_and_never_follows_a_l
         for folder in reversed(folders):
             if folder.is_dir():
                 folder.rmdir()
+
+
+def test_a_cache_manifest_tells_a_retargeted_symlink_apart(tmp_path):
+    """A frame that is a symlink, pointed at another file of the same size and times (a ctime
+    the file system rounds alike), kept the cache of the first file's pixels."""
+    pool = tmp_path / "pool"
+    pool.mkdir()
+    (pool / "a.ppm").write_bytes(b"P6 1 1 255\n\0\0\0")
+    (pool / "b.ppm").write_bytes(b"P6 1 1 255\n\xff\xff\xff")
+    times = os.stat(pool / "a.ppm").st_atime_ns, os.stat(pool / "a.ppm").st_mtime_ns
+    os.utime(pool / "b.ppm", ns=times)
+    frame = tmp_path / "000000.png"
+    frame.symlink_to(pool / "a.ppm")
+    before = cache_manifest([frame], {})
+    frame.unlink()
+    frame.symlink_to(pool / "b.ppm")
+    after = cache_manifest([frame], {})
+    assert before["sizes"] == after["sizes"] and before["mtimes_ns"] == after["mtimes_ns"]
+    assert before["inodes"] != after["inodes"] and before != after
