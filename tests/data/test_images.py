@@ -241,7 +241,7 @@ HEADERS = {
 }
 
 
-def _many_scans_jpeg(scans: int, width: int = 64) -> bytes:
+def _many_scans_jpeg(scans: int, width: int = 64, between: bytes = b"") -> bytes:
     """A progressive gray JPEG whose every AC scan codes each block as end-of-band: a few bytes
     a scan, each a pass over the whole frame for the decoder."""
 
@@ -252,7 +252,7 @@ def _many_scans_jpeg(scans: int, width: int = 64) -> bytes:
     return (b"\xff\xd8" + segment(0xDB, b"\0" + b"\1" * 64)
             + segment(0xC2, struct.pack(">BHHB", 8, width, width, 1) + b"\1\x11\0")
             + segment(0xC4, b"\0" + bytes([1] + [0] * 15) + b"\0")
-            + segment(0xC4, b"\x10" + bytes([1] + [0] * 15) + b"\xe0")
+            + segment(0xC4, b"\x10" + bytes([1] + [0] * 15) + b"\xe0") + between
             + segment(0xDA, b"\1\1\0\0\0\0") + bytes(blocks // 8)
             + (segment(0xDA, b"\1\1\0\1\x3f\0") + bytes(2)) * (scans - 1)
             + b"\xff\xd9")  # fmt: skip
@@ -267,9 +267,12 @@ def test_a_jpeg_of_too_many_scans_is_refused_before_decoding(tmp_path):
     assert jpeg_scans(few) == 12 and jpeg_scans(many) == MAX_JPEG_SCANS + 1
     (tmp_path / "few.jpg").write_bytes(few)
     assert read_frame(tmp_path / "few.jpg", gray=True)[0].shape == (64, 64)
-    (tmp_path / "many.jpg").write_bytes(many)
-    with pytest.raises(ValueError, match=rf"many\.jpg: a JPEG of more than {MAX_JPEG_SCANS} "):
-        read_frame(tmp_path / "many.jpg", gray=True)
+    # markers a decoder skips (5000 restarts, a stray byte) do not hide the scans after them
+    hidden = _many_scans_jpeg(MAX_JPEG_SCANS + 1, between=b"\xff\xd0" * 5000 + b"\0")
+    for name, content in (("many.jpg", many), ("hidden.jpg", hidden)):
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises(ValueError, match=rf"{name}: a JPEG of more than {MAX_JPEG_SCANS} "):
+            read_frame(tmp_path / name, gray=True)
 
 
 @pytest.mark.parametrize("name", sorted(HEADERS))
