@@ -378,6 +378,30 @@ def _tiff(entries: list[tuple[int, int, int, bytes]], order: str = "<", tail: by
 Field = tuple[int, int, bytes]  # a TIFF IFD entry's type, count and value field
 
 
+@pytest.mark.parametrize(
+    ("tag", "field", "said"),
+    [
+        (258, (4, 1, struct.pack("<I", 64)), "a TIFF of 64-bit samples"),  # a LONG
+        (258, (1, 3, bytes([32, 32, 32])), "a TIFF of 32-bit samples"),  # BYTEs
+        (258, (4, 3, struct.pack("<I", 200)), "a TIFF of 64-bit samples"),  # LONGs elsewhere
+        (339, (3, 1, struct.pack("<H", 3)), "a TIFF of floating-point samples"),
+        (339, (5, 1, bytes(4)), r"a TIFF header whose tag 339 is 1 value\(s\) of type 5"),
+    ],
+)
+def test_a_tiff_sample_type_is_refused_from_its_header_in_any_integer_type(tmp_path, tag, field,
+                                                                           said):  # fmt: skip
+    """libtiff reads BitsPerSample and SampleFormat as BYTEs, SHORTs or LONGs: a float64 TIFF
+    whose BitsPerSample was a LONG passed the header check and took 3 GB to decode."""
+    kind, count, value = field
+    size = [(256, 3, 1, struct.pack("<H", 8192)), (257, 3, 1, struct.pack("<H", 8192))]
+    tail = struct.pack("<3I", 64, 64, 64)  # three LONGs at byte 200 (after a 4-entry IFD)
+    content = _tiff([*size, (tag, kind, count, value), (277, 3, 1, struct.pack("<H", 3))])
+    path = tmp_path / "f.tiff"
+    path.write_bytes(content.ljust(200, b"\0") + tail)
+    with pytest.raises(ValueError, match=rf"f\.tiff: {said}"):
+        check_frame(path)
+
+
 def _gray_tiff(
     width: list[Field], height: list[Field], order: str = "<", extra: bytes = b""
 ) -> bytes:

@@ -156,17 +156,20 @@ def _tiff(f: BinaryIO, head: bytes) -> tuple[int, int] | None:
 
 def _tiff_sample_type(f: BinaryIO, order: str, tag: int, kind: int, n: int, field: bytes):
     """Refuse a TIFF whose samples are over 16 bits (BitsPerSample, 258) or floating point
-    (SampleFormat 3, tag 339): what `rotlearn.data.images.read_frame` refuses once decoded."""
-    if kind != 3 or not 0 < n <= 64:  # not SHORTs: left to the decoder
-        return
-    if n <= 2:
-        data = field[: 2 * n]
+    (SampleFormat 3, tag 339): what `rotlearn.data.images.read_frame` refuses once decoded.
+    Their values may be BYTEs, SHORTs or LONGs (libtiff reads each); another type is refused."""
+    width, code = {1: (1, "B"), 3: (2, "H"), 4: (4, "I")}.get(kind, (0, ""))
+    if not width or not 0 < n <= 64:
+        raise _Refused(f"a TIFF header whose tag {tag} is {n} value(s) of type {kind}; "
+                       "rotlearn reads 1 to 64 BYTEs, SHORTs or LONGs there")  # fmt: skip
+    if n * width <= 4:
+        data = field[: n * width]
     else:  # the values lie elsewhere in the file
         here = f.tell()
         f.seek(struct.unpack(order + "I", field)[0])
-        data = f.read(2 * n)
+        data = f.read(n * width)
         f.seek(here)
-    values = struct.unpack(f"{order}{len(data) // 2}H", data[: len(data) // 2 * 2])
+    values = struct.unpack(f"{order}{len(data) // width}{code}", data[: len(data) // width * width])
     if tag == 258 and values and max(values) > 16:
         raise _Refused(f"a TIFF of {max(values)}-bit samples; rotlearn reads 8- and 16-bit "
                        "integer images")  # fmt: skip
