@@ -989,11 +989,12 @@ def resolve_inside(root: str | os.PathLike, path: str | os.PathLike, where: str)
 def cache_manifest(files: Sequence[Path], recipe: dict, what: str = "file") -> dict:
     """What a cache built from `files` records of them, so that it is rebuilt when any changes:
     the recipe, and each file's path, size, modification time and inode change time (ns), and
-    the file it is (device and inode: a symlinked frame pointed at another file of the same size
-    and times kept the cache). The change time is set by the file system when a file is written,
-    unpacked, copied or renamed, and no archive carries it: a cache shipped with a dataset (its
-    manifest matching the paths, sizes and modification times, which an archive keeps, beside
-    frames other than the files') is never trusted over the files; it is rebuilt from them.
+    the file it is (its inode: a symlinked frame pointed at another file of the same size and
+    times kept the cache; not its device, which an NFS mount numbers differently on each host).
+    The change time is set by the file system when a file is written, unpacked, copied or
+    renamed, and no archive carries it: a cache shipped with a dataset (its manifest matching
+    the paths, sizes and modification times, which an archive keeps, beside frames other than
+    the files') is never trusted over the files; it is rebuilt from them.
 
     Raises:
         FileNotFoundError: "<file>: <what> <i>: no such file", for the first missing one.
@@ -1010,7 +1011,7 @@ def cache_manifest(files: Sequence[Path], recipe: dict, what: str = "file") -> d
         "sizes": [s.st_size for s in stats],
         "mtimes_ns": [s.st_mtime_ns for s in stats],
         "ctimes_ns": [s.st_ctime_ns for s in stats],
-        "inodes": [[s.st_dev, s.st_ino] for s in stats],
+        "inodes": [s.st_ino for s in stats],  # not the device: a mount's number differs by host
     }
 
 
