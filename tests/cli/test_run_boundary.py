@@ -231,7 +231,10 @@ def test_a_folder_reached_by_dropping_a_link_and_its_dotdot_is_outside(received)
     assert f"resolves to {received.home / 'outside'}, outside the run" in refused(received)
 
 
-@pytest.mark.parametrize("key, value", [("version", "'leak-$HOME'"), ("save_dir", "'~/runs'")])
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [("version", "'leak-$HOME'"), ("version", "'$ROTLEARN_UNSET_VARIABLE'"), ("save_dir", "'~/x'")],
+)
 def test_a_path_that_lightning_expands_is_refused(received, key, value):
     """Lightning expands `$VAR` in a logger's folder and a leading `~`: a received run's
     `version='leak-$SECRET'` wrote the resuming user's secret into a folder name."""
@@ -257,6 +260,15 @@ def test_a_file_the_saved_overrides_name_is_opened_only_if_the_command_line_name
         _refuse_files_to_open(cfg, ["trainer.max_epochs=2"])
     _refuse_files_to_open(cfg, [f"callbacks.ood.autoencoder_ckpt={ae}"])
     _refuse_files_to_open(make_cfg(["data=kitti", "data.root=/data", "callbacks=ood"]), [])
+
+
+def test_a_file_with_a_second_name_inside_the_run_is_no_hard_link_out(received):
+    """A resume killed while keeping the earlier records leaves them with a second name in a
+    hidden history folder (`keep_earlier_records`): that run still resumes."""
+    partial = received.run / "history" / ".1.partial"
+    partial.mkdir(parents=True)
+    os.link(received.run / "status.json", partial / "status.json")
+    assert received.plan() is not None
 
 
 def test_the_users_own_command_line_may_write_elsewhere(received):
@@ -333,7 +345,7 @@ TREE_ATTACKS = {
             (r.run / ".hydra" / "config.yaml").unlink(),
             os.link(r.victim, r.run / ".hydra" / "config.yaml"),
         ),
-        "a hard link (one file with 2 names)",
+        "a hard link to a file outside the run (2 names)",
     ),
     "folders 40 deep": (
         lambda r: (r.run / Path(*["d"] * 40)).mkdir(parents=True),

@@ -1,7 +1,7 @@
 """The run directory as the boundary, checked from the command line before Hydra writes anything.
 
-- `check_run_tree`: a run directory someone may have sent holds only regular files (each of one
-  name: no hard link) and folders, and no symlink that resolves outside it.
+- `check_run_tree`: a run directory someone may have sent holds only regular files (no hard
+  link to a file outside it) and folders, and no symlink that resolves outside it.
 - `output_paths` / `check_placement`: every place a run writes (`paths.*`,
   `trainer.default_root_dir`, each logger's folder, each checkpoint callback's folder and file
   name, `data.cache_dir`) lies inside the run; a resume refuses a config that would write
@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+from collections import Counter
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
@@ -61,8 +62,9 @@ def runs_a_sweep(argv: list[str], cfg: DictConfig | None = None) -> bool:
 
 
 def check_run_tree(run_dir: str | os.PathLike) -> None:
-    """Refuse a run directory that holds a symlink resolving outside it, a file with other
-    names (a hard link: a resume writing its config or log would write through to them), or
+    """Refuse a run directory that holds a symlink resolving outside it, a file with names
+    outside it (a hard link: a resume writing its config or log would write through to them;
+    names inside it are a resume's own, `keep_earlier_records`, killed midway), or
     anything but regular files and folders (a named pipe, a device, a socket), or more than
     `MAX_RUN_ENTRIES` entries or `MAX_RUN_DEPTH` levels of folders. Symlinks are not followed
     while scanning.
@@ -75,6 +77,10 @@ def check_run_tree(run_dir: str | os.PathLike) -> None:
         entries = list(folder_entries(run, MAX_RUN_ENTRIES, MAX_RUN_DEPTH))
     except UnreadableFileError as exc:
         raise UnreadableFileError(f"{exc}; not a run directory") from None
+    files = {
+        e.path: e.stat(follow_symlinks=False) for e in entries if e.is_file(follow_symlinks=False)
+    }
+    names = Counter((found.st_dev, found.st_ino) for found in files.values())  # names in the run
     for entry in entries:
         path = Path(entry.path)
         if entry.is_symlink():
@@ -90,10 +96,10 @@ def check_run_tree(run_dir: str | os.PathLike) -> None:
                 f"{path}: neither a regular file nor a folder (a FIFO, device or socket); "
                 "a run directory holds only files and folders"
             )
-        elif (links := entry.stat(follow_symlinks=False).st_nlink) > 1:
+        elif (found := files[entry.path]).st_nlink > names[found.st_dev, found.st_ino]:
             raise UnreadableFileError(
-                f"{path}: a hard link (one file with {links} names), which the run would "
-                "write through to its other names; copy the run (cp -r) to resume the copy"
+                f"{path}: a hard link to a file outside the run ({found.st_nlink} names), "
+                "which the run would write through; copy the run (cp -r) to resume the copy"
             )
 
 
@@ -190,7 +196,7 @@ def check_placement(
         if all(set_by_user(k) for k in keys):
             continue
         tail = path.removeprefix(str(output_dir))  # the run's own path is the user's
-        if os.path.expanduser(os.path.expandvars(tail)) != tail:
+        if "$" in tail or tail.startswith("~"):
             raise ConfigError(" + ".join(keys), f"{path} holds '$' or a leading '~', which "
                               "Lightning expands from this machine's environment; a resumed "
                               "run's paths are written out")  # fmt: skip
