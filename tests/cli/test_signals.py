@@ -62,9 +62,27 @@ def test_an_interruption_counts_the_epochs_it_finished(tmp_path, last, words):
     run that had finished 2, while metrics.json's `epochs` counts from 1."""
     from rotlearn.cli.training import RunInterrupted
 
-    stop = RunInterrupted(tmp_path, "SIGTERM", last)
+    stop = RunInterrupted(tmp_path, "SIGTERM", last, {})
     assert stop.message.startswith(f"stopped by SIGTERM {words}") and stop.code == 143
     assert stop.status["last_finished_epoch"] == last
+
+
+@pytest.mark.parametrize("path", ["outputs/kitti_ae", "outputs/kitti ae 'q' $x"])
+def test_the_resume_command_names_again_the_files_the_run_opens(tmp_path, path):
+    """A resume opens an auto-encoder checkpoint only when its own command line names it: the
+    command a stopped KITTI OOD run printed (`ckpt_path=<run>` alone) was refused."""
+    import shlex
+
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    from rotlearn.cli.training import RunInterrupted
+
+    stop = RunInterrupted(tmp_path, "SIGTERM", 0, {"callbacks.ood.autoencoder_ckpt": path})
+    words = shlex.split(stop.resume_command)
+    assert words[:2] == ["rotlearn-train", f"ckpt_path={tmp_path.resolve()}"]
+    override = OverridesParser.create().parse_overrides(words[2:])[0]
+    assert override.key_or_group == "callbacks.ood.autoencoder_ckpt" and override.value() == path
+    assert stop.status["resume_command"] == stop.resume_command
 
 
 # --- sweeps ------------------------------------------------------------------------------------

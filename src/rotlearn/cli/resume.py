@@ -6,14 +6,16 @@ directory (quoted, so a path with any characters resumes). The run directory is 
 Every check happens there, before Hydra writes anything, so a refused resume leaves the run
 byte-identical:
 
-- the run tree holds only files and folders, no symlink out of it (`rundir.check_run_tree`);
+- the run tree holds only files and folders, no symlink or hard link out of it, at most 32
+  folders deep (`rundir.check_run_tree`);
 - no other process holds the run's lock (`rotlearn.locks`; the holder is named);
 - a COMPLETED run only trains longer;
-- the config that will run, composed exactly as Hydra will compose it, validates, and writes
-  only inside the run (`rundir.check_placement`);
+- the config that will run, composed exactly as Hydra will compose it (one run, even where
+  its experiment sweeps), validates, writes only inside the run (`rundir.check_placement`) and
+  opens no file that only the saved overrides name (`rundir.FILE_KEYS`);
 - the checkpoint is a whole, bounded checkpoint (`rotlearn.checkpoint.load_checkpoint`) whose
-  checkpoint callbacks' states name only the run's own checkpoint files
-  (`rotlearn.lit.boundary.checked_checkpoint_states`).
+  checkpoint callbacks' states name only the run's own checkpoint files, and whose training
+  and random states restore (`rotlearn.lit.boundary.checked_checkpoint_states`).
 
 `keep_earlier_records` moves an attempt's records into `history/<n>/` (whole or not at all)
 before a resume trains, and `checkpoint_to_resume` picks the checkpoint `fit` starts from (a
@@ -41,7 +43,13 @@ from rotlearn.checkpoint import (
     resolve_checkpoint,
 )
 from rotlearn.cli.replay import quoted, replayed_config, saved_overrides
-from rotlearn.cli.rundir import check_placement, check_run_tree, runs_a_sweep, user_keys
+from rotlearn.cli.rundir import (
+    check_placement,
+    check_run_tree,
+    files_to_open,
+    runs_a_sweep,
+    user_keys,
+)
 from rotlearn.errors import ConfigError
 from rotlearn.io import UnreadableFileError, read_bytes, read_record, write_bytes_atomic
 from rotlearn.locks import RunLockedError, check_free
@@ -325,18 +333,13 @@ def _check_the_config_that_runs(
     return args
 
 
-# Keys that name a file a run opens (beyond its dataset, data.root): only the user's own
-# command line names one on a resume, as rotlearn-eval takes `ood.autoencoder_ckpt` from its own.
-FILE_KEYS = ("callbacks.ood.autoencoder_ckpt",)
-
-
 def _refuse_files_to_open(cfg: DictConfig, new: list[str]) -> None:
     """ConfigError where the run's saved overrides, not the new command line, name a file to
-    open (`FILE_KEYS`): a received run would make the resume read a checkpoint outside it."""
-    from omegaconf import OmegaConf
-
-    for key in (k for k in FILE_KEYS if k not in user_keys(new)):
-        if (named := OmegaConf.select(cfg, key)) is not None:
+    open (`rundir.FILE_KEYS`): a received run would make the resume read a checkpoint outside
+    it. (The resume command a stopped run prints names them: `RunInterrupted`.)"""
+    typed = user_keys(new)
+    for key, named in files_to_open(cfg).items():
+        if key not in typed:
             raise ConfigError(key, f"the run's saved overrides name {named}; a resume opens a "
                               f"file they name only when your command line names it: {key}="
                               f"{named} to open it, {key}=null to go without")  # fmt: skip

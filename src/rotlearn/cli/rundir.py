@@ -18,7 +18,7 @@ from __future__ import annotations
 import contextlib
 import os
 from collections import Counter
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -28,8 +28,10 @@ from rotlearn.errors import ConfigError
 from rotlearn.io import UnreadableFileError, folder_entries
 
 __all__ = [
+    "FILE_KEYS",
     "check_placement",
     "check_run_tree",
+    "files_to_open",
     "is_child_rank",
     "output_paths",
     "place_output_dir",
@@ -101,6 +103,23 @@ def check_run_tree(run_dir: str | os.PathLike) -> None:
                 f"{path}: a hard link to a file outside the run ({found.st_nlink} names), "
                 "which the run would write through; copy the run (cp -r) to resume the copy"
             )
+
+
+# Keys that name a file a run opens (beyond its dataset, data.root): on a resume only the user's
+# own command line names one, as rotlearn-eval takes `ood.autoencoder_ckpt` from its own.
+FILE_KEYS = ("callbacks.ood.autoencoder_ckpt",)
+
+
+def files_to_open(config: Mapping[str, Any]) -> dict[str, str]:
+    """The `FILE_KEYS` a config (a DictConfig or plain data) sets, with their values."""
+    found = {}
+    for key in FILE_KEYS:
+        node: Any = config
+        for part in key.split("."):
+            node = node.get(part) if isinstance(node, Mapping) else None
+        if node:
+            found[key] = str(node)
+    return found
 
 
 def _text(value: Any) -> str | None:

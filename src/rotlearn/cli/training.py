@@ -12,6 +12,8 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import re
+import shlex
 import signal
 import warnings
 from pathlib import Path
@@ -26,8 +28,9 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from rotlearn import config
 from rotlearn.checkpoint import load_checkpoint
 from rotlearn.cli.callbacks import PLANNED, record_job, tensorboard_command
+from rotlearn.cli.replay import quoted
 from rotlearn.cli.resume import checkpoint_to_resume
-from rotlearn.cli.rundir import is_child_rank
+from rotlearn.cli.rundir import files_to_open, is_child_rank
 from rotlearn.errors import ConfigError
 from rotlearn.io import plain_name, read_json
 from rotlearn.lit import (
@@ -226,11 +229,16 @@ def build(cfg: DictConfig) -> tuple[pl.LightningModule, pl.LightningDataModule, 
 class RunInterrupted(SystemExit):
     """A signal stopped the run; the exit code is the shell's 128 + signal number (SIGTERM 143,
     SIGINT 130). `status` is what `train` wrote into the run's status.json (its
-    `last_finished_epoch` counted from 0, as Lightning counts; the message counts the epochs)."""
+    `last_finished_epoch` counted from 0, as Lightning counts; the message counts the epochs).
+    Its resume command names again the files the run opens (`files`: `rundir.FILE_KEYS`), which
+    a resume takes from its own command line only."""
 
-    def __init__(self, run_dir: Path, signal_name: str, last_epoch: int | None) -> None:
+    def __init__(
+        self, run_dir: Path, signal_name: str, last_epoch: int | None, files: dict[str, str]
+    ) -> None:
         self.run_dir, self.signal_name, self.last_epoch = run_dir, signal_name, last_epoch
-        self.resume_command = f"rotlearn-train ckpt_path={run_dir.resolve()}"
+        again = "".join(f" {_shell_word(f'{key}={value}')}" for key, value in files.items())
+        self.resume_command = f"rotlearn-train ckpt_path={run_dir.resolve()}{again}"
         done = None if last_epoch is None else last_epoch + 1  # Lightning counts epochs from 0
         after = (
             f"after {done} finished epoch{'s' * (done != 1)}" if done else "before its first epoch"
@@ -246,6 +254,14 @@ class RunInterrupted(SystemExit):
             "resume_command": self.resume_command,
             "error": self.message,
         }
+
+
+def _shell_word(override: str) -> str:
+    """`key=value` as one shell word Hydra reads back as written (quoted where it must be)."""
+    key, _, value = override.partition("=")
+    if re.fullmatch(r"[\w./@+-]+", value):
+        return override
+    return shlex.quote(f"{key}={quoted(value)}")
 
 
 def _last_finished_epoch(run_dir: Path, trainer: pl.Trainer) -> int | None:
@@ -268,7 +284,8 @@ def _interruptions_recorded(trainer: pl.Trainer, run_dir: Path):
         name = getattr(find_callback(trainer, InterruptRecorder), "signal_name", None)
         if name is None:
             raise
-        stop = RunInterrupted(run_dir, name, _last_finished_epoch(run_dir, trainer))
+        files = files_to_open(getattr(trainer.lightning_module, "run_config", None) or {})
+        stop = RunInterrupted(run_dir, name, _last_finished_epoch(run_dir, trainer), files)
         if trainer.is_global_zero:
             record_job(run_dir, "INTERRUPTED", **stop.status)
         log.warning("%s: %s", run_dir, stop.message)
