@@ -160,14 +160,33 @@ def test_the_tail_split_never_shares_a_frame(lengths, deltas, fraction, test_eve
     assert len(train) + len(val) <= len(rest)
     assert not frame_keys(val) & frame_keys(test)
     assert not frame_keys(val) & frame_keys(train)
-    trained = _frames_by_cache(train)
-    for cache, frames in _frames_by_cache(val).items():
-        if cache in trained:
-            rows = np.asarray([str(rest.caches[s]) == cache for s in rest.source])
-            distance = int((rest.second - rest.first)[rows].max())
-            assert np.abs(frames[:, None] - trained[cache][None, :]).min() > distance
+    gaps = np.zeros(len(rest.caches), dtype=np.int64)  # each source's pair distance
+    np.maximum.at(gaps, rest.source, np.abs(rest.second - rest.first))
+
+    def frames(index):  # (cache name, source, frame) of every frame a pair reads
+        rows = zip(index.source, index.first, index.second, strict=True)
+        return [(str(index.caches[s]), s, f) for s, a, b in rows for f in (a, b)]
+
+    for cache, s, v in frames(val):  # more than the larger pair distance from a training frame
+        for other_cache, t, f in frames(train):
+            if other_cache == cache:
+                assert abs(int(v) - int(f)) > max(gaps[s], gaps[t])
     if fraction == 0:
         assert len(val) == 0 and len(train) == len(rest)
+
+
+def test_a_source_keeps_its_own_training_pairs_beside_a_wider_source(tmp_path):
+    """Two sources of one cache, pair distances 1 and 6: the first source's training pairs two
+    frames before its validation tail were dropped for the second source's distance."""
+    first = np.concatenate([np.arange(29), 100 + np.arange(55)])
+    second = first + np.where(first < 100, 1, 6)
+    source = (first >= 100).astype(np.int64)
+    index = PairIndex([Path("c.npy"), Path("c.npy")], source, first, second,
+                      np.zeros((len(first), 3, 3)), ["a", "b"])  # fmt: skip
+    train, val = hold_out_tail(index, 0.2)
+    kept = set(zip(train.first.tolist(), train.second.tolist(), strict=True))
+    assert (21, 22) in kept and (22, 23) not in kept  # a gap of its own distance, 1
+    assert min(val.first[val.source == 0]) == 24
 
 
 def test_a_validation_sequence_missing_from_data_root_is_refused_before_anything_is_built(

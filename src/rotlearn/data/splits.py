@@ -10,7 +10,8 @@ of the training scene's pairs), so no test pair and no test frame is ever in val
 
 Frames are identified by (cache file, frame index): two sources reading the same cache (MAV's
 scenes share the flea3 cache) share frames, so a training pair of one source that reads a frame
-within the pair distance of another source's validation frames is dropped too.
+within the pair distance of another source's validation frames (the larger of the two sources'
+distances) is dropped too.
 """
 
 from __future__ import annotations
@@ -100,16 +101,21 @@ def hold_out_tail(
         taken = _frame_codes(exclude, train.caches)
         for code in codes:
             keep_val &= ~np.isin(code, taken)
-    if keep_val.any():  # another source's training pairs that reach a validation frame
-        validated = np.unique(np.concatenate([code[keep_val] for code in codes]))
-        reach = int((high - low).max())
+    gaps = np.zeros(int(train.source.max()) + 1, dtype=np.int64)  # each source's pair distance
+    np.maximum.at(gaps, train.source, high - low)
+    for s in np.unique(train.source[keep_val]):  # other sources' pairs near its validation
+        validated = np.unique(
+            np.concatenate([code[keep_val & (train.source == s)] for code in codes])
+        )
+        reach = np.maximum(gaps[s], gaps[train.source])  # the larger of the two distances
         for code in codes:
-            keep_train &= ~_within(code, validated, reach)
+            keep_train &= (train.source == s) | ~_within(code, validated, reach)
     return train.subset(keep_train), train.subset(keep_val)
 
 
-def _within(codes: np.ndarray, targets: np.ndarray, distance: int) -> np.ndarray:
-    """Which `codes` lie within `distance` frames of one of `targets` (sorted) of their cache."""
+def _within(codes: np.ndarray, targets: np.ndarray, distance: np.ndarray) -> np.ndarray:
+    """Which `codes` lie within `distance` (one per code) frames of one of `targets` (sorted)
+    of their cache."""
     at = np.searchsorted(targets, codes)
     below = targets[np.clip(at - 1, 0, len(targets) - 1)]
     above = targets[np.clip(at, 0, len(targets) - 1)]
