@@ -108,6 +108,7 @@ def _genuine_training_state() -> dict:
         (("rng_states", "torch"), torch.zeros(3), r"rng_states cannot be restored \(TypeError: "),
         (("rng_states", "python"), [3, [1, 2], None], r"rng_states cannot be restored "),
         (("rng_states",), [], r"rng_states must be a mapping"),
+        (("rng_states", "cuda"), [torch.zeros(3)], r"rng_states\.cuda must be a list of byte "),
     ],
 )
 def test_a_training_state_of_the_wrong_shape_is_refused_before_the_resume(run, path, junk, said):
@@ -120,6 +121,7 @@ def test_a_training_state_of_the_wrong_shape_is_refused_before_the_resume(run, p
     for key in path[:-1]:
         node = node[key]
     node[path[-1]] = junk
+    torch.manual_seed(123)  # this process's state: another than the checkpoint's
     before = torch.get_rng_state()
     with pytest.raises(UnsafeCheckpointError, match=rf"^last\.ckpt: {said}"):
         checked_checkpoint_states(checkpoint, [_best(run)], run, "last.ckpt")

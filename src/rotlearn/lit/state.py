@@ -28,9 +28,10 @@ class RunStateHooks:
             set_rng_states(checkpoint["rng_states"])
 
 
-def rng_states() -> dict[str, Any]:
-    """The global random states (torch CPU and CUDA, numpy, python) as tensors and plain data,
-    so that a checkpoint holding them still loads with `torch.load(weights_only=True)`."""
+def rng_states(cuda: bool = True) -> dict[str, Any]:
+    """The global random states (torch CPU and, with `cuda`, CUDA; numpy, python) as tensors
+    and plain data, so that a checkpoint holding them still loads with
+    `torch.load(weights_only=True)`."""
     version, words, gauss = random.getstate()
     name, keys, pos, has_gauss, cached = np.random.get_state()  # noqa: NPY002 (global state)
     states: dict[str, Any] = {
@@ -38,7 +39,7 @@ def rng_states() -> dict[str, Any]:
         "python": [version, list(words), gauss],
         "numpy": [name, torch.from_numpy(keys.astype(np.int64)), pos, has_gauss, cached],
     }
-    if torch.cuda.is_available():
+    if cuda and torch.cuda.is_available():
         states["cuda"] = torch.cuda.get_rng_state_all()
     return states
 
@@ -50,19 +51,25 @@ def set_rng_states(states: dict[str, Any]) -> None:
     random.setstate((version, tuple(words), gauss))
     name, keys, pos, has_gauss, cached = states["numpy"]
     np.random.set_state((name, keys.numpy().astype(np.uint32), pos, has_gauss, cached))  # noqa: NPY002
-    if "cuda" in states and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(states["cuda"])
+    if "cuda" in states and torch.cuda.is_available():  # the devices this process sees
+        torch.cuda.set_rng_state_all(states["cuda"][: torch.cuda.device_count()])
 
 
 def rng_state_problem(states: Any) -> str | None:
     """Why a checkpoint's `rng_states` cannot be restored (a traceback from inside `fit`, after a
-    resume had moved the run's records, otherwise), or None: they are set, then this process's
-    own states are put back."""
+    resume had moved the run's records, otherwise), or None: the CPU ones are set, then this
+    process's own put back; the CUDA ones are checked for their type only (setting them would
+    start CUDA before a forking launcher; a run saved on more devices restores those it sees)."""
     if not isinstance(states, dict):
         return "rng_states must be a mapping"
-    current = rng_states()
+    cuda = states.get("cuda", [])  # checked, not set: that would start CUDA in this process
+    if not isinstance(cuda, list | tuple) or not all(
+        isinstance(t, torch.Tensor) and t.dtype == torch.uint8 and t.ndim == 1 for t in cuda
+    ):
+        return "rng_states.cuda must be a list of byte tensors, one per device"
+    current = rng_states(cuda=False)
     try:
-        set_rng_states(states)
+        set_rng_states({k: v for k, v in states.items() if k != "cuda"})
     except Exception as exc:  # TypeError, ValueError, KeyError, RuntimeError: whatever it is
         lines = str(exc).strip().splitlines()
         return f"rng_states cannot be restored ({type(exc).__name__}: {lines[0] if lines else ''})"
