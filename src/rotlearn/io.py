@@ -24,7 +24,6 @@ import pickletools
 import re
 import secrets
 import stat
-import unicodedata
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -77,7 +76,12 @@ __all__ = [
 log = logging.getLogger("rotlearn")
 
 _INT = re.compile(r"[+-]?[0-9]+")
-_UNPRINTABLE = re.compile(r"[\x00-\x1f\x7f-\x9f\u2028\u2029\ud800-\udfff]")  # Cc, Zl, Zp, Cs
+# Cc, Zl, Zp, Cs, and the format characters that reorder or hide text (bidi controls, zero-width
+# space, word joiner, BOM): not ZWNJ and ZWJ (U+200C, U+200D), which Persian and Indic names use
+_UNPRINTABLE = re.compile(
+    "[\x00-\x1f\x7f-\x9f\u2028\u2029\ud800-\udfff\u061c\u200b\u200e\u200f\u202a-\u202e"
+    "\u2060-\u2064\u2066-\u2069\ufeff]"
+)
 _LINE_BREAK = re.compile(r"\r\n|[\n\r\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029]")  # str.splitlines
 _KIB, _MIB, _GIB = 2**10, 2**20, 2**30
 
@@ -918,18 +922,18 @@ def _name_problem(name: str) -> str | None:
         return "(empty, '.' or '..'): it could leave the dataset"
     if any(c in name for c in "/\\\0"):
         return "(it holds a path separator or NUL): it could leave the dataset"
-    if _UNPRINTABLE.search(name) or any(unicodedata.category(c) == "Cf" for c in name):
+    if _UNPRINTABLE.search(name):
         return (
-            "(a line break, a control or format character such as a bidi override, or bytes "
-            "that are not UTF-8): a message naming it would be garbled"
+            "(a line break, a control character, a bidi override or an invisible character, or "
+            "bytes that are not UTF-8): a message naming it would be garbled"
         )
     return None
 
 
 def plain_name(name: object, where: str | None = None, key: str | None = None) -> str:
     """`name` as a string, if it is one plain file or folder name: not empty, '.' or '..', no
-    '/', '\\' or NUL, no control or format character (a bidi override, a zero-width space),
-    line break or undecodable byte. A plain name joined
+    '/', '\\' or NUL, no control character, bidi control or invisible character (a zero-width
+    space), line break or undecodable byte. A plain name joined
     to a folder stays in that folder (up to symlinks: `resolve_inside`).
 
     Args:

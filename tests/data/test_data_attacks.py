@@ -580,7 +580,7 @@ def test_a_model_folder_whose_name_would_garble_a_message_is_refused(demo_data, 
     model = sorted(root.glob("02691156/*/models"))[0].parent
     model.rename(model.with_name(name))
     make = lambda: shapenet(root, cache, format="mesh")  # noqa: E731
-    error = refuses(make, tmp_path, cache, ValueError, "a control or format character")
+    error = refuses(make, tmp_path, cache, ValueError, "a line break, a control character")
     assert str(error).count("\n") == 0 and "\x1b" not in str(error) and repr(name) in str(error)
 
 
@@ -615,6 +615,7 @@ def test_a_symlinked_model_outside_the_root_is_refused(demo_data, tmp_path):
 def test_plain_name_and_resolve_inside(tmp_path):
     assert plain_name("00", "f:1") == "00" and plain_name("a..b", "f:1") == "a..b"
     assert plain_name("évian é", "f:1") == "évian é"  # printable, not ASCII: plain
+    assert plain_name("می\u200cخواهم", "f:1")  # a zero-width non-joiner, as Persian writes
     for bad in ("", ".", "..", "../x", "x/..", "/etc", "a\\b", "x\0", "a\nb", "x\x1b[2J",
                 "x\udcff", "a\u2028b", "a\x85", "abc\u202egnp.exe", "a\u200bb"):  # fmt: skip
         with pytest.raises(ValueError, match=r"f:1: .* not a plain"):
