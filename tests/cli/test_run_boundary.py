@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -128,6 +129,25 @@ def test_a_checkpoint_state_naming_files_outside_its_folder_is_refused(received,
     message = refused(received)
     assert f"refusing to resume {received.run}" in message
     assert str(received.ckpt) in message and "ModelCheckpoint state" in message
+
+
+@pytest.mark.parametrize(
+    ("edit", "said"),
+    [
+        (lambda o: o["state"][0].update(exp_avg=torch.zeros(7)),
+         r"optimizer_states\[0\]\.state\[0\]\.exp_avg is of shape \(7,\), not its parameter's"),
+        (lambda o: o["param_groups"][0]["params"].pop(),
+         r"optimizer_states\[0\] numbers \d+ parameters; the model has \d+"),
+    ],
+)  # fmt: skip
+def test_an_optimizer_state_that_does_not_fit_the_model_is_refused(received, edit, said):
+    """An Adam state of the wrong shape failed at the first training step, with a traceback,
+    after the resume had moved the run's records and marked it FAILED."""
+    checkpoint = torch.load(received.ckpt, weights_only=True)
+    edit(checkpoint["optimizer_states"][0])
+    torch.save(checkpoint, received.ckpt)
+    received.snapshot()
+    assert re.search(said, refused(received))
 
 
 def test_the_issue_reproduction_from_the_command_line_deletes_nothing(received):

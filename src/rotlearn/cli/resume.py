@@ -249,10 +249,13 @@ def _model_checkpoints(cfg: DictConfig) -> list:
 
 def _check_the_weights(cfg: DictConfig, checkpoint: dict, ckpt: Path) -> None:
     """The checkpoint's weights fit the model the config builds (built on the meta device:
-    nothing allocated): names, shapes, floating point, finite (`rotlearn.checkpoint.check_weights`).
+    nothing allocated): names, shapes, floating point, finite (`rotlearn.checkpoint.check_weights`);
+    and its optimizers' states fit that model's parameters (rotlearn's modules optimize
+    `self.parameters()`, numbered in order): a wrong shape failed at the first step, after the
+    records had moved.
 
     Raises:
-        UnsafeCheckpointError: naming the checkpoint and the weights at fault.
+        UnsafeCheckpointError: naming the checkpoint and the weights or state at fault.
     """
     import torch
     from hydra.utils import instantiate
@@ -268,6 +271,23 @@ def _check_the_weights(cfg: DictConfig, checkpoint: dict, ckpt: Path) -> None:
         check_weights(model.state_dict(), state_dict, str(ckpt))
     except ValueError as exc:
         raise UnsafeCheckpointError(str(exc)) from None
+    shapes = [p.shape for p in model.parameters()]
+    for i, state in enumerate(checkpoint.get("optimizer_states") or []):  # shapes checked before
+        ids = [n for group in state["param_groups"] for n in group.get("params", [])]
+        if not all(type(n) is int for n in ids) or sorted(ids) != list(range(len(shapes))):
+            raise UnsafeCheckpointError(f"{ckpt}: optimizer_states[{i}] numbers {len(ids)} "
+                                        f"parameters; the model has {len(shapes)}")  # fmt: skip
+        for n, values in state["state"].items():
+            for name, value in values.items() if isinstance(values, dict) else ():
+                if (
+                    isinstance(value, torch.Tensor)
+                    and value.ndim
+                    and (n not in range(len(shapes)) or value.shape != shapes[n])
+                ):
+                    raise UnsafeCheckpointError(
+                        f"{ckpt}: optimizer_states[{i}].state[{n!r}].{name} is of shape "
+                        f"{tuple(value.shape)}, not its parameter's"
+                    )
 
 
 def _origin(error: Exception, args: list[str], new: list[str], run_dir: Path) -> str:
