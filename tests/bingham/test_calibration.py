@@ -96,6 +96,16 @@ def test_the_mode_is_inside_every_credible_region(dtype, offset, scales):
     assert bh.expected_calibration_error(levels) >= expected - 0.01
 
 
+@pytest.mark.parametrize("dtype", [F32, F64])
+def test_an_isotropic_belief_puts_every_target_at_the_middle_level(dtype):
+    """A = cI (a network's all-zero output) gives every draw the target's energy: the strict
+    count gave every target level 0, as if the truth were the belief's mode. A draw of the same
+    energy counts half: level 1/2."""
+    A = (2.0 * torch.eye(4, dtype=dtype)).expand(50, 4, 4)
+    q = torch.nn.functional.normalize(torch.randn(50, 4, generator=gen(8), dtype=dtype), dim=-1)
+    assert torch.equal(bh.hpd_level(A, q, 64, gen(9)), torch.full((50,), 0.5, dtype=dtype))
+
+
 @PROPS
 @given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 64), dtype=st.sampled_from([F32, F64]))
 def test_levels_are_fractions_of_the_draws_and_grow_with_the_quadratic_form(seed, n, dtype):

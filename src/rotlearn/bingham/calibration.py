@@ -92,7 +92,9 @@ def hpd_level(
     """The belief mass of the HPD region whose boundary passes through q (module docstring).
 
     Estimated from `num_samples` draws of each belief: the fraction of draws x with
-    x^T A x < q^T A q; standard deviation <= 1 / (2 sqrt(num_samples)). Computed with A shifted to
+    x^T A x < q^T A q, a draw of the same energy counting half (an isotropic belief, A = cI,
+    gives every draw the target's energy: level 1/2, not 0); standard deviation
+    <= 1 / (2 sqrt(num_samples)). Computed with A shifted to
     A - l1 I (same regions) so that concentrated beliefs keep their precision in float32.
 
     Args:
@@ -103,7 +105,7 @@ def hpd_level(
         generator: random source on A's device (None: torch's default).
 
     Returns:
-        (...,) levels in [0, 1] (multiples of 1 / num_samples), in the promoted dtype of A and q
+        (...,) levels in [0, 1] (multiples of 1 / (2 num_samples)), in the promoted dtype of A and q
         (float32 for lower precisions); q inside the level-alpha region iff level <= alpha.
         Not differentiable.
     """
@@ -128,7 +130,8 @@ def hpd_level(
             part = slice(start, start + rows)
             x = sample(A[part], num_samples, generator)  # (rows, n, 4)
             s = torch.einsum("bni,bij,bnj->bn", x.double(), S[part], x.double())
-            below = (s < target[part].unsqueeze(-1)).sum(-1)
+            t = target[part].unsqueeze(-1)  # a draw of the same energy counts half (mid-rank)
+            below = (s < t).sum(-1) + 0.5 * (s == t).sum(-1)
             levels[part] = below.to(dtype) / num_samples
     return levels.reshape(batch)
 
