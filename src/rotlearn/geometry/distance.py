@@ -23,7 +23,8 @@ def angle(R1: Tensor, R2: Tensor) -> Tensor:
     linear in R1^T R2 (sin(t/2) = |R1 - R2|_F / (2 sqrt 2), cos(t/2) = |w| of the relative
     quaternion, read off 4 w q = (r21 - r12, r02 - r20, r10 - r01, 1 + tr)). So there is no
     acos: the value is accurate near 0 and 180 degrees, and the gradient is finite everywhere
-    (zero at exactly 0 and exactly 180 degrees, where the angle has a kink).
+    (zero at exactly 0 degrees, and where R1^T R2 is exactly a half-turn in floating point, where
+    the angle has a kink; a half-turn computed with rounding gets a subgradient of norm <= 1).
 
     Args:
         R1: (..., 3, 3) rotation matrices.
