@@ -304,3 +304,19 @@ def test_a_runs_tensorboard_folder_is_read_only_within_its_bounds(tmp_path, capl
     monkeypatch.setitem(MAX_BYTES, "TensorBoard events", 16)
     caplog.clear()
     assert read_curve(run, "val/err_mean") is None and "over 16 bytes" in caplog.text
+
+
+def test_the_report_says_which_weights_were_tested(tmp_path):
+    """report.md's error table did not say whether the last or the best validation epoch's
+    weights were tested (`test_ckpt`); a received metrics.json's other text is not shown."""
+    from rotlearn.report.document import make_report
+
+    sweep = tmp_path / "sweep"
+    for seed, weights in enumerate(["last", "best", "last", "<script>"]):
+        run = _run(sweep / str(seed), seed=seed, error=1.0 + seed)
+        metrics = json.loads((run / "metrics.json").read_text())
+        (run / "metrics.json").write_text(json.dumps({**metrics, "tested_weights": weights}))
+    report = make_report(sweep)["report"].read_text()
+    assert ("Weights tested: the last epoch's (2 runs), the best validation epoch's (1 run), "
+            "not recorded (1 run) (test_ckpt).") in report  # fmt: skip
+    assert "<script>" not in report

@@ -131,7 +131,8 @@ def _write_report(runs, roots, out: Path, stage: Path, group_by, pool) -> dict[s
         "",
     ]
     if not done.empty:
-        md += ["## Final test error (degrees), over trials", "", tables.percentile_table(done), ""]
+        md += ["## Final test error (degrees), over trials", "", _weights_tested(done), "",
+               tables.percentile_table(done), ""]  # fmt: skip
         md += _plots(done, runs, layout, stage, files)
         md += _beliefs(done, stage, files)
     if not recon.empty:  # auto-encoders (the OOD baseline): their test score
@@ -148,6 +149,15 @@ def _write_report(runs, roots, out: Path, stage: Path, group_by, pool) -> dict[s
                tables.failed_table(failed), ""]  # fmt: skip
     files["report"] = write_text_atomic(stage / OUTPUT_FILES["report"], "\n".join(md))
     return files
+
+
+def _weights_tested(done: pd.DataFrame) -> str:
+    """Which weights the runs' test scores are of (`test_ckpt`), e.g. "Weights tested: the last
+    epoch's (4 runs)."."""
+    words = {"last": "the last epoch's", "best": "the best validation epoch's"}
+    counts = done["tested_weights"].fillna("not recorded").value_counts() if len(done) else {}
+    said = [f"{words.get(name, name)} ({n} run{'s' * (n != 1)})" for name, n in counts.items()]
+    return f"Weights tested: {', '.join(said)} (test_ckpt)."
 
 
 def _having(runs: pd.DataFrame, metric: str) -> pd.DataFrame:

@@ -157,6 +157,15 @@ def matches(key: str, specs: Sequence[str]) -> bool:
     return any(key == spec or key.startswith(f"{spec}.") for spec in specs)
 
 
+WEIGHTS = ("last", "best")  # what metrics.json's `tested_weights` says was tested
+
+
+def _weights(said: Any) -> str | None:
+    """metrics.json's `tested_weights` where it is one of `WEIGHTS` (a received file's other
+    text is not shown)."""
+    return said if said in WEIGHTS else None
+
+
 def collect_runs(
     root: str | Path | Sequence[str | Path],
     group_by: Sequence[str] | None = None,
@@ -166,7 +175,8 @@ def collect_runs(
     pooled) and per job in a `jobs.json` without one: job (`<sweep name>/<job>` when several
     roots), dir, status, error, overrides, `setting` (the label of its group; module docstring),
     the lead, grouping and trial config keys (dotted paths, values as written), `group:<name>`
-    (each config group's choice), then the run's numeric final metrics. `attrs["layout"]` is the
+    (each config group's choice), `tested_weights` (last or best), then the run's numeric
+    final metrics. `attrs["layout"]` is the
     report layout, `attrs["grouping"]` the grouping keys.
 
     Args:
@@ -206,6 +216,7 @@ def collect_runs(
                 "status": state,
                 "error": status.get("error"),  # INTERRUPTED: the signal, epoch, resume command
                 "overrides": " ".join(overrides),
+                "tested_weights": _weights(metrics.get("tested_weights")),
                 **{
                     k: v
                     for k, v in metrics.items()
