@@ -26,6 +26,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from rotlearn.errors import ConfigError
 from rotlearn.io import UnreadableFileError, folder_entries
+from rotlearn.report.identity import select
 
 __all__ = [
     "FILE_KEYS",
@@ -112,14 +113,7 @@ FILE_KEYS = ("callbacks.ood.autoencoder_ckpt",)
 
 def files_to_open(config: Mapping[str, Any]) -> dict[str, str]:
     """The `FILE_KEYS` a config (a DictConfig or plain data) sets, with their values."""
-    found = {}
-    for key in FILE_KEYS:
-        node: Any = config
-        for part in key.split("."):
-            node = node.get(part) if isinstance(node, Mapping) else None
-        if node:
-            found[key] = str(node)
-    return found
+    return {key: str(value) for key in FILE_KEYS if (value := select(config, key))}
 
 
 def _text(value: Any) -> str | None:

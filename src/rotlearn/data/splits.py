@@ -82,10 +82,12 @@ def hold_out_tail(
         return train, train.subset(keep_val)
     low = np.minimum(train.first, train.second)
     high = np.maximum(train.first, train.second)
+    gaps = np.zeros(int(train.source.max()) + 1, dtype=np.int64)  # each source's pair distance
+    np.maximum.at(gaps, train.source, high - low)
     for s in np.unique(train.source):
         rows = train.source == s
         lo, hi = int(low[rows].min()), int(high[rows].max())
-        n, gap = hi - lo + 1, int((high[rows] - low[rows]).max())
+        n, gap = hi - lo + 1, int(gaps[s])
         n_val = max(math.ceil(fraction * n), gap + 1)
         if n < n_val + 2 * gap + 1:
             name = train.names[s] if s < len(train.names) else str(s)
@@ -101,8 +103,6 @@ def hold_out_tail(
         taken = _frame_codes(exclude, train.caches)
         for code in codes:
             keep_val &= ~np.isin(code, taken)
-    gaps = np.zeros(int(train.source.max()) + 1, dtype=np.int64)  # each source's pair distance
-    np.maximum.at(gaps, train.source, high - low)
     for s in np.unique(train.source[keep_val]):  # other sources' pairs near its validation
         validated = np.unique(
             np.concatenate([code[keep_val & (train.source == s)] for code in codes])

@@ -155,8 +155,8 @@ def _weights_tested(done: pd.DataFrame) -> str:
     """Which weights the runs' test scores are of (`test_ckpt`), e.g. "Weights tested: the last
     epoch's (4 runs)."."""
     words = {"last": "the last epoch's", "best": "the best validation epoch's"}
-    said = done.get("tested_weights", pd.Series(index=done.index, dtype=object)).astype(object)
-    counts = said.where(said.notna(), "not recorded").value_counts()
+    tested = done.get("tested_weights", pd.Series(index=done.index, dtype=object)).astype(object)
+    counts = tested.where(tested.notna(), "not recorded").value_counts()
     said = [f"{words.get(name, name)} ({n} run{'s' * (n != 1)})" for name, n in counts.items()]
     return f"Weights tested: {', '.join(said)} (test_ckpt)."
 
