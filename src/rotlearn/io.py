@@ -933,8 +933,8 @@ def _name_problem(name: str) -> str | None:
 def plain_name(name: object, where: str | None = None, key: str | None = None) -> str:
     """`name` as a string, if it is one plain file or folder name: not empty, '.' or '..', no
     '/', '\\' or NUL, no control character, bidi control or invisible character (a zero-width
-    space), line break or undecodable byte. A plain name joined
-    to a folder stays in that folder (up to symlinks: `resolve_inside`).
+    space), line break or undecodable byte. A plain name joined to a folder stays in that
+    folder (up to symlinks: `resolve_inside`).
 
     Args:
         name: the name, from a config or a dataset file.

@@ -94,8 +94,8 @@ def hpd_level(
     Estimated from `num_samples` draws of each belief: the fraction of draws x with
     x^T A x < q^T A q, a draw of the same energy counting half (an isotropic belief, A = cI,
     gives every draw the target's energy: level 1/2, not 0); standard deviation
-    <= 1 / (2 sqrt(num_samples)). Computed with A shifted to
-    A - l1 I (same regions) so that concentrated beliefs keep their precision in float32.
+    <= 1 / (2 sqrt(num_samples)). Computed with A shifted to A - l1 I (same regions) so that
+    concentrated beliefs keep their precision in float32.
 
     Args:
         A: (..., 4, 4) symmetric matrices (their symmetric part is used), finite.

@@ -102,9 +102,8 @@ def _refuse_an_invalid_new_run(argv: list[str]) -> list[str]:
     (`rotlearn.config.command_line`: a bad option, key or value exits naming it; a sweep's
     other values too), refusing between its checks from files alone and its values' a folder
     Hydra would not use or a run or sweep directory that already exists and is not empty, then
-    build a single run's
-    datamodule and (on the meta device: nothing allocated) its model, so that a bad value
-    leaves nothing behind (SystemExit naming the key).
+    build a single run's datamodule and (on the meta device: nothing allocated) its model, so
+    that a bad value leaves nothing behind (SystemExit naming the key).
     Returns the arguments for Hydra, with `+` before each component argument that its YAML does
     not list. A config that does not compose is left for Hydra to report (before it writes
     anything); flags such as --cfg or --info are Hydra's."""

@@ -176,8 +176,8 @@ def collect_runs(
     roots), dir, status, error, overrides, `setting` (the label of its group; module docstring),
     the lead, grouping and trial config keys (dotted paths, values as written), `group:<name>`
     (each config group's choice), `tested_weights` (last or best), then the run's numeric
-    final metrics. `attrs["layout"]` is the
-    report layout, `attrs["grouping"]` the grouping keys.
+    final metrics. `attrs["layout"]` is the report layout, `attrs["grouping"]` the grouping
+    keys.
 
     Args:
         root: a sweep or run directory, or several (pooled into one table).
