@@ -211,8 +211,8 @@ def check_placement(
         tail = path.removeprefix(str(output_dir))  # the run's own path is the user's
         if "$" in tail or tail.startswith("~"):
             raise ConfigError(" + ".join(keys), f"{path} holds '$' or a leading '~', which "
-                              "Lightning expands from this machine's environment; a resumed "
-                              "run's paths are written out")  # fmt: skip
+                              "Lightning expands from this machine's environment (set the key "
+                              "on your own command line to use it)")  # fmt: skip
         for form in (path, os.path.normpath(path)):  # Lightning normalises default_root_dir
             real = Path(os.path.realpath(form))
             if not real.is_relative_to(run):
