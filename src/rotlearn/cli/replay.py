@@ -16,6 +16,7 @@ Hydra starts: nothing is written and nothing is built from a refused file. `quot
 from __future__ import annotations
 
 import re
+import shlex
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -51,6 +52,14 @@ def quoted(value: str) -> str:
     text = re.sub(r"(\\*)\$\{", lambda m: m.group(1) * 2 + "\\${", value)
     text = re.sub(r"(\\*)(?='|$)", lambda m: m.group(1) * 2, text)
     return "'" + text.replace("'", "\\'") + "'"
+
+
+def shell_word(key: str, value: str) -> str:
+    """`key=value` as one shell word that Hydra reads back as `value` (quoted where it must be:
+    a printed command a user pastes, e.g. `rotlearn-train <shell_word("ckpt_path", run)>`)."""
+    if re.fullmatch(r"[\w./@+-]+", value):
+        return f"{key}={value}"
+    return shlex.quote(f"{key}={quoted(value)}")
 
 
 def _parse(overrides: list[str], source: Path) -> None:

@@ -12,8 +12,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-import re
-import shlex
 import signal
 import warnings
 from pathlib import Path
@@ -28,7 +26,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from rotlearn import config
 from rotlearn.checkpoint import load_checkpoint
 from rotlearn.cli.callbacks import PLANNED, record_job, tensorboard_command
-from rotlearn.cli.replay import quoted
+from rotlearn.cli.replay import shell_word
 from rotlearn.cli.resume import checkpoint_to_resume
 from rotlearn.cli.rundir import files_to_open, is_child_rank
 from rotlearn.errors import ConfigError
@@ -237,8 +235,10 @@ class RunInterrupted(SystemExit):
         self, run_dir: Path, signal_name: str, last_epoch: int | None, files: dict[str, str]
     ) -> None:
         self.run_dir, self.signal_name, self.last_epoch = run_dir, signal_name, last_epoch
-        again = "".join(f" {_shell_word(f'{key}={value}')}" for key, value in files.items())
-        self.resume_command = f"rotlearn-train ckpt_path={run_dir.resolve()}{again}"
+        words = [
+            shell_word(k, str(v)) for k, v in {"ckpt_path": run_dir.resolve(), **files}.items()
+        ]
+        self.resume_command = " ".join(["rotlearn-train", *words])
         done = None if last_epoch is None else last_epoch + 1  # Lightning counts epochs from 0
         after = (
             f"after {done} finished epoch{'s' * (done != 1)}" if done else "before its first epoch"
@@ -254,14 +254,6 @@ class RunInterrupted(SystemExit):
             "resume_command": self.resume_command,
             "error": self.message,
         }
-
-
-def _shell_word(override: str) -> str:
-    """`key=value` as one shell word Hydra reads back as written (quoted where it must be)."""
-    key, _, value = override.partition("=")
-    if re.fullmatch(r"[\w./@+-]+", value):
-        return override
-    return shlex.quote(f"{key}={quoted(value)}")
 
 
 def _last_finished_epoch(run_dir: Path, trainer: pl.Trainer) -> int | None:
