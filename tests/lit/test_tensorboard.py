@@ -99,6 +99,25 @@ def test_a_default_run_opens_on_its_curves_and_compares_by_what_it_set(tmp_path)
     assert written and not wrong, wrong
 
 
+def test_the_best_weights_results_stand_at_their_own_epoch(tmp_path):
+    """With test_ckpt=best the test scores an earlier epoch's weights: its points stand at that
+    epoch, not at the last (where they read as the last weights' results), and metrics.json
+    says how many epochs the tested weights trained. best.ckpt is considered every 2nd epoch
+    here, so of 3 epochs the tested weights are the 2nd's whatever the errors."""
+    run = tmp_path / "run"
+    best_every_2nd = "callbacks.checkpoint.every_n_epochs=2"
+    args = [*FAST, "trainer.max_epochs=3", "test_ckpt=best", best_every_2nd, f"hydra.run.dir={run}"]
+    result = run_cli(args, tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert (metrics["epochs"], metrics["tested_epochs"], metrics["tested_checkpoint"]) == (
+        3, 2, "best.ckpt")  # fmt: skip
+    stages = {k.rsplit("/", 1)[1]: v for k, v in tensorboard_events(run).items()}
+    assert [e.step for e in stages["val"].Scalars("error/mean")] == [1, 2, 3]
+    for tag in stages["test"].Tags()["scalars"]:
+        assert [e.step for e in stages["test"].Scalars(tag)] == [2], tag
+
+
 def test_an_ood_run_adds_each_scores_auroc_and_nothing_per_quantile(tmp_path):
     kitti = write_kitti(tmp_path / "kitti", {"00": yaw_sequence(11, 1.0),
                                              "01": yaw_sequence(9, -1.0)}, seed=3)  # fmt: skip

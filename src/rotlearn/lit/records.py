@@ -1,8 +1,10 @@
 """What a finished run leaves in its directory, written by a Lightning callback (not by the CLI).
 
 `RunRecords` writes, when testing ends, on global rank 0, atomically (`rotlearn.io`):
-- `metrics.json`: the final scalars of fitting and testing, the epochs and steps, the seeds, the
-  task and head, the belief's temperature the test used, which weights were tested, the best
+- `metrics.json`: the final scalars of fitting and testing (`val/*`, `train/*`: the last
+  epoch's), the epochs and steps, the seeds, the task and head, the belief's temperature the
+  test used, which weights were tested and the epochs they had trained (`tested_epochs`: fewer
+  than `epochs` where `test_ckpt=best` chose an earlier epoch), the best
   checkpoint's monitored value, whether the run `diverged`, and `test/err_vs_identity` (the test
   error over that of predicting the identity; a WARNING says when it stays above 0.9), then the
   command's own `facts` (`rotlearn-eval`: the checkpoint). Only what the config and seeds
@@ -32,6 +34,7 @@ from typing import Any
 
 import lightning.pytorch as pl
 import torch
+from lightning.pytorch.trainer.states import TrainerFn
 
 from rotlearn.io import write_json_atomic
 from rotlearn.lit.callbacks import EpochLosses, EpochTimer, find_callback
@@ -112,6 +115,13 @@ class RunRecords(pl.Callback):
         self.facts: dict[str, Any] = {}
         self._fit_metrics: dict[str, float] = {}
         self._fitted = False
+        self._tested_epochs: int | None = None  # of a checkpoint the test loaded (best.ckpt)
+
+    def on_load_checkpoint(
+        self, trainer: pl.Trainer, pl_module: pl.LightningModule, checkpoint: dict[str, Any]
+    ) -> None:
+        if trainer.state.fn == TrainerFn.TESTING:  # its `epoch`: the 0-based epoch it ended
+            self._tested_epochs = int(checkpoint["epoch"]) + 1
 
     def on_fit_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         self._fit_metrics = _scalars(trainer.callback_metrics)
@@ -152,6 +162,7 @@ class RunRecords(pl.Callback):
         if self._fitted:
             facts |= {"epochs": trainer.current_epoch, "global_step": trainer.global_step,
                       "tested_weights": "best" if trainer.ckpt_path else "last",
+                      "tested_epochs": self._tested_epochs or trainer.current_epoch,
                       "tested_checkpoint": self._tested_file(trainer)}  # fmt: skip
         if facts["task"] == "rotation":
             facts["rep"] = getattr(pl_module.head, "name", None)
@@ -189,7 +200,8 @@ class RunRecords(pl.Callback):
         for logger in trainer.loggers:
             if hasattr(logger, "log_results"):
                 text = results_table(metrics)
-                logger.log_results(hparams, headline, trainer.current_epoch, text)
+                step = metrics.get("tested_epochs", trainer.current_epoch)  # as epoch series
+                logger.log_results(hparams, headline, step, text)
             else:
                 logger.log_hyperparams(hparams)
             logger.finalize("success")

@@ -130,7 +130,8 @@ class TensorBoardRunLogger(TensorBoardLogger):
         text: str | None = None,
     ) -> None:
         """End the run's record: `results` (metric keys as logged, e.g. `test/err_mean`,
-        `ood/auroc_dt`) as points at `step` (the epochs trained), the HPARAMS session with
+        `ood/auroc_dt`) as points at `step` (the epochs the tested weights trained, as the epoch
+        series are drawn), the HPARAMS session with
         `hparams` in the test sub-run, whose scalars are the session's metrics, and `text` (a
         markdown table) in the Text tab."""
         self.log_metrics(dict(results), step)
