@@ -8,6 +8,8 @@ import errno
 import os
 import pickle
 import stat
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -388,6 +390,33 @@ def test_a_failed_write_leaves_the_old_file_and_no_temporary(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["metrics.json"]
     write_text_atomic(path, "new")
     assert path.read_text() == "new" and len(list(tmp_path.iterdir())) == 1
+
+
+@pytest.mark.parametrize("name", ["frames.npy", "[x]*?.npy"])  # glob characters in the name
+def test_a_killed_writers_temporary_is_removed_by_the_next_write_a_live_ones_is_not(tmp_path, name):
+    """A write killed mid-way (SIGKILL, the out-of-memory killer) left its temporary file for
+    good: a frame cache's is gigabytes. The next write of that file removes those no live
+    writer holds; a write in progress (here: in this very process), a link and a FIFO of that
+    name stay."""
+    path = tmp_path / name
+    killed = subprocess.run(  # a writer that dies inside the block, as SIGKILL leaves it
+        [sys.executable, "-c", "import os, sys\nfrom rotlearn.io import atomic_write\n"
+         "with atomic_write(sys.argv[1]) as tmp:\n    tmp.write_bytes(b'x' * 1000)\n"
+         "    os._exit(9)", str(path)],
+        check=False,
+    )  # fmt: skip
+    assert killed.returncode == 9
+    [stale] = [p for p in tmp_path.iterdir() if p.name.startswith(f".{name}.")]
+    (tmp_path / f".{name}.0000000a.tmp.npy").symlink_to(stale)
+    os.mkfifo(tmp_path / f".{name}.0000000b.tmp.npy")
+    with atomic_write(path) as outer:
+        outer.write_bytes(b"outer")
+        with atomic_write(path) as inner:  # a second writer while the first is in progress
+            inner.write_bytes(b"inner")
+        assert outer.read_bytes() == b"outer"  # the live writer's temporary was kept
+    assert path.read_bytes() == b"outer" and not stale.exists()
+    left = sorted(p.name for p in tmp_path.iterdir())
+    assert left == sorted([name, f".{name}.0000000a.tmp.npy", f".{name}.0000000b.tmp.npy"])
 
 
 @settings(max_examples=300, deadline=None)

@@ -16,6 +16,8 @@ from __future__ import annotations
 import array as pyarray
 import contextlib
 import errno
+import fcntl
+import glob
 import json
 import logging
 import math
@@ -24,7 +26,7 @@ import pickletools
 import re
 import secrets
 import stat
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -552,18 +554,52 @@ def sync_folder(folder: Path) -> None:
         os.close(fd)
 
 
-def _new_temporary(path: Path) -> Path:
-    """A new empty file beside `path` (hidden, same suffix, so writers that add one, such as
-    `numpy.save`, keep its name), created with mode 0666 minus the umask, never through a
-    symlink (`O_EXCL`)."""
+def _temporary_name(path: Path, tag: str, escape: Callable[[str], str] = str) -> str:
+    """The name of a temporary file for `path` (hidden, same suffix, so writers that add one,
+    such as `numpy.save`, keep its name); `tag`: 8 hex digits, or (with `escape=glob.escape`)
+    a glob pattern of them."""
+    return f"{escape(f'.{path.name}.')}{tag}{escape(f'.tmp{path.suffix}')}"
+
+
+def _new_temporary(path: Path) -> tuple[Path, int]:
+    """A new empty file beside `path`, created with mode 0666 minus the umask, never through a
+    symlink (`O_EXCL`), and an open descriptor holding an exclusive `flock` on it, which marks
+    it in use until the writer closes it or dies (`_remove_stale_temporaries`)."""
     flags = os.O_CREAT | os.O_EXCL | os.O_WRONLY | getattr(os, "O_CLOEXEC", 0)
     while True:
-        tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp{path.suffix}")
+        tmp = path.with_name(_temporary_name(path, secrets.token_hex(4)))
         try:
-            os.close(os.open(tmp, flags, 0o666))
+            fd = os.open(tmp, flags, 0o666)
         except FileExistsError:
             continue
-        return tmp
+        with contextlib.suppress(OSError):  # a filesystem without locks: never removed as stale
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return tmp, fd
+
+
+def _remove_stale_temporaries(path: Path) -> None:
+    """Remove the temporary files of `path` that no writer holds: left by a write that was
+    killed (SIGKILL, the out-of-memory killer, a power cut), e.g. a frame cache of gigabytes.
+    A live writer's, in this process or another, holds its `flock`; anything but a regular
+    file (a link, a FIFO: a received run's folder may hold one by that name) is left alone."""
+    flags = os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0)
+    for tmp in path.parent.glob(_temporary_name(path, "[0-9a-f]" * 8, glob.escape)):
+        try:
+            if not stat.S_ISREG(tmp.lstat().st_mode):  # not opened: a device's open acts
+                continue
+            fd = os.open(tmp, flags)
+        except OSError:  # gone, or not ours to read
+            continue
+        try:
+            if not stat.S_ISREG(os.fstat(fd).st_mode):  # swapped since the lstat
+                continue
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            tmp.unlink(missing_ok=True)
+            log.info("removed %s, left by a write that was killed", tmp)
+        except OSError:  # held: a write in progress (or a filesystem without locks)
+            pass
+        finally:
+            os.close(fd)
 
 
 def _write_error(path: Path, exc: OSError) -> WriteError:
@@ -577,7 +613,8 @@ def atomic_write(path: str | os.PathLike) -> Iterator[Path]:
     beside `path` for any writer to fill (text, `numpy.save`, a figure, a memmap); when the block
     ends, the file is synced to disk, renamed over `path` (a symlink there is replaced, never
     written through) and the folder synced. If the block raises, the temporary file is removed
-    and `path` is left as it was.
+    and `path` is left as it was; one left by a writer that was killed is removed by the next
+    write of `path` (`_remove_stale_temporaries`).
 
     The file gets the mode the umask allows (0644 under umask 022), as `open` gives a new file.
 
@@ -593,7 +630,8 @@ def atomic_write(path: str | os.PathLike) -> Iterator[Path]:
     path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = _new_temporary(path)
+        _remove_stale_temporaries(path)
+        tmp, held = _new_temporary(path)
     except (FileExistsError, NotADirectoryError) as exc:  # a file where a folder goes
         folders = (path.parent, *path.parent.parents)
         file = next((f for f in folders if f.exists() and not f.is_dir()), path.parent)
@@ -616,6 +654,8 @@ def atomic_write(path: str | os.PathLike) -> Iterator[Path]:
         if isinstance(exc, OSError) and not isinstance(exc, WriteError):
             raise _write_error(path, exc) from None
         raise
+    finally:
+        os.close(held)
 
 
 def write_bytes_atomic(path: str | os.PathLike, data: bytes | bytearray | memoryview) -> Path:
