@@ -282,6 +282,38 @@ def test_a_file_the_saved_overrides_name_is_opened_only_if_the_command_line_name
     _refuse_files_to_open(make_cfg(["data=kitti", "data.root=/data", "callbacks=ood"]), [])
 
 
+@pytest.mark.parametrize("form", ["count", "list", "text"])
+def test_saved_overrides_that_start_more_processes_than_cpus_are_refused(received, form):
+    """A received run's `trainer.devices=4096` made its resume start 4096 processes (on a CPU
+    each device is one, importing torch); the user's own command line may ask for them."""
+    more = range(len(os.sched_getaffinity(0)) + 1)  # one device more than this machine's CPUs
+    devices = {"count": str(len(more)), "list": f"[{','.join(map(str, more))}]",
+               "text": f"'{','.join(map(str, more))}'"}[form]  # fmt: skip
+    received.add_overrides(f"trainer.devices={devices}")
+    received.snapshot()
+    message = refused(received)
+    assert "trainer.devices: the run's saved overrides ask for" in message
+    assert "set trainer.devices on your command line" in message
+    assert received.plan(f"trainer.devices={devices}") is not None
+
+
+def test_saved_loader_processes_beyond_the_cpus_are_refused(make_cfg):
+    """The image datasets' `data.num_workers`, as `trainer.devices` (above)."""
+    from rotlearn.cli.resume import _refuse_more_processes_than_cpus
+    from rotlearn.errors import ConfigError
+
+    cpus = len(os.sched_getaffinity(0))
+    for workers in (cpus + 1, 10**6):
+        cfg = make_cfg(["data=kitti", "data.root=/data", f"data.num_workers={workers}"])
+        with pytest.raises(ConfigError, match=rf"data.num_workers: the run's saved overrides ask "
+                           rf"for {workers}; this machine has {cpus} CPUs"):  # fmt: skip
+            _refuse_more_processes_than_cpus(cfg, {"data.root", "data.num_workers"})
+        _refuse_more_processes_than_cpus(cfg, {"data.root"})  # typed again: the user's own
+    cfg = make_cfg(["experiment=kitti_ood_paper_scale", "data.root=/data"])
+    assert cfg.data.num_workers == 8  # rotlearn's own config asks for them: not refused
+    _refuse_more_processes_than_cpus(cfg, {"data.root"})
+
+
 def test_a_file_with_a_second_name_inside_the_run_is_no_hard_link_out(received):
     """A resume killed while keeping the earlier records leaves them with a second name in a
     hidden history folder (`keep_earlier_records`): that run still resumes."""

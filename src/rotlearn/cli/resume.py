@@ -12,7 +12,8 @@ byte-identical:
 - a COMPLETED run only trains longer;
 - the config that will run, composed exactly as Hydra will compose it (one run, even where
   its experiment sweeps), validates, writes only inside the run (`rundir.check_placement`) and
-  opens no file that only the saved overrides name (`rundir.FILE_KEYS`);
+  opens no file that only the saved overrides name (`rundir.FILE_KEYS`) and starts no more
+  processes per kind than this machine has CPUs where only they ask for them;
 - the checkpoint is a whole, bounded checkpoint (`rotlearn.checkpoint.load_checkpoint`) whose
   checkpoint callbacks' states name only the run's own checkpoint files, and whose training
   and random states restore (`rotlearn.lit.boundary.checked_checkpoint_states`).
@@ -34,7 +35,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from lightning.fabric.plugins.environments import SLURMEnvironment
-from omegaconf import DictConfig
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from rotlearn.checkpoint import (
     UnsafeCheckpointError,
@@ -338,6 +339,7 @@ def _check_the_config_that_runs(
         validate(cfg)
         check_placement(cfg, run_dir, trusted=user_keys(new))  # first: a path out is named so
         _refuse_files_to_open(cfg, new)
+        _refuse_more_processes_than_cpus(cfg, user_keys(a for a in args if a not in new))
         _check_it_is_the_config_the_run_trained(cfg, run_dir, new)
         checkpoint = load_checkpoint(ckpt)
         checked_checkpoint_states(checkpoint, _model_checkpoints(cfg), run_dir, ckpt)
@@ -366,6 +368,24 @@ def _refuse_files_to_open(cfg: DictConfig, new: list[str]) -> None:
                               f"{named} to open it, {key}=null to go without")  # fmt: skip
 
 
+def _refuse_more_processes_than_cpus(cfg: DictConfig, saved: set[str]) -> None:
+    """ConfigError where the run's saved overrides (`saved`: the keys they set that the new
+    command line does not) ask for more loader processes (`data.num_workers`) or devices
+    (`trainer.devices`: on a CPU each is a process that imports torch) than this process may
+    use CPUs: a received run's `trainer.devices=4096` started thousands of processes and took
+    the machine's memory. rotlearn's own configs' values are theirs to ask."""
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    for key in ("data.num_workers", "trainer.devices"):
+        value = OmegaConf.select(cfg, key)
+        if isinstance(value, str):  # devices="0,1,3" (or "auto")
+            value = value.strip(",").split(",") if value.replace(",", "").isdigit() else None
+        count = len(value) if isinstance(value, list | ListConfig) else value
+        if key in saved and isinstance(count, int) and count > (cpus or 1):
+            raise ConfigError(key, f"the run's saved overrides ask for {count}; this machine "
+                              f"has {cpus} CPUs for this process: set {key} on your command "
+                              f"line to use more (e.g. {key}={cpus})")  # fmt: skip
+
+
 def _check_it_is_the_config_the_run_trained(cfg: DictConfig, run_dir: Path, new: list[str]):
     """The run's saved overrides compose to the config it trained (`.hydra/config.yaml`) in
     every key both have, but the paths and what the new command line sets: a damaged overrides
@@ -374,8 +394,6 @@ def _check_it_is_the_config_the_run_trained(cfg: DictConfig, run_dir: Path, new:
     Raises:
         ConfigError: naming the first key that differs, both values and both files.
     """
-    from omegaconf import OmegaConf
-
     from rotlearn.io import read_yaml
     from rotlearn.report.identity import set_keys
     from rotlearn.report.runs import flatten, matches
