@@ -112,6 +112,7 @@ def test_the_best_weights_results_stand_at_their_own_epoch(tmp_path):
     metrics = json.loads((run / "metrics.json").read_text())
     assert (metrics["epochs"], metrics["tested_epochs"], metrics["tested_checkpoint"]) == (
         3, 2, "best.ckpt")  # fmt: skip
+    assert "test error (a head, best weights of epoch 2/3): mean" in result.stdout + result.stderr
     stages = {k.rsplit("/", 1)[1]: v for k, v in tensorboard_events(run).items()}
     assert [e.step for e in stages["val"].Scalars("error/mean")] == [1, 2, 3]
     for tag in stages["test"].Tags()["scalars"]:

@@ -343,17 +343,20 @@ def report(cfg: DictConfig, metrics: dict[str, Any]) -> None:
         shown = run_dir.resolve().relative_to(Path.cwd())
     except ValueError:
         shown = run_dir
+    weights = f"{metrics.get('tested_weights')} weights"
+    if metrics.get("tested_epochs") != metrics.get("epochs"):  # test_ckpt=best, an earlier one
+        weights += f" of epoch {metrics.get('tested_epochs')}/{metrics.get('epochs')}"
     if metrics.get("task") == "autoencoder":
         log.info(
-            "test reconstruction error (auto-encoder, %s weights): mean L1 %.4f",
-            metrics.get("tested_weights"),
+            "test reconstruction error (auto-encoder, %s): mean L1 %.4f",
+            weights,
             metrics.get("test/recon_mean", math.nan),
         )
     else:
         log.info(
-            "test error (%s head, %s weights): mean %.3f deg, median %.3f deg, p90 %.3f deg",
+            "test error (%s head, %s): mean %.3f deg, median %.3f deg, p90 %.3f deg",
             metrics.get("rep"),
-            metrics.get("tested_weights"),
+            weights,
             metrics.get("test/err_mean", math.nan),
             metrics.get("test/err_median", math.nan),
             metrics.get("test/err_p90", math.nan),
