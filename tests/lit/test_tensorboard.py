@@ -117,6 +117,7 @@ def test_the_best_weights_results_stand_at_their_own_epoch(tmp_path):
     assert [e.step for e in stages["val"].Scalars("error/mean")] == [1, 2, 3]
     for tag in stages["test"].Tags()["scalars"]:
         assert [e.step for e in stages["test"].Scalars(tag)] == [2], tag
+    assert [e.step for e in stages["test"].Images("test/reliability")] == [2]  # its figure too
 
 
 def test_an_ood_run_adds_each_scores_auroc_and_nothing_per_quantile(tmp_path):

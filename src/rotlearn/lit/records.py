@@ -34,7 +34,6 @@ from typing import Any
 
 import lightning.pytorch as pl
 import torch
-from lightning.pytorch.trainer.states import TrainerFn
 
 from rotlearn.io import write_json_atomic
 from rotlearn.lit.callbacks import EpochLosses, EpochTimer, find_callback
@@ -115,13 +114,6 @@ class RunRecords(pl.Callback):
         self.facts: dict[str, Any] = {}
         self._fit_metrics: dict[str, float] = {}
         self._fitted = False
-        self._tested_epochs: int | None = None  # of a checkpoint the test loaded (best.ckpt)
-
-    def on_load_checkpoint(
-        self, trainer: pl.Trainer, pl_module: pl.LightningModule, checkpoint: dict[str, Any]
-    ) -> None:
-        if trainer.state.fn == TrainerFn.TESTING:  # its `epoch`: the 0-based epoch it ended
-            self._tested_epochs = int(checkpoint["epoch"]) + 1
 
     def on_fit_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         self._fit_metrics = _scalars(trainer.callback_metrics)
@@ -162,7 +154,7 @@ class RunRecords(pl.Callback):
         if self._fitted:
             facts |= {"epochs": trainer.current_epoch, "global_step": trainer.global_step,
                       "tested_weights": "best" if trainer.ckpt_path else "last",
-                      "tested_epochs": self._tested_epochs or trainer.current_epoch,
+                      "tested_epochs": pl_module.tested_epochs,
                       "tested_checkpoint": self._tested_file(trainer)}  # fmt: skip
         if facts["task"] == "rotation":
             facts["rep"] = getattr(pl_module.head, "name", None)
@@ -200,7 +192,7 @@ class RunRecords(pl.Callback):
         for logger in trainer.loggers:
             if hasattr(logger, "log_results"):
                 text = results_table(metrics)
-                step = metrics.get("tested_epochs", trainer.current_epoch)  # as epoch series
+                step = getattr(pl_module, "tested_epochs", trainer.current_epoch)
                 logger.log_results(hparams, headline, step, text)
             else:
                 logger.log_hyperparams(hparams)

@@ -339,7 +339,7 @@ class RotationRegressor(FiniteChecks, RunStateHooks, pl.LightningModule):
             remedy=remedy,
         )
         for logger in loggers:
-            logger.log_figure("test/reliability", figure, self.current_epoch)
+            logger.log_figure("test/reliability", figure, self.tested_epochs)
 
     def configure_optimizers(self) -> Any:
         optimizer = self.optimizer_factory(self.parameters())

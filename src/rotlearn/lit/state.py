@@ -14,9 +14,11 @@ __all__ = ["RunStateHooks", "rng_state_problem", "rng_states", "set_rng_states"]
 
 class RunStateHooks:
     """Mixin for LightningModules: stores `run_config` (when set) as `rotlearn_config`, and the
-    global random states, in every checkpoint; restores the random states on resume."""
+    global random states, in every checkpoint; restores the random states on resume; knows the
+    epochs its weights under test trained (`tested_epochs`)."""
 
     run_config: dict[str, Any] | None = None
+    _loaded_for_test: int | None = None  # the epochs of the checkpoint a test loaded
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         if self.run_config is not None:
@@ -26,6 +28,15 @@ class RunStateHooks:
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         if "rng_states" in checkpoint:
             set_rng_states(checkpoint["rng_states"])
+        if self.trainer.state.fn == "test" and "epoch" in checkpoint:  # test_ckpt=best
+            self._loaded_for_test = int(checkpoint["epoch"]) + 1  # `epoch`: the one it ended
+
+    @property
+    def tested_epochs(self) -> int:
+        """The epochs the weights a test scores trained: the checkpoint's the test loaded
+        (`test_ckpt=best`), else the trainer's (the weights in memory). A test's results are
+        drawn at this step, as the epoch series are (`TensorBoardRunLogger`)."""
+        return self._loaded_for_test or self.current_epoch
 
 
 def rng_states(cuda: bool = True) -> dict[str, Any]:
