@@ -6,7 +6,8 @@ version being the run's name (`rotlearn-train` names it by its overrides, e.g.
 `rep=a,optim.lr=0.001`):
 
 - `train/`, `val/`, `test/`: one sub-run per stage, so a card draws the training and validation
-  curves of a run together and the test value as one point at the last epoch. A metric logged
+  curves of a run together and the test value as one point at the tested weights' epoch (the
+  last, or with `test_ckpt=best` the best's: `tested_epochs`). A metric logged
   as `<stage>/<name>` is drawn in its stage's sub-run under a tag shared by the stages:
   `<stage>/err_<stat>` as `error/<stat>` (degrees), `train/loss` and `val/loss` as
   `learning/loss`, ... (the table of `rotlearn.report.tensorboard`, which reads them back).
