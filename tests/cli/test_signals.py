@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import multiprocessing
+import re
 import signal
 import time
 from pathlib import Path
@@ -71,23 +72,24 @@ def test_an_interruption_counts_the_epochs_it_finished(tmp_path, last, words):
 def test_the_resume_command_names_again_the_files_the_run_opens(tmp_path, path):
     """A resume opens an auto-encoder checkpoint only when its own command line names it: the
     command a stopped KITTI OOD run printed (`ckpt_path=<run>` alone) was refused. Pasted into
-    a shell, the command gives Hydra each path as it is, the run's own too (a run folder named
-    `kitti ae 'q' $x` was printed unquoted: the shell split it and expanded `$x`)."""
+    a shell, the command gives each path as it is: the file's to Hydra, the run's to rotlearn,
+    which reads `ckpt_path=` as written, not through Hydra (a run folder named `kitti ae 'q' $x`
+    was printed unquoted: the shell split it and expanded `$x`)."""
     import shlex
 
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
+    from rotlearn.cli.resume import plan_resume
     from rotlearn.cli.training import RunInterrupted
 
     run = tmp_path / path.rpartition("/")[2]
     stop = RunInterrupted(run, "SIGTERM", 0, {"callbacks.ood.autoencoder_ckpt": path})
     words = shlex.split(stop.resume_command)
-    assert words[0] == "rotlearn-train"
-    parsed = OverridesParser.create().parse_overrides(words[1:])
-    assert [(o.key_or_group, o.value()) for o in parsed] == [
-        ("ckpt_path", str(run.resolve())),
-        ("callbacks.ood.autoencoder_ckpt", path),
-    ]
+    assert words[:2] == ["rotlearn-train", f"ckpt_path={run.resolve()}"]
+    override = OverridesParser.create().parse_overrides(words[2:])[0]
+    assert override.key_or_group == "callbacks.ood.autoencoder_ckpt" and override.value() == path
+    with pytest.raises(SystemExit, match=rf"no checkpoint at '?{re.escape(str(run.resolve()))}"):
+        plan_resume(words[1:])  # the resume reads the run's path back as it is
     assert stop.status["resume_command"] == stop.resume_command
 
 

@@ -55,11 +55,17 @@ def quoted(value: str) -> str:
 
 
 def shell_word(key: str, value: str) -> str:
-    """`key=value` as one shell word that Hydra reads back as `value` (quoted where it must be:
-    a printed command a user pastes, e.g. `rotlearn-train <shell_word("ckpt_path", run)>`)."""
+    """`key=value` as one shell word of a printed command that a user pastes, Hydra reading
+    back `value` (quoted for Hydra and the shell where it must be)."""
     if re.fullmatch(r"[\w./@+-]+", value):
         return f"{key}={value}"
     return shlex.quote(f"{key}={quoted(value)}")
+
+
+def resume_word(run: str | Path) -> str:
+    """`ckpt_path=<run>` as one shell word of a printed resume command: rotlearn reads the value
+    as written, not through Hydra's grammar, so it is quoted for the shell alone."""
+    return shlex.quote(f"ckpt_path={run}")
 
 
 def _parse(overrides: list[str], source: Path) -> None:

@@ -43,7 +43,7 @@ from rotlearn.checkpoint import (
     load_checkpoint,
     resolve_checkpoint,
 )
-from rotlearn.cli.replay import quoted, replayed_config, saved_overrides, shell_word
+from rotlearn.cli.replay import quoted, replayed_config, resume_word, saved_overrides
 from rotlearn.cli.rundir import (
     check_placement,
     check_run_tree,
@@ -97,7 +97,7 @@ def checkpoint_to_resume(cfg: DictConfig, run_dir: Path) -> str | None:
             return str(last) if last.is_file() else None
         raise FileExistsError(
             f"{run_dir} already holds a run; rotlearn never overwrites one (to continue it: "
-            f"{shell_word('ckpt_path', str(run_dir))})"
+            f"{resume_word(run_dir)})"
         )
     return None
 
@@ -218,8 +218,7 @@ def _refuse_rewriting_a_completed_run(run_dir: Path, previous: list[str], new: l
     if not _is_completed(run_dir):
         return
     done = _epochs_finished(run_dir)
-    where = shell_word("ckpt_path", str(run_dir))
-    longer = f"to train it longer: rotlearn-train {where} trainer.max_epochs=<more>"
+    longer = f"to train it longer: rotlearn-train {resume_word(run_dir)} trainer.max_epochs=<more>"
     head = f"refusing to resume {run_dir}: it is COMPLETED ({done} epochs) and never rewritten"
     changed = [
         o

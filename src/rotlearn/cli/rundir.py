@@ -24,7 +24,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from rotlearn.cli.replay import shell_word
+from rotlearn.cli.replay import resume_word
 from rotlearn.errors import ConfigError
 from rotlearn.io import UnreadableFileError, folder_entries
 from rotlearn.report.identity import select
@@ -285,8 +285,9 @@ def refuse_an_existing_output_dir(
         folder = Path(cfg.hydra.sweep.dir if multirun else cfg.hydra.run.dir)
     if _non_empty(folder) and not (allow() if callable(allow) else allow):
         what = "sweep" if multirun else "run" if config_name == "train" else "evaluation"
-        where = shell_word("ckpt_path", str(folder))
-        hint = f" (to continue the run in it: {prog} {where})" if what == "run" else ""
+        hint = (
+            f" (to continue the run in it: {prog} {resume_word(folder)})" if what == "run" else ""
+        )
         raise SystemExit(
             f"{prog}: {folder} already exists and is not empty; a new {what} never writes into "
             f"an existing directory{hint}; nothing was written"

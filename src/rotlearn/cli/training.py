@@ -26,7 +26,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from rotlearn import config
 from rotlearn.checkpoint import load_checkpoint
 from rotlearn.cli.callbacks import PLANNED, record_job, tensorboard_command
-from rotlearn.cli.replay import shell_word
+from rotlearn.cli.replay import resume_word, shell_word
 from rotlearn.cli.resume import checkpoint_to_resume
 from rotlearn.cli.rundir import files_to_open, is_child_rank
 from rotlearn.errors import ConfigError
@@ -235,9 +235,7 @@ class RunInterrupted(SystemExit):
         self, run_dir: Path, signal_name: str, last_epoch: int | None, files: dict[str, str]
     ) -> None:
         self.run_dir, self.signal_name, self.last_epoch = run_dir, signal_name, last_epoch
-        words = [
-            shell_word(k, str(v)) for k, v in {"ckpt_path": run_dir.resolve(), **files}.items()
-        ]
+        words = [resume_word(run_dir.resolve()), *(shell_word(k, v) for k, v in files.items())]
         self.resume_command = " ".join(["rotlearn-train", *words])
         done = None if last_epoch is None else last_epoch + 1  # Lightning counts epochs from 0
         after = (
