@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import shlex
 import shutil
 import subprocess
 import sys
@@ -282,36 +283,40 @@ def test_a_file_the_saved_overrides_name_is_opened_only_if_the_command_line_name
     _refuse_files_to_open(make_cfg(["data=kitti", "data.root=/data", "callbacks=ood"]), [])
 
 
-@pytest.mark.parametrize("form", ["count", "list", "text"])
-def test_saved_overrides_that_start_more_processes_than_cpus_are_refused(received, form):
+@pytest.mark.parametrize("devices", ["4096", "'4096'", "[0,1,2,3,4,5,6,7,8]"])
+def test_saved_overrides_do_not_choose_the_processes_or_devices(received, devices):
     """A received run's `trainer.devices=4096` made its resume start 4096 processes (on a CPU
-    each device is one, importing torch); the user's own command line may ask for them."""
-    more = range(len(os.sched_getaffinity(0)) + 1)  # one device more than this machine's CPUs
-    devices = {"count": str(len(more)), "list": f"[{','.join(map(str, more))}]",
-               "text": f"'{','.join(map(str, more))}'"}[form]  # fmt: skip
+    each device is one, importing torch). A resume takes the machine's keys from its own command
+    line only, whatever value the saved overrides give, in any form Lightning reads."""
     received.add_overrides(f"trainer.devices={devices}")
     received.snapshot()
     message = refused(received)
-    assert "trainer.devices: the run's saved overrides ask for" in message
-    assert "set trainer.devices on your command line" in message
-    assert received.plan(f"trainer.devices={devices}") is not None
+    saved = f"trainer.devices={devices}"
+    assert "trainer.devices: how many processes and devices a resume uses is" in message
+    assert f"your command line only: {shlex.quote(saved)} to use it again (from " in message
+    assert message.endswith(f"overrides.yaml: {saved!r})")  # the saved override, not trainer=cpu
+    assert received.plan("trainer.devices=1") is not None  # the user's own value, another one
 
 
-def test_saved_loader_processes_beyond_the_cpus_are_refused(make_cfg):
-    """The image datasets' `data.num_workers`, as `trainer.devices` (above)."""
-    from rotlearn.cli.resume import _refuse_more_processes_than_cpus
+def test_saved_loader_processes_are_the_command_lines_too(make_cfg):
+    """The image datasets' `data.num_workers`, as `trainer.devices` (above); the values of
+    rotlearn's own configs are not refused, and the resume command a stopped run prints names
+    the machine's keys its command line set."""
+    from rotlearn.cli.resume import _refuse_machine_keys
+    from rotlearn.cli.rundir import keys_to_give_again
     from rotlearn.errors import ConfigError
 
-    cpus = len(os.sched_getaffinity(0))
-    for workers in (cpus + 1, 10**6):
-        cfg = make_cfg(["data=kitti", "data.root=/data", f"data.num_workers={workers}"])
-        with pytest.raises(ConfigError, match=rf"data.num_workers: the run's saved overrides ask "
-                           rf"for {workers}; this machine has {cpus} CPUs"):  # fmt: skip
-            _refuse_more_processes_than_cpus(cfg, {"data.root", "data.num_workers"})
-        _refuse_more_processes_than_cpus(cfg, {"data.root"})  # typed again: the user's own
-    cfg = make_cfg(["experiment=kitti_ood_paper_scale", "data.root=/data"])
-    assert cfg.data.num_workers == 8  # rotlearn's own config asks for them: not refused
-    _refuse_more_processes_than_cpus(cfg, {"data.root"})
+    cfg = make_cfg(["data=kitti", "data.root=/data", "data.num_workers=64"])
+    saved = ["data=kitti", "data.root=/data", "data.num_workers=64"]
+    with pytest.raises(ConfigError, match=r"data.num_workers: how many processes .* your command "
+                       r"line only: data.num_workers=64 to use it again"):  # fmt: skip
+        _refuse_machine_keys(saved, [])
+    _refuse_machine_keys(saved, ["data.num_workers=2"])  # the user's own value
+    paper_scale = make_cfg(["experiment=kitti_ood_paper_scale", "data.root=/data"])
+    assert paper_scale.data.num_workers == 8  # rotlearn's own config asks for them
+    _refuse_machine_keys(["experiment=kitti_ood_paper_scale", "data.root=/data"], [])
+    assert keys_to_give_again(cfg, saved) == ["data.num_workers=64"]
+    assert keys_to_give_again(paper_scale, ["experiment=kitti_ood_paper_scale"]) == []
 
 
 def test_a_file_with_a_second_name_inside_the_run_is_no_hard_link_out(received):

@@ -63,7 +63,7 @@ def test_an_interruption_counts_the_epochs_it_finished(tmp_path, last, words):
     run that had finished 2, while metrics.json's `epochs` counts from 1."""
     from rotlearn.cli.training import RunInterrupted
 
-    stop = RunInterrupted(tmp_path, "SIGTERM", last, {})
+    stop = RunInterrupted(tmp_path, "SIGTERM", last, [])
     assert stop.message.startswith(f"stopped by SIGTERM {words}") and stop.code == 143
     assert stop.status["last_finished_epoch"] == last
 
@@ -80,14 +80,21 @@ def test_the_resume_command_names_again_the_files_the_run_opens(tmp_path, path):
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     from rotlearn.cli.resume import plan_resume
+    from rotlearn.cli.rundir import keys_to_give_again
     from rotlearn.cli.training import RunInterrupted
 
     run = tmp_path / path.rpartition("/")[2]
-    stop = RunInterrupted(run, "SIGTERM", 0, {"callbacks.ood.autoencoder_ckpt": path})
+    config = {"callbacks": {"ood": {"autoencoder_ckpt": path}}, "data": {"num_workers": 3}}
+    again = keys_to_give_again(config, ["data.num_workers=3", "+trainer.devices=[0,1]"])
+    stop = RunInterrupted(run, "SIGTERM", 0, again)
     words = shlex.split(stop.resume_command)
     assert words[:2] == ["rotlearn-train", f"ckpt_path={run.resolve()}"]
-    override = OverridesParser.create().parse_overrides(words[2:])[0]
-    assert override.key_or_group == "callbacks.ood.autoencoder_ckpt" and override.value() == path
+    parsed = OverridesParser.create().parse_overrides(words[2:])
+    assert [(o.key_or_group, o.value()) for o in parsed] == [
+        ("callbacks.ood.autoencoder_ckpt", path),
+        ("data.num_workers", 3),
+        ("trainer.devices", [0, 1]),
+    ]
     with pytest.raises(SystemExit, match=rf"no checkpoint at '?{re.escape(str(run.resolve()))}"):
         plan_resume(words[1:])  # the resume reads the run's path back as it is
     assert stop.status["resume_command"] == stop.resume_command

@@ -12,8 +12,8 @@ byte-identical:
 - a COMPLETED run only trains longer;
 - the config that will run, composed exactly as Hydra will compose it (one run, even where
   its experiment sweeps), validates, writes only inside the run (`rundir.check_placement`) and
-  opens no file that only the saved overrides name (`rundir.FILE_KEYS`) and starts no more
-  processes per kind than this machine has CPUs where only they ask for them;
+  opens no file and sets no number of processes or devices that only the saved overrides name
+  (`rundir.FILE_KEYS`, `rundir.MACHINE_KEYS`);
 - the checkpoint is a whole, bounded checkpoint (`rotlearn.checkpoint.load_checkpoint`) whose
   checkpoint callbacks' states name only the run's own checkpoint files, and whose training
   and random states restore (`rotlearn.lit.boundary.checked_checkpoint_states`).
@@ -29,13 +29,14 @@ import contextlib
 import logging
 import os
 import secrets
+import shlex
 import shutil
 import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 from lightning.fabric.plugins.environments import SLURMEnvironment
-from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf
 
 from rotlearn.checkpoint import (
     UnsafeCheckpointError,
@@ -43,8 +44,14 @@ from rotlearn.checkpoint import (
     load_checkpoint,
     resolve_checkpoint,
 )
-from rotlearn.cli.replay import quoted, replayed_config, resume_word, saved_overrides
+from rotlearn.cli.replay import (
+    quoted,
+    replayed_config,
+    resume_word,
+    saved_overrides,
+)
 from rotlearn.cli.rundir import (
+    MACHINE_KEYS,
     check_placement,
     check_run_tree,
     files_to_open,
@@ -301,10 +308,10 @@ def _origin(error: Exception, args: list[str], new: list[str], run_dir: Path) ->
     key = getattr(error, "key", None)
     if key is None or "overrides.yaml" in str(error) or matches(key, set_keys(new)):
         return ""
-    for text in (a for a in args if a not in new):
-        for saved in set_keys([text]):
-            if matches(key, [saved]) or matches(saved, [key]):
-                return f" (from {run_dir / '.hydra' / 'overrides.yaml'}: {text!r})"
+    found = [(text, saved) for text in args if text not in new for saved in set_keys([text])]
+    for text, saved in sorted(found, key=lambda pair: pair[1] != key):  # the key's own first
+        if matches(key, [saved]) or matches(saved, [key]):
+            return f" (from {run_dir / '.hydra' / 'overrides.yaml'}: {text!r})"
     return ""
 
 
@@ -338,7 +345,7 @@ def _check_the_config_that_runs(
         validate(cfg)
         check_placement(cfg, run_dir, trusted=user_keys(new))  # first: a path out is named so
         _refuse_files_to_open(cfg, new)
-        _refuse_more_processes_than_cpus(cfg, user_keys(a for a in args if a not in new))
+        _refuse_machine_keys([a for a in args if a not in new], new)
         _check_it_is_the_config_the_run_trained(cfg, run_dir, new)
         checkpoint = load_checkpoint(ckpt)
         checked_checkpoint_states(checkpoint, _model_checkpoints(cfg), run_dir, ckpt)
@@ -367,22 +374,18 @@ def _refuse_files_to_open(cfg: DictConfig, new: list[str]) -> None:
                               f"{named} to open it, {key}=null to go without")  # fmt: skip
 
 
-def _refuse_more_processes_than_cpus(cfg: DictConfig, saved: set[str]) -> None:
-    """ConfigError where the run's saved overrides (`saved`: the keys they set that the new
-    command line does not) ask for more loader processes (`data.num_workers`) or devices
-    (`trainer.devices`: on a CPU each is a process that imports torch) than this process may
-    use CPUs: a received run's `trainer.devices=4096` started thousands of processes and took
-    the machine's memory. rotlearn's own configs' values are theirs to ask."""
-    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    for key in ("data.num_workers", "trainer.devices"):
-        value = OmegaConf.select(cfg, key)
-        if isinstance(value, str):  # devices="0,1,3" (or "auto")
-            value = value.strip(",").split(",") if value.replace(",", "").isdigit() else None
-        count = len(value) if isinstance(value, list | ListConfig) else value
-        if key in saved and isinstance(count, int) and count > (cpus or 1):
-            raise ConfigError(key, f"the run's saved overrides ask for {count}; this machine "
-                              f"has {cpus} CPUs for this process: set {key} on your command "
-                              f"line to use more (e.g. {key}={cpus})")  # fmt: skip
+def _refuse_machine_keys(saved: list[str], new: list[str]) -> None:
+    """ConfigError where one of the run's saved overrides sets a key of this machine's
+    (`rundir.MACHINE_KEYS`) that the new command line does not: a received run's
+    `trainer.devices=4096` started 4096 processes (on a CPU each device is one, importing torch)
+    and took the machine's memory. rotlearn's own configs' values are not refused."""
+    typed = user_keys(new)
+    for text in saved:
+        key = next(iter(user_keys([text])), None)
+        if key in MACHINE_KEYS and key not in typed:
+            raise ConfigError(key, "how many processes and devices a resume uses is this "
+                              "machine's, taken from your command line only: "
+                              f"{shlex.quote(text.lstrip('+'))} to use it again")  # fmt: skip
 
 
 def _check_it_is_the_config_the_run_trained(cfg: DictConfig, run_dir: Path, new: list[str]):

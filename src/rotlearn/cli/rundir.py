@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shlex
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
@@ -24,17 +25,19 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from rotlearn.cli.replay import resume_word
+from rotlearn.cli.replay import resume_word, shell_word
 from rotlearn.errors import ConfigError
 from rotlearn.io import UnreadableFileError, folder_entries
 from rotlearn.report.identity import select
 
 __all__ = [
     "FILE_KEYS",
+    "MACHINE_KEYS",
     "check_placement",
     "check_run_tree",
     "files_to_open",
     "is_child_rank",
+    "keys_to_give_again",
     "output_paths",
     "place_output_dir",
     "refuse_an_existing_output_dir",
@@ -112,9 +115,24 @@ def check_run_tree(run_dir: str | os.PathLike) -> None:
 FILE_KEYS = ("callbacks.ood.autoencoder_ckpt",)
 
 
+# Keys of the machine that runs, how many processes and devices: on a resume only the user's own
+# command line sets one (a received run's saved `trainer.devices=4096` started 4096 processes),
+# as rotlearn-eval takes them from its own.
+MACHINE_KEYS = ("data.num_workers", "trainer.devices", "trainer.num_nodes")
+
+
 def files_to_open(config: Mapping[str, Any]) -> dict[str, str]:
     """The `FILE_KEYS` a config (a DictConfig or plain data) sets, with their values."""
     return {key: str(value) for key in FILE_KEYS if (value := select(config, key))}
+
+
+def keys_to_give_again(config: Mapping[str, Any], overrides: Iterable[str]) -> list[str]:
+    """What a resume of a run takes from its command line only, as shell words for the resume
+    command a stopped run prints: the `FILE_KEYS` its config sets and the overrides of its
+    command line (`overrides`) that set `MACHINE_KEYS`, as written."""
+    words = [shell_word(key, value) for key, value in files_to_open(config).items()]
+    typed = [o for o in overrides if not o.startswith("-") and user_keys([o]) & {*MACHINE_KEYS}]
+    return words + [shlex.quote(o.lstrip("+")) for o in typed]
 
 
 def _text(value: Any) -> str | None:

@@ -26,9 +26,9 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from rotlearn import config
 from rotlearn.checkpoint import load_checkpoint
 from rotlearn.cli.callbacks import PLANNED, record_job, tensorboard_command
-from rotlearn.cli.replay import resume_word, shell_word
+from rotlearn.cli.replay import resume_word
 from rotlearn.cli.resume import checkpoint_to_resume
-from rotlearn.cli.rundir import files_to_open, is_child_rank
+from rotlearn.cli.rundir import is_child_rank, keys_to_give_again
 from rotlearn.errors import ConfigError
 from rotlearn.io import plain_name, read_json
 from rotlearn.lit import (
@@ -228,15 +228,15 @@ class RunInterrupted(SystemExit):
     """A signal stopped the run; the exit code is the shell's 128 + signal number (SIGTERM 143,
     SIGINT 130). `status` is what `train` wrote into the run's status.json (its
     `last_finished_epoch` counted from 0, as Lightning counts; the message counts the epochs).
-    Its resume command names again the files the run opens (`files`: `rundir.FILE_KEYS`), which
-    a resume takes from its own command line only."""
+    Its resume command names again what a resume takes from its own command line only (`again`:
+    shell words, `rundir.keys_to_give_again`: the files the run opens, the processes and devices
+    its command line set)."""
 
     def __init__(
-        self, run_dir: Path, signal_name: str, last_epoch: int | None, files: dict[str, str]
+        self, run_dir: Path, signal_name: str, last_epoch: int | None, again: list[str]
     ) -> None:
         self.run_dir, self.signal_name, self.last_epoch = run_dir, signal_name, last_epoch
-        words = [resume_word(run_dir.resolve()), *(shell_word(k, v) for k, v in files.items())]
-        self.resume_command = " ".join(["rotlearn-train", *words])
+        self.resume_command = " ".join(["rotlearn-train", resume_word(run_dir.resolve()), *again])
         done = None if last_epoch is None else last_epoch + 1  # Lightning counts epochs from 0
         after = (
             f"after {done} finished epoch{'s' * (done != 1)}" if done else "before its first epoch"
@@ -274,8 +274,9 @@ def _interruptions_recorded(trainer: pl.Trainer, run_dir: Path):
         name = getattr(find_callback(trainer, InterruptRecorder), "signal_name", None)
         if name is None:
             raise
-        files = files_to_open(getattr(trainer.lightning_module, "run_config", None) or {})
-        stop = RunInterrupted(run_dir, name, _last_finished_epoch(run_dir, trainer), files)
+        config = getattr(trainer.lightning_module, "run_config", None) or {}
+        again = keys_to_give_again(config, _Runtime().overrides)
+        stop = RunInterrupted(run_dir, name, _last_finished_epoch(run_dir, trainer), again)
         if trainer.is_global_zero:
             record_job(run_dir, "INTERRUPTED", **stop.status)
         log.warning("%s: %s", run_dir, stop.message)
