@@ -31,6 +31,7 @@ from rotlearn.io import (
     read_number_array,
     read_record,
     read_yaml,
+    remove_stale_temporaries,
     rewrite_in_place,
     write_bytes_atomic,
     write_json_atomic,
@@ -393,11 +394,11 @@ def test_a_failed_write_leaves_the_old_file_and_no_temporary(tmp_path):
 
 
 @pytest.mark.parametrize("name", ["frames.npy", "[x]*?.npy"])  # glob characters in the name
-def test_a_killed_writers_temporary_is_removed_by_the_next_write_a_live_ones_is_not(tmp_path, name):
+def test_a_killed_writers_temporary_is_removed_a_live_ones_is_not(tmp_path, name):
     """A write killed mid-way (SIGKILL, the out-of-memory killer) left its temporary file for
-    good: a frame cache's is gigabytes. The next write of that file removes those no live
-    writer holds; a write in progress (here: in this very process), a link and a FIFO of that
-    name stay."""
+    good: a frame cache's is gigabytes. `remove_stale_temporaries` removes those no live writer
+    holds; a write in progress (here: in this very process), a link and a FIFO of that name
+    stay."""
     path = tmp_path / name
     killed = subprocess.run(  # a writer that dies inside the block, as SIGKILL leaves it
         [sys.executable, "-c", "import os, sys\nfrom rotlearn.io import atomic_write\n"
@@ -409,14 +410,46 @@ def test_a_killed_writers_temporary_is_removed_by_the_next_write_a_live_ones_is_
     [stale] = [p for p in tmp_path.iterdir() if p.name.startswith(f".{name}.")]
     (tmp_path / f".{name}.0000000a.tmp.npy").symlink_to(stale)
     os.mkfifo(tmp_path / f".{name}.0000000b.tmp.npy")
-    with atomic_write(path) as outer:
-        outer.write_bytes(b"outer")
-        with atomic_write(path) as inner:  # a second writer while the first is in progress
-            inner.write_bytes(b"inner")
-        assert outer.read_bytes() == b"outer"  # the live writer's temporary was kept
-    assert path.read_bytes() == b"outer" and not stale.exists()
+    with atomic_write(path) as live:
+        live.write_bytes(b"live")
+        remove_stale_temporaries(path)  # as a second writer would, while this one writes
+        assert live.read_bytes() == b"live"  # the live writer's temporary was kept
+    assert path.read_bytes() == b"live" and not stale.exists()
     left = sorted(p.name for p in tmp_path.iterdir())
     assert left == sorted([name, f".{name}.0000000a.tmp.npy", f".{name}.0000000b.tmp.npy"])
+
+
+def test_a_temporary_never_bears_its_name_unlocked(tmp_path, monkeypatch):
+    """Between its creation and its `flock` a new temporary file was unlocked: a second
+    writer's sweep in that moment removed a live temporary and the first write failed. It is
+    made and locked under another name now; here the sweep runs in that very moment."""
+    path = tmp_path / "frames.npy"
+    flock = io.fcntl.flock
+
+    def sweep_first(fd, operation):
+        remove_stale_temporaries(path)  # another writer's sweep, before this lock is taken
+        flock(fd, operation)
+
+    monkeypatch.setattr(io.fcntl, "flock", sweep_first)
+    with atomic_write(path) as tmp:
+        tmp.write_bytes(b"whole")
+    assert path.read_bytes() == b"whole"
+    assert [p.name for p in tmp_path.iterdir()] == ["frames.npy"]
+
+
+def test_without_fcntl_writes_go_on_and_nothing_is_swept(tmp_path):
+    """Windows has no `fcntl`: rotlearn.io imported it unguarded, so nothing could be read or
+    written there."""
+    script = "\n".join([
+        "import sys", "sys.modules['fcntl'] = None", "from pathlib import Path",
+        "from rotlearn.io import remove_stale_temporaries, write_text_atomic",
+        "path = Path(sys.argv[1]) / 'a.json'",
+        "stale = path.with_name('.a.json.0123abcd.tmp.json')", "stale.write_text('old')",
+        "remove_stale_temporaries(path)", "write_text_atomic(path, 'x')",
+        "assert stale.exists() and path.read_text() == 'x'",
+    ])  # fmt: skip
+    done = subprocess.run([sys.executable, "-c", script, str(tmp_path)], capture_output=True)
+    assert done.returncode == 0, done.stderr.decode()
 
 
 @settings(max_examples=300, deadline=None)

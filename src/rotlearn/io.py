@@ -16,7 +16,6 @@ from __future__ import annotations
 import array as pyarray
 import contextlib
 import errno
-import fcntl
 import glob
 import json
 import logging
@@ -26,11 +25,16 @@ import pickletools
 import re
 import secrets
 import stat
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+try:
+    import fcntl
+except ImportError:  # Windows: no advisory locks (a killed write's temporary file stays)
+    fcntl = None
 
 from rotlearn.errors import ConfigError
 
@@ -62,6 +66,7 @@ __all__ = [
     "read_text",
     "read_text_file",
     "read_yaml",
+    "remove_stale_temporaries",
     "require_finite",
     "resolve_inside",
     "rewrite_in_place",
@@ -554,36 +559,60 @@ def sync_folder(folder: Path) -> None:
         os.close(fd)
 
 
-def _temporary_name(path: Path, tag: str, escape: Callable[[str], str] = str) -> str:
+def _temporary_name(path: Path, tag: str, kind: str = "tmp", escape=str) -> str:
     """The name of a temporary file for `path` (hidden, same suffix, so writers that add one,
     such as `numpy.save`, keep its name); `tag`: 8 hex digits, or (with `escape=glob.escape`)
-    a glob pattern of them."""
-    return f"{escape(f'.{path.name}.')}{tag}{escape(f'.tmp{path.suffix}')}"
+    a glob pattern of them; `kind`: "tmp", or "new" while it is made (`_new_temporary`)."""
+    return f"{escape(f'.{path.name}.')}{tag}{escape(f'.{kind}{path.suffix}')}"
 
 
 def _new_temporary(path: Path) -> tuple[Path, int]:
     """A new empty file beside `path`, created with mode 0666 minus the umask, never through a
     symlink (`O_EXCL`), and an open descriptor holding an exclusive `flock` on it, which marks
-    it in use until the writer closes it or dies (`_remove_stale_temporaries`)."""
+    it in use until the writer closes it or dies (`remove_stale_temporaries`). It is made and
+    locked under another name, then linked to its own, so it never bears that name unlocked."""
     flags = os.O_CREAT | os.O_EXCL | os.O_WRONLY | getattr(os, "O_CLOEXEC", 0)
     while True:
-        tmp = path.with_name(_temporary_name(path, secrets.token_hex(4)))
+        tag = secrets.token_hex(4)
+        made, tmp = (path.with_name(_temporary_name(path, tag, k)) for k in ("new", "tmp"))
         try:
-            fd = os.open(tmp, flags, 0o666)
+            fd = os.open(made, flags, 0o666)
         except FileExistsError:
             continue
-        with contextlib.suppress(OSError):  # a filesystem without locks: never removed as stale
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        return tmp, fd
+        try:
+            if fcntl is not None:
+                with contextlib.suppress(OSError):  # no locks there: never removed as stale
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            try:
+                os.link(made, tmp)  # never over another writer's (EEXIST)
+            except FileExistsError:
+                tmp = None  # that name is taken: another tag
+            except OSError:  # a filesystem without hard links
+                os.rename(made, tmp)
+                return tmp, fd
+            os.unlink(made)
+        except BaseException:
+            os.close(fd)
+            with contextlib.suppress(OSError):
+                os.unlink(made)
+            raise
+        if tmp is not None:
+            return tmp, fd
+        os.close(fd)
 
 
-def _remove_stale_temporaries(path: Path) -> None:
-    """Remove the temporary files of `path` that no writer holds: left by a write that was
-    killed (SIGKILL, the out-of-memory killer, a power cut), e.g. a frame cache of gigabytes.
-    A live writer's, in this process or another, holds its `flock`; anything but a regular
-    file (a link, a FIFO: a received run's folder may hold one by that name) is left alone."""
-    flags = os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0)
-    for tmp in path.parent.glob(_temporary_name(path, "[0-9a-f]" * 8, glob.escape)):
+def remove_stale_temporaries(path: str | os.PathLike) -> None:
+    """Remove the temporary files of `atomic_write(path)` that no writer holds: left by a write
+    that was killed (SIGKILL, the out-of-memory killer, a power cut), e.g. a frame cache of
+    gigabytes. A live writer's, in this process or another, holds its `flock`; a symlink, a
+    FIFO or a folder of that name is left alone (a received run's folder may hold one). Where
+    locks are not what `flock` gives (NFS: emulated with fcntl locks, which a file opened for
+    reading cannot take exclusively) or there are none (Windows), nothing is removed."""
+    path = Path(path)
+    if fcntl is None:
+        return
+    flags = os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
+    for tmp in path.parent.glob(_temporary_name(path, "[0-9a-f]" * 8, escape=glob.escape)):
         try:
             if not stat.S_ISREG(tmp.lstat().st_mode):  # not opened: a device's open acts
                 continue
@@ -613,8 +642,8 @@ def atomic_write(path: str | os.PathLike) -> Iterator[Path]:
     beside `path` for any writer to fill (text, `numpy.save`, a figure, a memmap); when the block
     ends, the file is synced to disk, renamed over `path` (a symlink there is replaced, never
     written through) and the folder synced. If the block raises, the temporary file is removed
-    and `path` is left as it was; one left by a writer that was killed is removed by the next
-    write of `path` (`_remove_stale_temporaries`).
+    and `path` is left as it was; one left by a writer that was killed is removed by
+    `remove_stale_temporaries(path)` (the frame caches call it before they are built again).
 
     The file gets the mode the umask allows (0644 under umask 022), as `open` gives a new file.
 
@@ -630,7 +659,6 @@ def atomic_write(path: str | os.PathLike) -> Iterator[Path]:
     path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        _remove_stale_temporaries(path)
         tmp, held = _new_temporary(path)
     except (FileExistsError, NotADirectoryError) as exc:  # a file where a folder goes
         folders = (path.parent, *path.parent.parents)

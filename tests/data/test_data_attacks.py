@@ -315,6 +315,29 @@ def test_a_frame_cache_its_disk_cannot_hold_is_refused_before_any_frame_is_read(
     mav(root, cache)  # with room, the same dataset caches
 
 
+def test_a_killed_cache_builds_leftover_is_removed_before_the_space_is_checked(
+    demo_data, tmp_path, monkeypatch
+):
+    """A cache build killed mid-way (the out-of-memory killer) left its temporary file, and the
+    next build counted its gigabytes against the disk's free space: on a nearly full disk the
+    build was refused and the leftover never removed. Here the disk has room only once it is
+    gone."""
+    import types
+
+    root, cache = copy_demo(demo_data, "mav", tmp_path), tmp_path / "cache"
+    mav(root, cache)
+    [built] = cache.rglob("*.npy")
+    size = built.stat().st_size
+    built.with_suffix(".json").unlink()  # its manifest: the cache is built again
+    leftover = built.with_name(f".{built.name}.0123abcd.tmp.npy")
+    leftover.write_bytes(b"\0" * 4096)
+    room = 2**28 + size  # what the check asks for
+    free = lambda path: types.SimpleNamespace(free=room - (1 if leftover.exists() else 0))  # noqa: E731
+    monkeypatch.setattr(shutil, "disk_usage", free)
+    mav(root, cache)
+    assert not leftover.exists() and built.with_suffix(".json").exists()
+
+
 def test_mav_symlinked_frame_outside_the_root_names_the_line(demo_data, tmp_path):
     root, cache = copy_demo(demo_data, "mav", tmp_path), tmp_path / "cache"
     name = (root / "flea3" / "data.csv").read_text().splitlines()[4].split(",")[1]

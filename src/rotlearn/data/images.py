@@ -27,6 +27,7 @@ from rotlearn.io import (
     read_bytes,
     read_cached_array,
     read_manifest,
+    remove_stale_temporaries,
     write_text_atomic,
 )
 
@@ -216,6 +217,7 @@ def frame_cache(
             return cached
     from tqdm import tqdm
 
+    remove_stale_temporaries(array_path)  # a killed build's: its disk space counts as free
     _require_space(array_path, math.prod(shape))
     manifest_path.unlink(missing_ok=True)
     with atomic_write(array_path) as tmp:

@@ -44,6 +44,7 @@ from rotlearn.io import (
     read_manifest,
     read_number_rows,
     read_text_file,
+    remove_stale_temporaries,
     resolve_inside,
     strict_int,
     word_rows,
@@ -200,6 +201,7 @@ def sample_meshes(paths: list[Path], num_points: int, cache: Path, seed: int = 0
     for i, path in enumerate(tqdm(paths, desc="sampling ShapeNet meshes", unit="mesh")):
         points, _ = trimesh.sample.sample_surface(read_mesh(path), num_points, seed=seed + i)
         clouds[i] = points
+    remove_stale_temporaries(array_path)  # a killed build's
     with atomic_write(array_path) as tmp:
         np.save(tmp, clouds)
     write_text_atomic(manifest_path, json.dumps(manifest))
