@@ -192,8 +192,7 @@ class RunRecords(pl.Callback):
         for logger in trainer.loggers:
             if hasattr(logger, "log_results"):
                 text = results_table(metrics)
-                step = getattr(pl_module, "tested_epochs", trainer.current_epoch)
-                logger.log_results(hparams, headline, step, text)
+                logger.log_results(hparams, headline, pl_module.tested_epochs, text)
             else:
                 logger.log_hyperparams(hparams)
             logger.finalize("success")

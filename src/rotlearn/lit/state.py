@@ -28,14 +28,19 @@ class RunStateHooks:
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         if "rng_states" in checkpoint:
             set_rng_states(checkpoint["rng_states"])
-        if self.trainer.state.fn == "test" and "epoch" in checkpoint:  # test_ckpt=best
-            self._loaded_for_test = int(checkpoint["epoch"]) + 1  # `epoch`: the one it ended
+        trainer = getattr(self, "_trainer", None)  # none in `load_from_checkpoint`
+        testing = trainer is not None and trainer.state.fn == "test" and "epoch" in checkpoint
+        self._loaded_for_test = int(checkpoint["epoch"]) + 1 if testing else None  # 0-based
+
+    def on_fit_start(self) -> None:
+        self._loaded_for_test = None  # the weights change from here on
 
     @property
     def tested_epochs(self) -> int:
         """The epochs the weights a test scores trained: the checkpoint's the test loaded
-        (`test_ckpt=best`), else the trainer's (the weights in memory). A test's results are
-        drawn at this step, as the epoch series are (`TensorBoardRunLogger`)."""
+        (`test_ckpt=best`), else the trainer's (the weights in memory; 0 where they were loaded
+        outside the trainer, as rotlearn-eval does). A test's results are drawn at this step,
+        as the epoch series are (`TensorBoardRunLogger`)."""
         return self._loaded_for_test or self.current_epoch
 
 

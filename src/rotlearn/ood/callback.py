@@ -314,7 +314,7 @@ class OODEvaluation(pl.Callback):
             if len(rows := corrupted[corrupted["score"] == score.name])
         }
         loggers = [lg for lg in trainer.loggers if hasattr(lg, "log_figure")]
-        step = getattr(module, "tested_epochs", trainer.current_epoch)
+        step = module.tested_epochs
         for score in scores if loggers else []:
             figure = score_figure(score, sets, self.thresholds_from)
             for logger in loggers:
