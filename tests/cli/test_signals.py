@@ -55,7 +55,8 @@ def test_a_signal_leaves_an_interrupted_status_and_a_resume_command_that_works(t
     assert earlier["status"] == "INTERRUPTED"  # the interrupted attempt's record is kept
 
 
-@pytest.mark.parametrize(("last", "words"), [(None, "before its first epoch"),
+@pytest.mark.parametrize(("last", "words"), [(None, "before its first epoch ended, so no "
+                                                     "checkpoint holds anything to resume"),
                                               (0, "after 1 finished epoch;"),
                                               (4, "after 5 finished epochs;")])  # fmt: skip
 def test_an_interruption_counts_the_epochs_it_finished(tmp_path, last, words):
@@ -66,6 +67,11 @@ def test_an_interruption_counts_the_epochs_it_finished(tmp_path, last, words):
     stop = RunInterrupted(tmp_path, "SIGTERM", last, [])
     assert stop.message.startswith(f"stopped by SIGTERM {words}") and stop.code == 143
     assert stop.status["last_finished_epoch"] == last
+    # before the first checkpoint no command resumes it (the one printed was refused: no
+    # checkpoints/last.ckpt); after it, the message ends in the command
+    assert (stop.resume_command is None) == (last is None)
+    assert stop.message.endswith("keeps the attempt's log)" if last is None else
+                                 f"resume: {stop.resume_command}")  # fmt: skip
 
 
 @pytest.mark.parametrize("path", ["outputs/kitti_ae", "outputs/kitti ae 'q' $x"])

@@ -230,18 +230,24 @@ class RunInterrupted(SystemExit):
     `last_finished_epoch` counted from 0, as Lightning counts; the message counts the epochs).
     Its resume command names again what a resume takes from its own command line only (`again`:
     shell words, `rundir.keys_to_give_again`: the files the run opens, the processes and devices
-    its command line set)."""
+    its command line set); a run stopped before its first checkpoint has none (None)."""
 
     def __init__(
         self, run_dir: Path, signal_name: str, last_epoch: int | None, again: list[str]
     ) -> None:
         self.run_dir, self.signal_name, self.last_epoch = run_dir, signal_name, last_epoch
-        self.resume_command = " ".join(["rotlearn-train", resume_word(run_dir.resolve()), *again])
         done = None if last_epoch is None else last_epoch + 1  # Lightning counts epochs from 0
-        after = (
-            f"after {done} finished epoch{'s' * (done != 1)}" if done else "before its first epoch"
+        self.resume_command = (  # none before the first checkpoint: nothing to resume
+            " ".join(["rotlearn-train", resume_word(run_dir.resolve()), *again]) if done else None
         )
-        self.message = f"stopped by {signal_name} {after}; resume: {self.resume_command}"
+        if done:
+            after = f"after {done} finished epoch{'s' * (done != 1)}; resume: {self.resume_command}"
+        else:
+            after = (
+                "before its first epoch ended, so no checkpoint holds anything to resume: "
+                "start the run again in a new folder (this one keeps the attempt's log)"
+            )
+        self.message = f"stopped by {signal_name} {after}"
         super().__init__(128 + int(signal.Signals[signal_name]))
 
     @property
