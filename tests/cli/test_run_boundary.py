@@ -474,6 +474,16 @@ def test_a_new_run_into_a_completed_run_is_refused_before_hydra_writes(
                     f"hydra.run.dir={received.run}")  # fmt: skip
     assert f"{received.run} already exists and is not empty" in message
     assert "never writes into an existing directory" in message
+    # the hint is a command that works on a finished run (continuing it was refused)
+    longer = f"rotlearn-train ckpt_path={received.run} trainer.max_epochs=<more>"
+    assert f"(it holds a finished run; to train it longer: {longer})" in message
+    received.assert_unchanged()
+
+
+def test_a_new_run_into_an_unfinished_run_points_to_its_resume(received, monkeypatch):
+    monkeypatch.chdir(received.work)
+    message = _main(monkeypatch, "data=tiny", f"hydra.run.dir={received.run}")
+    assert f"(to continue the run in it: rotlearn-train ckpt_path={received.run})" in message
     received.assert_unchanged()
 
 

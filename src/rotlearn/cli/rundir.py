@@ -303,9 +303,12 @@ def refuse_an_existing_output_dir(
         folder = Path(cfg.hydra.sweep.dir if multirun else cfg.hydra.run.dir)
     if _non_empty(folder) and not (allow() if callable(allow) else allow):
         what = "sweep" if multirun else "run" if config_name == "train" else "evaluation"
-        hint = (
-            f" (to continue the run in it: {prog} {resume_word(folder)})" if what == "run" else ""
-        )
+        hint = ""
+        if what == "run" and os.path.lexists(folder / "metrics.json"):  # it finished
+            longer = f"{prog} {resume_word(folder)} trainer.max_epochs=<more>"
+            hint = f" (it holds a finished run; to train it longer: {longer})"
+        elif what == "run":
+            hint = f" (to continue the run in it: {prog} {resume_word(folder)})"
         raise SystemExit(
             f"{prog}: {folder} already exists and is not empty; a new {what} never writes into "
             f"an existing directory{hint}; nothing was written"
