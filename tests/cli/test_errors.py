@@ -103,8 +103,9 @@ EXPECTED = {
                                         r"run: it has no checkpoints/last\.ckpt"),
     "eval of a sweep directory": (1, r"^rotlearn-eval: ckpt: .*sweep is a sweep directory, not "
                                   r"one run: pass one of its jobs, .*sweep/0, .*sweep/1 \("),
-    "eval with OOD on synthetic data": (1, r"^rotlearn-eval: config key callbacks\.ood: needs an "
-                                        r"image-pair datamodule .*SyntheticWahbaDataModule"),
+    "eval with OOD on synthetic data": (1, r"^rotlearn-eval: config key ckpt: .* is no image-pair "
+                                        r"run: .*SyntheticWahbaDataModule; to use its model: "
+                                        r"rotlearn-predict"),
     "eval with a dataset option": (1, r"^rotlearn-eval: config key data: holds keys to set "
                                    r"one by one, data\.<key>=value \(root, num_workers, "
                                    r"eval_batch_size, corrupt_fraction\), not data=kitti \("),

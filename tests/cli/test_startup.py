@@ -131,7 +131,8 @@ def test_eval_refuses_a_run_it_cannot_use_before_torch_loads(tmp_path, run_kind)
     )
     assert "torch" not in modules and "lightning" not in modules
     expected = {
-        "synthetic data": "config key callbacks.ood: needs an image-pair datamodule",
+        "synthetic data": f"config key ckpt: {run} is no image-pair run: rotlearn-eval tests a "
+        "run again with the OOD evaluation, which needs an image-pair datamodule",
         "a pickle past the bounds": f"config key ckpt: {run}: {run / 'checkpoints' / 'last.ckpt'} "
         f"is not a checkpoint rotlearn reads: more than {MAX_NODES} values",
     }[run_kind]

@@ -245,7 +245,8 @@ def usage(root: Path | None = None) -> str:
     head, _, body = text.partition("defaults:")
     keys = body[body.index("ckpt:") : body.index("\npaths:")]
     lines = [
-        "rotlearn-eval: test a trained run again, with the OOD evaluation, without retraining.",
+        "rotlearn-eval: test a trained image-pair run (data=kitti, mav) again, with the OOD "
+        "evaluation, without retraining (a synthetic run's model: rotlearn-predict).",
         "",
         "usage: rotlearn-eval ckpt=<run dir or .ckpt, or a list of them> [key=value ...] [-m]",
         *(line.removeprefix("# ") for line in head.strip().splitlines()[1:]),
@@ -386,7 +387,11 @@ def _checked(argv: list[str]) -> list[str]:
             _first_look(cfg)  # among swept values is checked by its own job)
             validate(evaluation_config(cfg, _saved_run(cfg)))
     except ConfigError as exc:
-        if exc.key.startswith(_OOD_NODE):  # the run's OOD callback: set as ood.<key> here
+        if exc.key == _OOD_NODE[:-1]:  # its needs: the run's data has no OOD evaluation
+            exc = ConfigError("ckpt", f"{cfg.ckpt} is no image-pair run: rotlearn-eval tests a "
+                              f"run again with the OOD evaluation, which {exc.message}; to use "
+                              "its model: rotlearn-predict or rotlearn.load")  # fmt: skip
+        elif exc.key.startswith(_OOD_NODE):  # the run's OOD callback: set as ood.<key> here
             exc = ConfigError(_as_typed(exc.key), _as_typed(exc.message))
         raise SystemExit(f"rotlearn-eval: {exc} (nothing was written)") from None
     return args
