@@ -60,6 +60,7 @@ CASES: dict[str, tuple[str, list[str]]] = {
     ),
     "a value of the wrong type": ("rotlearn-train", ["optim.lr=abc"]),
     "a Trainer value out of range": ("rotlearn-train", ["trainer.max_epochs=0"]),
+    "an accelerator the machine lacks": ("rotlearn-train", ["trainer.accelerator=tpu"]),
     "null for a config group": ("rotlearn-train", ["logger=null"]),
     "a group the config chooses none of": ("rotlearn-train", ["variant=a_bingham"]),
     "calibrate without a belief": ("rotlearn-train", ["rep=sixd", "calibrate=true"]),

@@ -83,6 +83,9 @@ EXPECTED = {
     "a Trainer value out of range": (1, r"^rotlearn-train: config key trainer\.max_epochs: must "
                                      r"be a positive integer \(Lightning reads -1 as 'train "
                                      r"forever', 0 as no training\), got 0 \(nothing was"),
+    "an accelerator the machine lacks": (1, r"^rotlearn-train: config key trainer\.accelerator: "
+                                         r"tpu asks for a device this machine does not have; on "
+                                         r"its CPU: trainer=cpu or trainer\.accelerator=auto \("),
     "null for a config group": (1, r"^rotlearn-train: config key logger: takes one of its "
                                 r"options \(csv, none, tensorboard\), not null; leave logger= "
                                 r"out for the config's own choice \(nothing was written\)$"),
