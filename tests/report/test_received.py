@@ -320,3 +320,25 @@ def test_the_report_says_which_weights_were_tested(tmp_path):
     assert ("Weights tested: the last epoch's (2 runs), the best validation epoch's (1 run), "
             "not recorded (1 run) (test_ckpt).") in report  # fmt: skip
     assert "<script>" not in report
+
+
+def test_the_report_names_the_runs_that_diverged(tmp_path):
+    """A diverged run (metrics.json's `diverged`) lifted the error table's percentiles with
+    nothing in report.md or summary.csv to say so; a received file's other value is not one."""
+    import pandas as pd
+
+    from rotlearn.report.document import make_report
+
+    sweep = tmp_path / "sweep"
+    for seed, diverged in enumerate([False, True, "yes"]):
+        run = _run(sweep / str(seed), seed=seed, error=1.0 + 100 * (seed == 1))
+        metrics = json.loads((run / "metrics.json").read_text())
+        (run / "metrics.json").write_text(json.dumps({**metrics, "diverged": diverged}))
+    files = make_report(sweep)
+    report = files["report"].read_text()
+    assert "Diverged (1 of 3: test error above predicting the identity's" in report
+    assert "in the table): 1." in report
+    summary = pd.read_csv(files["summary"], dtype={"job": str}).set_index("job")["diverged"]
+    assert summary.astype(object).where(summary.notna(), None).to_dict() == {
+        "0": False, "1": True, "2": None
+    }  # fmt: skip

@@ -132,7 +132,7 @@ def _write_report(runs, roots, out: Path, stage: Path, group_by, pool) -> dict[s
     ]
     if not done.empty:
         md += ["## Final test error (degrees), over trials", "", _weights_tested(done), "",
-               tables.percentile_table(done), ""]  # fmt: skip
+               *_diverged(done), tables.percentile_table(done), ""]  # fmt: skip
         md += _plots(done, runs, layout, stage, files)
         md += _beliefs(done, stage, files)
     if not recon.empty:  # auto-encoders (the OOD baseline): their test score
@@ -159,6 +159,17 @@ def _weights_tested(done: pd.DataFrame) -> str:
     counts = tested.where(tested.notna(), "not recorded").value_counts()
     said = [f"{words.get(name, name)} ({n} run{'s' * (n != 1)})" for name, n in counts.items()]
     return f"Weights tested: {', '.join(said)} (test_ckpt)."
+
+
+def _diverged(done: pd.DataFrame) -> list[str]:
+    """A line naming the runs whose metrics.json says `diverged` (their errors are in the
+    table, which they may lift), and a blank line; none where no run did."""
+    flagged = done["job"][done.get("diverged", pd.Series(False, index=done.index)).eq(True)]
+    if flagged.empty:
+        return []
+    jobs = ", ".join(map(str, flagged))
+    return [f"Diverged ({len(flagged)} of {len(done)}: test error above predicting the identity's,"
+            f" or a training loss that blew up; in the table): {jobs}.", ""]  # fmt: skip
 
 
 def _having(runs: pd.DataFrame, metric: str) -> pd.DataFrame:

@@ -217,6 +217,7 @@ def collect_runs(
                 "error": status.get("error"),  # INTERRUPTED: the signal, epoch, resume command
                 "overrides": " ".join(overrides),
                 "tested_weights": _weights(metrics.get("tested_weights")),
+                "diverged": d if isinstance(d := metrics.get("diverged"), bool) else None,
                 **{
                     k: v
                     for k, v in metrics.items()
