@@ -40,7 +40,7 @@ def test_the_reliability_diagram_draws_the_diagonal_each_curve_and_the_ece():
     assert b.get_linestyle() == "--" and a.get_linestyle() == "-"
     assert ax.get_title() == "reliability: ECE 0.089"
     assert [t.get_text() for t in fig.legends[0].get_texts()] == [
-        "calibrated", "A (ECE 0.089)", "B"]  # fmt: skip
+        "ideal (coverage = alpha)", "A (ECE 0.089)", "B"]  # fmt: skip
     two = reliability_figure([{"label": "A", "coverage": curve, "ece": 0.01},
                               {"label": "B", "coverage": curve, "ece": 0.2}])  # fmt: skip
     assert two.axes[0].get_title() == "reliability of the credible regions"
@@ -54,7 +54,9 @@ def test_an_uncalibrated_belief_names_its_remedy_and_every_text_fits():
     remedy = calibration_remedy(0.5, tempered=False, likelihood=False, rep="a")
     assert "calibrate=true" in remedy and "loss=bingham" in remedy
     assert "loss=fisher_nll" in calibration_remedy(0.5, False, False, rep="fisher")
-    assert "calibrate=true" not in calibration_remedy(0.3, tempered=True, likelihood=False)
+    calibrated = calibration_remedy(0.3, tempered=True, likelihood=False)
+    assert "calibrate=true" not in calibrated  # it was: its note says calibration fell short
+    assert calibrated.startswith("still miscalibrated after calibration (ECE 0.30 > 0.1)")
     assert calibration_remedy(0.05, tempered=False, likelihood=False) is None
     label = "T = 0.503367 with a long label that would be clipped in a title"
     fig = _rendered(reliability_figure([{"label": label, "coverage": wide, "ece": 0.5}],
@@ -71,6 +73,12 @@ def test_an_uncalibrated_belief_names_its_remedy_and_every_text_fits():
     curve = ax.get_lines()[1].get_window_extent(renderer)  # the curve on the frame at 1.0
     assert not _overlap(note.get_window_extent(renderer), curve)
     assert not _overlap(fig.legends[0].get_window_extent(renderer), ax.get_window_extent(renderer))
+    # with a report's two curves (a legend of three rows) the title kept off the top edge (it
+    # touched it: the square plot and its legend overflowed the figure's height)
+    two = [{"label": "a", "coverage": wide, "ece": 0.5}, {"label": "a at T = 1", "coverage": wide}]
+    fig = _rendered(reliability_figure(two, remedy=remedy))
+    title = fig.axes[0].title.get_window_extent(fig.canvas.get_renderer())
+    assert fig.bbox.y1 - title.y1 >= 5  # pixels of margin
 
 
 def test_curves_show_whole_epochs_plain_numbers_and_one_legend_entry_per_group(tmp_path):

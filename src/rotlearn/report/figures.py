@@ -251,7 +251,8 @@ def calibration_remedy(
         steps.append(f"{loss} (trains the belief)")
     if not steps:
         steps.append("more epochs, or a validation set like the test set")
-    return f"uncalibrated (ECE {ece:.2f} > {UNCALIBRATED_ECE:g}); try " + " or ".join(steps)
+    state = "still miscalibrated after calibration" if tempered else "uncalibrated"
+    return f"{state} (ECE {ece:.2f} > {UNCALIBRATED_ECE:g}); try " + " or ".join(steps)
 
 
 def _reliability_title(curves: Sequence[Mapping[str, Any]]) -> str:
@@ -285,11 +286,11 @@ def reliability_figure(
     """
     own = ax is None
     if own:
-        fig = new_figure(5.0, 5.6)
+        fig = new_figure(5.0, 5.5 + 0.15 * len(curves))  # a square plot above its legend
         ax = fig.subplots()
     else:
         fig = ax.figure
-    ax.plot([0, 1], [0, 1], linestyle=":", color="grey", label="calibrated")
+    ax.plot([0, 1], [0, 1], linestyle=":", color="grey", label="ideal (coverage = alpha)")
     excess = []
     for i, curve in enumerate(curves):
         alphas = list(curve.get("alphas") or CREDIBLE_LEVELS)
