@@ -196,6 +196,10 @@ def test_predict_command_reads_text_and_npy_pairs(trained_runs, tmp_path, capsys
     assert "  OOD check    no threshold with this checkpoint" in text  # none calibrated here
     assert predict_main([str(trained_runs["sixd"]), str(npy)]) == 0
     assert "uncertainty  none: rep=sixd defines no belief" in capsys.readouterr().out
+    np.save(npy, np.stack([points, points]))  # (B, N, 6): each input is a set of N pairs
+    assert predict_main([str(trained_runs["sixd"]), str(npy)]) == 0
+    text = capsys.readouterr().out
+    assert text.startswith("input 0:\n") and "\ninput 1:\n" in text  # "pair 0:" it said
 
 
 def test_predict_command_names_the_bad_line(trained_runs, tmp_path, capsys):

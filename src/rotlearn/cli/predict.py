@@ -15,7 +15,8 @@ Per input (a set of N pairs, or an image pair) it prints:
                ball around the rotation, in degrees (`rotlearn.bingham.credible_radius_deg`;
                the belief calibrated as the checkpoint's calibration says, if any: tempered,
                and the ball of the mass its level map gives the 90 % level,
-               `RotationEstimate.credible_mass`);
+               `RotationEstimate.credible_mass`), from 4096 draws of the belief: two identical
+               inputs may differ in the last digits, as the draws of each differ;
   OOD check    the DT score (paper eq. 26; lower = more confident), the threshold calibrated on
                the validation scores (`callbacks=ood`, beside the checkpoint) and the decision:
                keep when the score is below it, reject otherwise.
@@ -66,10 +67,12 @@ def _read_input(predictor, paths: list[str]):
     """The model's input from the command line's files: a point-pair file, or an image pair."""
     if predictor.image_size is None:
         if len(paths) != 1:
-            raise ValueError(f"a point model reads one point-pair file, got {len(paths)} inputs")
+            got = f"{len(paths)} input{'s' * (len(paths) != 1)}"
+            raise ValueError(f"a point model reads one point-pair file, got {got}")
         return read_point_pairs(paths[0], predictor.in_channels or 6)
     if len(paths) != 2:
-        raise ValueError(f"an image-pair model reads two image files, got {len(paths)} inputs")
+        got = f"{len(paths)} input{'s' * (len(paths) != 1)}"
+        raise ValueError(f"an image-pair model reads two image files, got {got}")
     from hydra.utils import instantiate
 
     datamodule = instantiate(predictor.config["data"])
@@ -125,7 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     head = getattr(getattr(predictor, "head", None), "name", None)
     for i, item in enumerate(results):
         if len(results) > 1:
-            print(f"pair {i}:")
+            print(f"input {i}:")  # a set of N pairs, or an image pair
         print(text_lines(item, head))
     return 0
 
