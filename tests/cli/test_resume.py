@@ -103,7 +103,11 @@ def test_a_run_of_an_experiment_that_sweeps_resumes_as_that_run(tmp_path):
     ("argv", "message"),
     [
         (["-m", "ckpt_path=last"], "cannot be used with -m"),
-        (["ckpt_path=last"], "no run under"),
+        (
+            ["ckpt_path=last"],
+            r"no run under .*A run made elsewhere \(hydra\.run\.dir=\.\.\.\) "
+            r"resumes by its folder: ckpt_path=<run dir>",
+        ),
         (["ckpt_path=/no/such/run"], "no checkpoint at"),
     ],
 )

@@ -193,7 +193,8 @@ def _newest_resumable_run(root: Path) -> Path:
     why += "".join(f"; skipped {o}" for o in others)
     raise _refuse(
         f"ckpt_path=last, but no run under {root} can be resumed (a last.ckpt that loads, not "
-        f"COMPLETED, not in use){why}. A completed run only trains longer: "
+        f"COMPLETED, not in use){why}. A run made elsewhere (hydra.run.dir=...) resumes by its "
+        "folder: ckpt_path=<run dir>; a completed run only trains longer: "
         "ckpt_path=<run dir> trainer.max_epochs=<more epochs>"
     )
 
