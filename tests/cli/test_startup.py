@@ -42,6 +42,9 @@ def test_the_help_lists_every_config_group_and_option():
         options = sorted(p.stem for p in (config_dir() / group).glob("*.yaml"))
         assert f"  {group:<10}  {', '.join(options)}" in text
     assert "_schema" not in text and "hydra/" not in text  # internal nodes stay out
+    # a key's comment is shown whole (calibrate's stopped at "for the tested weights:")
+    assert "# belief (rep=a, fisher); true: required; false: off" in text
+    assert "output_dir" not in text  # paths: its comment lines stay out with it
 
 
 def test_eval_help_lists_what_it_takes_without_the_training_stack():

@@ -61,9 +61,12 @@ def usage(root: Path | None = None) -> str:
     lines += [f"  {d.relative_to(root)!s:<{width}}  {_options(d)}" for d in groups]
     lines += ["", "top-level keys (conf/train.yaml):"]
     text = (root / "train.yaml").read_text()
+    shown = False  # the last top-level key was shown: its comment's next lines are too
     for line in text.splitlines():
         match = re.match(r"^(\w+):\s*(\S.*)$", line)
-        if match and match.group(1) not in ("defaults", "hydra", "paths"):
+        if match or not re.match(r"^\s+#", line):
+            shown = bool(match) and match.group(1) not in ("defaults", "hydra", "paths")
+        if shown:
             lines.append(f"  {line}")
     lines += [
         "",
