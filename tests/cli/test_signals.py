@@ -169,6 +169,33 @@ def test_a_sweep_whose_jobs_are_not_known_ahead_plans_nothing(tmp_path):
     assert not (tmp_path / "sweep" / "jobs.json").exists()
 
 
+def test_a_sweep_job_logs_where_the_sweep_stands_once_at_its_end(tmp_path, caplog):
+    """ "sweep so far: ..." was logged twice a job, when it started and when it ended; jobs.json
+    still follows the job from its start."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    from rotlearn.cli.callbacks import record_job
+
+    sweep = tmp_path / "sweep"
+    cfg = _multirun_config(sweep, ["seed=1,2"])
+    with open_dict(cfg):
+        cfg.hydra.mode = RunMode.MULTIRUN
+        cfg.hydra.job.num = 0
+    holder = HydraConfig.instance()
+    previous, _ = holder.cfg, holder.set_config(cfg)
+    try:
+        with caplog.at_level("INFO", logger="rotlearn"):
+            record_job(sweep / "0", "RUNNING")
+            running = json.loads((sweep / "jobs.json").read_text())["running"]
+            record_job(sweep / "0", "COMPLETED")
+    finally:
+        holder.cfg = previous
+    assert running == 1
+    said = [r.getMessage() for r in caplog.records if "sweep so far" in r.getMessage()]
+    assert said == ["sweep so far: 1 completed, 0 failed, 0 interrupted, 0 running, 0 pending"]
+
+
 def _finish_job(sweep: Path, num: int) -> None:
     job = sweep / str(num)
     job.mkdir()

@@ -135,7 +135,8 @@ def _write_status(path: Path, record: dict[str, Any]) -> None:
 
 def record_job(job_dir: str | Path, status: str, **fields: Any) -> dict[str, Any]:
     """Write `<job_dir>/status.json` (status, the job's number and overrides when run by Hydra,
-    `error`, and `fields`) and, in a multirun, rebuild the sweep's jobs.json. Returns the record."""
+    `error`, and `fields`) and, in a multirun, rebuild the sweep's jobs.json and log where the
+    sweep stands when the job ends. Returns the record."""
     hydra_cfg = HydraConfig.get() if HydraConfig.initialized() else None
     record = {
         "num": OmegaConf.select(hydra_cfg, "job.num") if hydra_cfg is not None else None,
@@ -149,10 +150,11 @@ def record_job(job_dir: str | Path, status: str, **fields: Any) -> dict[str, Any
     mode = OmegaConf.select(hydra_cfg, "mode") if hydra_cfg is not None else None
     if getattr(mode, "name", None) == "MULTIRUN":
         summary = summarise_jobs(hydra_cfg.sweep.dir)
-        log.info(
-            "sweep so far: %d completed, %d failed, %d interrupted, %d running, %d pending",
-            *(summary[k] for k in ("completed", "failed", "interrupted", "running", "pending")),
-        )
+        if status != "RUNNING":  # once a job, at its end
+            log.info(
+                "sweep so far: %d completed, %d failed, %d interrupted, %d running, %d pending",
+                *(summary[k] for k in ("completed", "failed", "interrupted", "running", "pending")),
+            )
     return record
 
 
