@@ -285,4 +285,8 @@ def test_a_sweep_offers_tensorboard_only_where_its_jobs_logged_there(tmp_path, m
     assert tensorboard_command(sweep) is None and tensorboard_command(sweep / "0") is None
     (sweep / "1" / "tensorboard").mkdir(parents=True)
     assert tensorboard_command(sweep).endswith("tensorboard --logdir sweep")
-    assert tensorboard_command(sweep / "1").endswith("tensorboard --logdir sweep/1")
+    # a run's own folder: its runs read <name>/train, not tensorboard/<name>/train (TensorBoard's
+    # runs panel cut the stage off); quoted for the shell
+    assert tensorboard_command(sweep / "1").endswith("tensorboard --logdir sweep/1/tensorboard")
+    (tmp_path / "my run" / "tensorboard").mkdir(parents=True)
+    assert tensorboard_command(tmp_path / "my run").endswith("--logdir 'my run/tensorboard'")

@@ -13,6 +13,7 @@ import contextlib
 import errno
 import json
 import logging
+import shlex
 import sys
 from collections import Counter
 from pathlib import Path
@@ -213,17 +214,21 @@ class JobStatusCallback(Callback):
 
 def tensorboard_command(folder: str | Path) -> str | None:
     """How to open TensorBoard on a run or sweep `folder` (relative to the working directory
-    where it lies below it): the venv's `tensorboard --logdir <folder>`; None where neither it
-    nor a job of it holds a `tensorboard/` folder (logger=csv or logger=none)."""
+    where it lies below it), quoted for the shell: the venv's `tensorboard --logdir` of a run's
+    `tensorboard/` folder (its runs then read `<name>/train`, not `tensorboard/<name>/train`,
+    whose stage a narrow runs panel cut off) or of a sweep folder (`<job>/tensorboard/...`);
+    None where neither it nor a job of it holds a `tensorboard/` folder (logger=csv or none)."""
     folder = Path(folder)
-    if not ((folder / "tensorboard").is_dir() or any(folder.glob("*/tensorboard"))):
+    if (folder / "tensorboard").is_dir():
+        folder = folder / "tensorboard"
+    elif not any(folder.glob("*/tensorboard")):
         return None
     program = Path(sys.executable).parent / "tensorboard"
     shown = [str(program) if program.exists() else "tensorboard", str(folder)]
     for i, path in enumerate(shown):
         with contextlib.suppress(ValueError):
             shown[i] = str(Path(path).resolve().relative_to(Path.cwd()))
-    return f"{shown[0]} --logdir {shown[1]}"
+    return f"{shlex.quote(shown[0])} --logdir {shlex.quote(shown[1])}"
 
 
 class ReportCallback(Callback):
