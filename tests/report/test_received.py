@@ -330,15 +330,15 @@ def test_the_report_names_the_runs_that_diverged(tmp_path):
     from rotlearn.report.document import make_report
 
     sweep = tmp_path / "sweep"
-    for seed, diverged in enumerate([False, True, "yes"]):
+    for seed, diverged in enumerate([False, True, "yes", 1]):
         run = _run(sweep / str(seed), seed=seed, error=1.0 + 100 * (seed == 1))
         metrics = json.loads((run / "metrics.json").read_text())
         (run / "metrics.json").write_text(json.dumps({**metrics, "diverged": diverged}))
     files = make_report(sweep)
     report = files["report"].read_text()
-    assert "Diverged (1 of 3: test error above predicting the identity's" in report
+    assert "Diverged (1 of 4: test error above predicting the identity's" in report
     assert "in the table): 1." in report
     summary = pd.read_csv(files["summary"], dtype={"job": str}).set_index("job")["diverged"]
     assert summary.astype(object).where(summary.notna(), None).to_dict() == {
-        "0": False, "1": True, "2": None
+        "0": False, "1": True, "2": None, "3": None
     }  # fmt: skip

@@ -217,12 +217,12 @@ def collect_runs(
                 "error": status.get("error"),  # INTERRUPTED: the signal, epoch, resume command
                 "overrides": " ".join(overrides),
                 "tested_weights": _weights(metrics.get("tested_weights")),
-                "diverged": d if isinstance(d := metrics.get("diverged"), bool) else None,
                 **{
                     k: v
                     for k, v in metrics.items()
                     if isinstance(v, (int, float)) and not isinstance(v, bool)
                 },
+                "diverged": d if isinstance(d := metrics.get("diverged"), bool) else None,
             }
         )
         configs.append(cfg)
