@@ -298,6 +298,23 @@ def test_saved_overrides_do_not_choose_the_processes_or_devices(received, device
     assert received.plan("trainer.devices=1") is not None  # the user's own value, another one
 
 
+def test_every_saved_machine_key_is_named_once_with_its_last_value(received):
+    """A resumed run's saved overrides hold its earlier values too (the first resume's
+    `trainer.devices=2` after the start's `4096`): one refusal names every machine key the
+    command line does not set, each at its last value; a key the YAML lacks was saved with `+`
+    (the refusal's own suggestion, and the saved text, failed: Hydra refuses to append twice),
+    and the command line's value replaces the saved one."""
+    received.add_overrides("trainer.devices=4096", "trainer.devices=2", "+trainer.num_nodes=1")
+    received.snapshot()
+    message = refused(received)
+    assert "your command line only: trainer.devices=2 trainer.num_nodes=1 to use them again" in (
+        message
+    )
+    plan = received.plan("trainer.devices=2", "trainer.num_nodes=1")
+    keys = [a.lstrip("+").partition("=")[0] for a in plan.args]
+    assert keys.count("trainer.num_nodes") == keys.count("trainer.devices") == 1  # the typed
+
+
 def test_saved_loader_processes_are_the_command_lines_too(make_cfg):
     """The image datasets' `data.num_workers`, as `trainer.devices` (above); the values of
     rotlearn's own configs are not refused, and the resume command a stopped run prints names

@@ -55,6 +55,7 @@ from rotlearn.cli.rundir import (
     check_placement,
     check_run_tree,
     files_to_open,
+    machine_overrides,
     runs_a_sweep,
     user_keys,
 )
@@ -376,17 +377,27 @@ def _refuse_files_to_open(cfg: DictConfig, new: list[str]) -> None:
 
 
 def _refuse_machine_keys(saved: list[str], new: list[str]) -> None:
-    """ConfigError where one of the run's saved overrides sets a key of this machine's
-    (`rundir.MACHINE_KEYS`) that the new command line does not: a received run's
-    `trainer.devices=4096` started 4096 processes (on a CPU each device is one, importing torch)
-    and took the machine's memory. rotlearn's own configs' values are not refused."""
+    """ConfigError where the run's saved overrides set keys of this machine's
+    (`rundir.MACHINE_KEYS`) that the new command line does not, naming them all with their
+    last values: a received run's `trainer.devices=4096` started 4096 processes (on a CPU each
+    device is one, importing torch) and took the machine's memory. rotlearn's own configs'
+    values are not refused; a saved one the command line sets again is not replayed
+    (`_without_retyped_machine_keys`)."""
     typed = user_keys(new)
-    for text in saved:
-        key = next(iter(user_keys([text])), None)
-        if key in MACHINE_KEYS and key not in typed:
-            raise ConfigError(key, "how many processes and devices a resume uses is this "
-                              "machine's, taken from your command line only: "
-                              f"{shlex.quote(text.lstrip('+'))} to use it again")  # fmt: skip
+    found = {k: v for k, v in machine_overrides(saved).items() if k not in typed}
+    if found:
+        again = " ".join(map(shlex.quote, found.values()))
+        raise ConfigError(next(iter(found)), "how many processes and devices a resume uses is "
+                          f"this machine's, taken from your command line only: {again} to use "
+                          f"{'them' if len(found) > 1 else 'it'} again")  # fmt: skip
+
+
+def _without_retyped_machine_keys(saved: list[str], new: list[str]) -> list[str]:
+    """The saved overrides less those of a `MACHINE_KEYS` key the new command line sets: its
+    value replaces theirs (a saved `+trainer.num_nodes=1` and a typed one would both append,
+    which Hydra refuses; a saved `~trainer.devices` would delete the typed value)."""
+    typed = user_keys(new) & {*MACHINE_KEYS}
+    return [o for o in saved if o.startswith("-") or not user_keys([o]) & typed]
 
 
 def _check_it_is_the_config_the_run_trained(cfg: DictConfig, run_dir: Path, new: list[str]):
@@ -456,6 +467,7 @@ def plan_resume(argv: list[str], runs_root: Path = Path("outputs/runs")) -> Resu
         check_free(run_dir)
         previous = _saved_overrides(run_dir)  # read here, in one step, before they are used
         _refuse_rewriting_a_completed_run(run_dir, previous, new)
+        previous = _without_retyped_machine_keys(previous, new)
         args = [*previous, *new, f"ckpt_path={quoted(str(ckpt.resolve()))}",
                 f"hydra.run.dir={quoted(str(run_dir))}",
                 "hydra.mode=RUN"]  # one run, even of an experiment that sweeps  # fmt: skip

@@ -38,6 +38,7 @@ __all__ = [
     "files_to_open",
     "is_child_rank",
     "keys_to_give_again",
+    "machine_overrides",
     "output_paths",
     "place_output_dir",
     "refuse_an_existing_output_dir",
@@ -126,13 +127,23 @@ def files_to_open(config: Mapping[str, Any]) -> dict[str, str]:
     return {key: str(value) for key in FILE_KEYS if (value := select(config, key))}
 
 
+def machine_overrides(overrides: Iterable[str]) -> dict[str, str]:
+    """{key: override} of the `MACHINE_KEYS` that `overrides` set, each its last one (a resumed
+    run's saved overrides hold its earlier values too), without a `+` (a resume's command
+    line gets one where the YAML lacks the key); a deletion (`~key`) sets none."""
+    found = {}
+    for text in (o for o in overrides if not o.startswith(("-", "~"))):
+        for key in user_keys([text]) & {*MACHINE_KEYS}:
+            found[key] = text.lstrip("+")
+    return found
+
+
 def keys_to_give_again(config: Mapping[str, Any], overrides: Iterable[str]) -> list[str]:
     """What a resume of a run takes from its command line only, as shell words for the resume
     command a stopped run prints: the `FILE_KEYS` its config sets and the overrides of its
-    command line (`overrides`) that set `MACHINE_KEYS`, as written."""
+    command line (`overrides`) that set `MACHINE_KEYS` (`machine_overrides`)."""
     words = [shell_word(key, value) for key, value in files_to_open(config).items()]
-    typed = [o for o in overrides if not o.startswith("-") and user_keys([o]) & {*MACHINE_KEYS}]
-    return words + [shlex.quote(o.lstrip("+")) for o in typed]
+    return words + [shlex.quote(text) for text in machine_overrides(overrides).values()]
 
 
 def _text(value: Any) -> str | None:
