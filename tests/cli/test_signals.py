@@ -72,6 +72,12 @@ def test_an_interruption_counts_the_epochs_it_finished(tmp_path, last, words):
     assert (stop.resume_command is None) == (last is None)
     assert stop.message.endswith("keeps the attempt's log)" if last is None else
                                  f"resume: {stop.resume_command}")  # fmt: skip
+    # epochs finished but no last.ckpt that loads (callbacks=none, a damaged one): no command
+    # either (the one printed was refused)
+    lost = RunInterrupted(tmp_path, "SIGTERM", last, [], resumable=False)
+    assert lost.resume_command is None and lost.message.endswith("keeps the attempt's log)")
+    if last is not None:
+        assert f"{words[6:-1]}, but no checkpoints/last.ckpt loads to resume from" in lost.message
 
 
 @pytest.mark.parametrize("path", ["outputs/kitti_ae", "outputs/kitti ae 'q' $x"])

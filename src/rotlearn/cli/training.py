@@ -233,20 +233,26 @@ class RunInterrupted(SystemExit):
     its command line set); a run stopped before its first checkpoint has none (None)."""
 
     def __init__(
-        self, run_dir: Path, signal_name: str, last_epoch: int | None, again: list[str]
+        self,
+        run_dir: Path,
+        signal_name: str,
+        last_epoch: int | None,
+        again: list[str],
+        resumable: bool = True,
     ) -> None:
         self.run_dir, self.signal_name, self.last_epoch = run_dir, signal_name, last_epoch
         done = None if last_epoch is None else last_epoch + 1  # Lightning counts epochs from 0
-        self.resume_command = (  # none before the first checkpoint: nothing to resume
-            " ".join(["rotlearn-train", resume_word(run_dir.resolve()), *again]) if done else None
-        )
-        if done:
+        words = ["rotlearn-train", resume_word(run_dir.resolve()), *again]
+        self.resume_command = " ".join(words) if done and resumable else None
+        again_anew = "start the run again in a new folder (this one keeps the attempt's log)"
+        if self.resume_command:
             after = f"after {done} finished epoch{'s' * (done != 1)}; resume: {self.resume_command}"
+        elif done:  # no checkpoints/last.ckpt that loads (callbacks=none, a damaged one)
+            after = f"after {done} finished epoch{'s' * (done != 1)}, but no checkpoints/last.ckpt"
+            after += f" loads to resume from: {again_anew}"
         else:
-            after = (
-                "before its first epoch ended, so no checkpoint holds anything to resume: "
-                "start the run again in a new folder (this one keeps the attempt's log)"
-            )
+            after = "before its first epoch ended, so no checkpoint holds anything to resume: "
+            after += again_anew
         self.message = f"stopped by {signal_name} {after}"
         super().__init__(128 + int(signal.Signals[signal_name]))
 
@@ -260,13 +266,14 @@ class RunInterrupted(SystemExit):
         }
 
 
-def _last_finished_epoch(run_dir: Path, trainer: pl.Trainer) -> int | None:
-    """The epoch (0-based, as Lightning counts) that `<run_dir>/checkpoints/last.ckpt` ends."""
+def _last_finished_epoch(run_dir: Path, trainer: pl.Trainer) -> tuple[int | None, bool]:
+    """The epoch (0-based, as Lightning counts) that `<run_dir>/checkpoints/last.ckpt` ends,
+    and True; where it does not load, the trainer's last finished epoch and False."""
     try:
-        return int(load_checkpoint(run_dir)["epoch"])
+        return int(load_checkpoint(run_dir)["epoch"]), True
     except (OSError, RuntimeError, KeyError, ValueError):
         done = trainer.fit_loop.epoch_progress.current.completed
-        return done - 1 if done else None
+        return (done - 1 if done else None), False
 
 
 @contextlib.contextmanager
@@ -282,7 +289,8 @@ def _interruptions_recorded(trainer: pl.Trainer, run_dir: Path):
             raise
         config = getattr(trainer.lightning_module, "run_config", None) or {}
         again = keys_to_give_again(config, _Runtime().overrides)
-        stop = RunInterrupted(run_dir, name, _last_finished_epoch(run_dir, trainer), again)
+        last_epoch, resumable = _last_finished_epoch(run_dir, trainer)
+        stop = RunInterrupted(run_dir, name, last_epoch, again, resumable)
         if trainer.is_global_zero:
             record_job(run_dir, "INTERRUPTED", **stop.status)
         log.warning("%s: %s", run_dir, stop.message)
