@@ -686,3 +686,23 @@ def test_the_evaluation_never_opens_an_autoencoder_its_checkpoint_names(finished
         # null, not dropped: a report of a run (null by default) and its evaluation labelled
         # the run `callbacks.ood.autoencoder_ckpt=null`, the key being all that differed
         assert "autoencoder_ckpt" in recorded and recorded["autoencoder_ckpt"] == used
+
+
+def test_an_accelerator_the_machine_lacks_is_refused_for_every_job_and_on_resume(
+    received, monkeypatch
+):
+    """`trainer=gpu` on a CPU machine failed once the run's folder was made: refused before,
+    for a sweep's later jobs too (only its first was checked), and on the resume of a received
+    run that names one (it moved the run's records into history/, then failed in Lightning).
+    TPU: a device no test machine has."""
+    monkeypatch.chdir(received.work)
+    message = _main(monkeypatch, "-m", "data=tiny", "trainer.accelerator=cpu,tpu",
+                    "hydra.sweep.dir=new_sweep")  # fmt: skip
+    assert message == (
+        "rotlearn-train: config key trainer.accelerator: tpu asks for a device this machine does"
+        " not have; on its CPU: trainer=cpu or trainer.accelerator=auto (nothing was written)"
+    )
+    assert not (received.work / "new_sweep").exists()
+    received.add_overrides("trainer.accelerator=tpu")
+    received.snapshot()
+    assert "config key trainer.accelerator: tpu asks for a device this machine" in refused(received)

@@ -13,7 +13,7 @@ byte-identical:
 - the config that will run, composed exactly as Hydra will compose it (one run, even where
   its experiment sweeps), validates, writes only inside the run (`rundir.check_placement`) and
   opens no file and sets no number of processes or devices that only the saved overrides name
-  (`rundir.FILE_KEYS`, `rundir.MACHINE_KEYS`);
+  (`rundir.FILE_KEYS`, `rundir.MACHINE_KEYS`), and asks for no accelerator this machine lacks;
 - the checkpoint is a whole, bounded checkpoint (`rotlearn.checkpoint.load_checkpoint`) whose
   checkpoint callbacks' states name only the run's own checkpoint files, and whose training
   and random states restore (`rotlearn.lit.boundary.checked_checkpoint_states`).
@@ -56,6 +56,7 @@ from rotlearn.cli.rundir import (
     check_run_tree,
     files_to_open,
     machine_overrides,
+    refuse_an_absent_accelerator,
     runs_a_sweep,
     user_keys,
 )
@@ -348,6 +349,7 @@ def _check_the_config_that_runs(
         check_placement(cfg, run_dir, trusted=user_keys(new))  # first: a path out is named so
         _refuse_files_to_open(cfg, new)
         _refuse_machine_keys([a for a in args if a not in new], new)
+        refuse_an_absent_accelerator(cfg)  # a received trainer=gpu run on a CPU machine
         _check_it_is_the_config_the_run_trained(cfg, run_dir, new)
         checkpoint = load_checkpoint(ckpt)
         checked_checkpoint_states(checkpoint, _model_checkpoints(cfg), run_dir, ckpt)

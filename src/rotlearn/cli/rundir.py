@@ -41,6 +41,7 @@ __all__ = [
     "machine_overrides",
     "output_paths",
     "place_output_dir",
+    "refuse_an_absent_accelerator",
     "refuse_an_existing_output_dir",
     "runs_a_sweep",
     "user_keys",
@@ -125,6 +126,26 @@ MACHINE_KEYS = ("data.num_workers", "trainer.devices", "trainer.num_nodes")
 def files_to_open(config: Mapping[str, Any]) -> dict[str, str]:
     """The `FILE_KEYS` a config (a DictConfig or plain data) sets, with their values."""
     return {key: str(value) for key in FILE_KEYS if (value := select(config, key))}
+
+
+def refuse_an_absent_accelerator(values: Mapping[str, Any]) -> None:
+    """ConfigError where a config (plain data or a DictConfig) asks for an accelerator this
+    machine does not have (`trainer=gpu` on a laptop: Lightning refused it once the run's
+    folder was made, which was left FAILED). A config may name one, to be composed and
+    validated anywhere (`rotlearn.config.validate` does not ask the machine); a command that
+    runs it here asks this. A name Lightning does not know is validation's to refuse."""
+    name = select(values, "trainer.accelerator")
+    if name in (None, "auto", "cpu"):
+        return
+    from lightning.pytorch.accelerators import AcceleratorRegistry
+
+    kinds = ["cuda", "mps"] if name == "gpu" else [name]  # Lightning's meaning of gpu
+    if not all(k in AcceleratorRegistry for k in kinds):
+        return
+    if not any(AcceleratorRegistry[k]["accelerator"].is_available() for k in kinds):
+        how = "on its CPU: trainer=cpu or trainer.accelerator=auto"
+        raise ConfigError("trainer.accelerator", f"{name} asks for a device this machine does "
+                          f"not have; {how}")  # fmt: skip
 
 
 def machine_overrides(overrides: Iterable[str]) -> dict[str, str]:

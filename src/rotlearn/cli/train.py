@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import hydra
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from rotlearn.paths import config_dir
 
@@ -100,25 +100,6 @@ def _requeued() -> bool:
     return requeued_on_slurm()
 
 
-def _refuse_an_absent_accelerator(cfg: DictConfig) -> None:
-    """SystemExit where the run asks for an accelerator this machine does not have
-    (`trainer=gpu` on a laptop: Lightning refused it once the run's folder was made, which was
-    left FAILED). A config may name one, to be composed and checked anywhere; running it is
-    this machine's."""
-    name = OmegaConf.select(cfg, "trainer.accelerator")
-    if name in (None, "auto", "cpu"):
-        return
-    from lightning.pytorch.accelerators import AcceleratorRegistry
-
-    kinds = ["cuda", "mps"] if name == "gpu" else [name]  # Lightning's meaning of gpu
-    if any(k in AcceleratorRegistry and AcceleratorRegistry[k]["accelerator"].is_available()
-           for k in kinds):  # fmt: skip
-        return
-    raise SystemExit(f"rotlearn-train: config key trainer.accelerator: {name} asks for a device "
-                     "this machine does not have; on its CPU: trainer=cpu or "
-                     "trainer.accelerator=auto (nothing was written)")  # fmt: skip
-
-
 def _refuse_an_invalid_new_run(argv: list[str]) -> list[str]:
     """Before Hydra creates anything for a new run (or sweep): check the command line
     (`rotlearn.config.command_line`: a bad option, key or value exits naming it; a sweep's
@@ -132,21 +113,30 @@ def _refuse_an_invalid_new_run(argv: list[str]) -> list[str]:
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
-    from rotlearn.cli.rundir import refuse_an_existing_output_dir, runs_a_sweep
+    from rotlearn.cli.rundir import (
+        refuse_an_absent_accelerator,
+        refuse_an_existing_output_dir,
+        runs_a_sweep,
+    )
     from rotlearn.config import ConfigError, command_line
 
     def refuse_existing(cfg: DictConfig, args: list[str]) -> None:
         refuse_an_existing_output_dir(cfg, args, "train", "rotlearn-train", _requeued)
 
+    def refuse_absent_devices(jobs: list[dict[str, Any]]) -> None:
+        for values in jobs:  # every job of a sweep that is checked
+            refuse_an_absent_accelerator(values)
+
     if any(a.startswith("-") and a not in ("-m", "--multirun") for a in argv):
         return argv
     try:
-        cfg, argv = command_line(argv, "new-run", before_values=refuse_existing)
+        cfg, argv = command_line(
+            argv, "new-run", before_values=refuse_existing, after_values=refuse_absent_devices
+        )
     except (HydraException, OmegaConfBaseException):
         return argv
     except ConfigError as exc:
         raise SystemExit(f"rotlearn-train: {exc} (nothing was written)") from None
-    _refuse_an_absent_accelerator(cfg)
     if runs_a_sweep(argv, cfg):
         return argv
     from rotlearn.cli.training import check_buildable

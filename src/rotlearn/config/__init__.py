@@ -324,14 +324,16 @@ def command_line(
     output_dir: str = "new-run",
     config_name: str = "train",
     before_values: Callable[[DictConfig, list[str]], None] | None = None,
+    after_values: Callable[[list[dict[str, Any]]], None] | None = None,
 ) -> tuple[DictConfig, list[str]]:
     """Compose and validate the config of a command line before Hydra starts; returns the
     composed config (with its `hydra` node) and the arguments for Hydra, with `+` before each
     component argument that its YAML does not list. A sweep (-m) is checked with the first value
     of each swept key and with each other value (`sweep_values`). `before_values(cfg, args)`
     runs between the checks from files alone and the values' (which import the components:
-    seconds); rotlearn-train refuses an existing output folder there. (Composing alone:
-    `command_line_config`.)
+    seconds); rotlearn-train refuses an existing output folder there. `after_values(jobs)` gets
+    the values of every job checked (plain data), valid: rotlearn-train asks the machine for
+    their accelerators. (Composing alone: `command_line_config`.)
 
     Raises:
         ConfigError: naming the option or key at fault; Hydra's and OmegaConf's own errors where
@@ -344,6 +346,8 @@ def command_line(
     if before_values is not None:
         before_values(cfg, hydra_args)
     check_values(*jobs)
+    if after_values is not None:
+        after_values(jobs)
     return cfg, hydra_args
 
 
