@@ -290,3 +290,5 @@ def test_a_sweep_offers_tensorboard_only_where_its_jobs_logged_there(tmp_path, m
     assert tensorboard_command(sweep / "1").endswith("tensorboard --logdir sweep/1/tensorboard")
     (tmp_path / "my run" / "tensorboard").mkdir(parents=True)
     assert tensorboard_command(tmp_path / "my run").endswith("--logdir 'my run/tensorboard'")
+    (tmp_path / "-run" / "tensorboard").mkdir(parents=True)  # not an option of TensorBoard's
+    assert tensorboard_command(tmp_path / "-run").endswith("--logdir ./-run/tensorboard")

@@ -228,7 +228,8 @@ def tensorboard_command(folder: str | Path) -> str | None:
     for i, path in enumerate(shown):
         with contextlib.suppress(ValueError):
             shown[i] = str(Path(path).resolve().relative_to(Path.cwd()))
-    return f"{shlex.quote(shown[0])} --logdir {shlex.quote(shown[1])}"
+    logdir = f"./{shown[1]}" if shown[1].startswith("-") else shown[1]  # not read as a flag
+    return f"{shlex.quote(shown[0])} --logdir {shlex.quote(logdir)}"
 
 
 class ReportCallback(Callback):
