@@ -60,6 +60,12 @@ def test_runs_with_beliefs_get_a_table_and_a_reliability_diagram(tmp_path):
     assert files["reliability"] == sweep / "reliability.png"
     assert Image.open(files["reliability"]).size[0] > 300
     assert "![reliability diagram](reliability.png)" in md
+    assert "AUROC noisiest: how well the score flags the noisiest tenth" in md
+    # without a noise level no run has the AUROC noisiest columns: the text names none
+    other = tmp_path / "no_noise"
+    _run(other / "0", "a", "bingham", {**_belief(0.02), "test/dt_spearman": 0.5})
+    make_report(other)
+    assert "noisiest" not in (other / "report.md").read_text()
 
 
 def test_runs_without_belief_metrics_get_no_beliefs_section(tmp_path):

@@ -336,15 +336,17 @@ def _beliefs(done: pd.DataFrame, out: Path, files: dict[str, Path]) -> list[str]
             if done.loc[done["setting"] == s, keys].notna().any().any()]  # fmt: skip
     if not rows:
         return []
+    noisiest = any(k.endswith("_auroc_noisiest") for k in keys)  # data with a noise level only
     md = ["## Beliefs: likelihood, calibration and uncertainty scores", "",
           "Per setting, the median over its runs. NLL: mean negative log-likelihood of the test "
           "targets in nats, w.r.t. the uniform probability measure on SO(3) (lower is better). "
           "ECE: mean |coverage - alpha| of the highest-density credible regions at alpha = "
           "0.1 ... 0.9 (0: calibrated). T: the fitted belief temperature (A -> A / T); at T = 1: "
           "the belief before it. Spearman: rank correlation of each uncertainty score with the "
-          "error (dt: positive is good; eigengap and raw_norm: negative is good). AUROC "
-          "noisiest: how well the score flags the noisiest tenth of the test samples (1 "
-          "perfect, 0.5 chance).", "", tables.beliefs_table(done, rows, order), ""]  # fmt: skip
+          "error (dt: positive is good; eigengap and raw_norm: negative is good)."
+          + (" AUROC noisiest: how well the score flags the noisiest tenth of the test samples "
+             "(1 perfect, 0.5 chance)." if noisiest else ""),
+          "", tables.beliefs_table(done, rows, order), ""]  # fmt: skip
     curves, remedies = _reliability_curves(done)
     if curves:
         said = "\n".join(f"{setting}: {remedy}" for setting, remedy in remedies)
