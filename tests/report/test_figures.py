@@ -93,6 +93,7 @@ def test_curves_show_whole_epochs_plain_numbers_and_one_legend_entry_per_group(t
     shown = [t for t in labels if t]
     assert shown and all("^" not in t and "times" not in t for t in shown)
     assert all(float(t) > 0 for t in shown)  # plain numbers such as 20, 50
+    assert ax.get_ylabel() == "error (deg, log scale)"  # a log axis says so
     legend = [t.get_text() for t in fig.legends[0].get_texts()]
     assert legend == ["a optim.lr=0.001 (median of 3)", "sixd optim.lr=0.001"]
     path = save_figure(fig, tmp_path / "curves.png")

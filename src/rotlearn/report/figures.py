@@ -156,7 +156,7 @@ def curves_figure(panels: Mapping[str, Mapping[str, Sequence[np.ndarray]]]) -> A
         ax.set(title=metric, xlabel="epochs trained", yscale="log")
         ax.grid(True, which="both", alpha=0.3)
         _integer_ticks(ax.xaxis)
-    axes[0].set_ylabel("error (deg)")
+    axes[0].set_ylabel("error (deg, log scale)")
     for ax in axes:
         _plain_numbers(ax.yaxis)
     legend = [
@@ -393,7 +393,7 @@ def scatter_figure(
         )
     ax.set(
         xlabel=f"{name} ({'low' if keep_below else 'high'} = confident)",
-        ylabel="error (deg)",
+        ylabel="error (deg, log scale)",
         yscale="log",
     )
     _plain_numbers(ax.yaxis)
