@@ -471,3 +471,18 @@ def test_the_run_log_writes_a_name_that_is_not_utf8_escaped(config_name, tmp_pat
         logger.handlers.clear()
     assert "Logging error" not in capsys.readouterr().err
     assert "evil\\udcff: refused" in (tmp_path / "run.log").read_text()
+
+
+def test_only_the_arguments_that_needed_a_plus_get_one(tmp_path):
+    """A resume replays a run's saved `+optim.amsgrad=true` before the command line's own
+    `optim.amsgrad=true`: the `+` went to every argument whose text matched one that had it, so
+    the key was appended twice, which Hydra refuses (the resume: "the overrides do not
+    compose"). Each argument keeps its own, a sweep's too."""
+    from rotlearn.config import command_line_config
+
+    args = ["+optim.amsgrad=true", "optim.amsgrad=true"]
+    cfg, argv = command_line_config(args, str(tmp_path / "run"), appendable=args[1:])
+    assert argv == args and cfg.optim.amsgrad is True
+    sweep = ["-m", "optim.amsgrad=true,false", "seed=1"]
+    _, argv = command_line_config(sweep, str(tmp_path / "run"))
+    assert argv == ["-m", "+optim.amsgrad=true,false", "seed=1"]

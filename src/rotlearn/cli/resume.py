@@ -396,8 +396,8 @@ def _refuse_machine_keys(saved: list[str], new: list[str]) -> None:
 
 def _without_retyped_machine_keys(saved: list[str], new: list[str]) -> list[str]:
     """The saved overrides less those of a `MACHINE_KEYS` key the new command line sets: its
-    value replaces theirs (a saved `+trainer.num_nodes=1` and a typed one would both append,
-    which Hydra refuses; a saved `~trainer.devices` would delete the typed value)."""
+    value replaces theirs, and the command Hydra runs (and saves for the next resume) holds one
+    override per machine key, the one the machine that ran it chose."""
     typed = user_keys(new) & {*MACHINE_KEYS}
     return [o for o in saved if o.startswith("-") or not user_keys([o]) & typed]
 

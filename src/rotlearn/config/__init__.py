@@ -410,10 +410,10 @@ def command_line_config(
     own keys never get a `+`; a sweep of them is refused). `appendable`: only these
     arguments may get a `+` (a resume's saved overrides never get one, so a file's unknown keys
     cost one composition, not one each)."""
-    first = _sweep_jobs(args)[0]
+    first = _sweep_jobs(args)[0]  # one override per argument but the flags, in their order
     cfg, taken = _composed(first, output_dir, config_name, None, appendable)
-    added = {o[1:].split("=", 1)[0] for o in taken if o.startswith("+") and o[1:] in first}
-    return cfg, [f"+{a}" if a.split("=", 1)[0] in added else a for a in args]
+    plus = iter(t != f for t, f in zip(taken, first, strict=True))  # where `_compose` put a +
+    return cfg, [a if a.startswith("-") else f"+{a}" if next(plus) else a for a in args]
 
 
 def validate(cfg: DictConfig) -> None:
