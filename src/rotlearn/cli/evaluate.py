@@ -180,6 +180,7 @@ def _ensemble(paths: list[str]) -> tuple[Any, Any, SavedRun]:
 def evaluate(cfg: DictConfig) -> dict[str, Any]:
     """Test the checkpoint `cfg.ckpt` (or the ensemble of a list of them) with the OOD callback;
     returns what the run's records (`rotlearn.lit.RunRecords`) wrote to metrics.json."""
+    from rotlearn.cli.rundir import files_to_open
     from rotlearn.cli.train import build
     from rotlearn.io import write_text_atomic
     from rotlearn.lit import RunRecords, find_callback
@@ -191,10 +192,10 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
         net, head, saved = _ensemble(paths)
     ckpt = saved.path
     run = evaluation_config(cfg, saved)
-    if named := OmegaConf.select(saved.config, "callbacks.ood.autoencoder_ckpt"):
-        log.warning("%s: the run's callbacks.ood.autoencoder_ckpt (%s) is not opened (a file "
-                    "never names another to read); for the autoencoder score: "
-                    "ood.autoencoder_ckpt=<its run>", cfg.ckpt, named)  # fmt: skip
+    for key, named in files_to_open(saved.config).items():  # rundir.FILE_KEYS
+        log.warning("%s: the run's %s (%s) is not opened (a file never names another to read); "
+                    "for the autoencoder score: ood.autoencoder_ckpt=<its run>", cfg.ckpt, key,
+                    named)  # fmt: skip
     try:  # the weights against the model the config describes, built on the meta device first
         saved.check_fits("model", prefix="")
     except ValueError as exc:

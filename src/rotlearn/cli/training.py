@@ -277,18 +277,17 @@ def _last_finished_epoch(run_dir: Path, trainer: pl.Trainer) -> tuple[int | None
 
 
 @contextlib.contextmanager
-def _interruptions_recorded(trainer: pl.Trainer, run_dir: Path):
+def _interruptions_recorded(trainer: pl.Trainer, run_dir: Path, cfg: DictConfig):
     """Turn a stop by SIGTERM or SIGINT (seen by the trainer's `InterruptRecorder`) into a
-    status.json with status INTERRUPTED in `run_dir` and a `RunInterrupted` exit; anything else
-    propagates unchanged."""
+    status.json with status INTERRUPTED in `run_dir` and a `RunInterrupted` exit (its resume
+    command from the run's config `cfg`); anything else propagates unchanged."""
     try:
         yield
     except (SystemExit, KeyboardInterrupt):
         name = getattr(find_callback(trainer, InterruptRecorder), "signal_name", None)
         if name is None:
             raise
-        config = getattr(trainer.lightning_module, "run_config", None) or {}
-        again = keys_to_give_again(config, _Runtime().overrides)
+        again = keys_to_give_again(cfg, _Runtime().overrides)
         last_epoch, resumable = _last_finished_epoch(run_dir, trainer)
         stop = RunInterrupted(run_dir, name, last_epoch, again, resumable)
         if trainer.is_global_zero:
@@ -334,7 +333,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         resume = checkpoint_to_resume(cfg, run_dir)
         torch.set_float32_matmul_precision(cfg.float32_matmul_precision)
         model, datamodule, trainer = build(cfg)
-        with _console_lines(), _interruptions_recorded(trainer, run_dir):
+        with _console_lines(), _interruptions_recorded(trainer, run_dir, cfg):
             trainer.fit(model, datamodule=datamodule, ckpt_path=resume, weights_only=True)
             callback = trainer.checkpoint_callback
             best = callback.best_model_path if callback else ""

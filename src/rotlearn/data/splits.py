@@ -97,8 +97,7 @@ def hold_out_tail(
         cut = hi + 1 - n_val
         keep_val[rows] = low[rows] >= cut
         keep_train[rows] = high[rows] < cut - gap
-    codes = [_codes(train.source, frames, train.caches, train.caches)
-             for frames in (train.first, train.second)]  # fmt: skip
+    codes = _frame_codes(train, train.caches).reshape(2, -1)  # first frames, second frames
     if exclude is not None and keep_val.any():
         taken = _frame_codes(exclude, train.caches)
         for code in codes:

@@ -95,13 +95,13 @@ def _readable_events(run_dir: Path) -> bool:
         path = Path(entry.path)
         if entry.is_dir(follow_symlinks=False):
             continue
-        if not (path.is_file() and Path(os.path.realpath(path)).is_relative_to(real_run)):
+        if not (entry.is_file() and Path(os.path.realpath(path)).is_relative_to(real_run)):
             log.warning("%s: not a regular file inside the run; its events are not read", path)
             return False
         if (count := count + 1) > MAX_EVENT_FILES:
             log.warning("%s: over %d files; its events are not read", root, MAX_EVENT_FILES)
             return False
-        total += path.stat().st_size
+        total += entry.stat().st_size  # the entry's cached stat (links followed, as checked)
     if total > MAX_BYTES["TensorBoard events"]:
         log.warning("%s: over %d bytes of events; not read", root, MAX_BYTES["TensorBoard events"])
         return False
