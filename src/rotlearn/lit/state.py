@@ -9,13 +9,17 @@ from typing import Any
 import numpy as np
 import torch
 
+from rotlearn.checkpoint import UnsafeCheckpointError
+
 __all__ = ["RunStateHooks", "rng_state_problem", "rng_states", "set_rng_states"]
 
 
 class RunStateHooks:
     """Mixin for LightningModules: stores `run_config` (when set) as `rotlearn_config`, and the
-    global random states, in every checkpoint; restores the random states on resume; knows the
-    epochs its weights under test trained (`tested_epochs`)."""
+    global random states, in every checkpoint; restores the random states on resume, all or none
+    (a state that cannot be restored is refused, `rng_state_problem`, whatever loads the
+    checkpoint: a resume, Lightning's requeue, a user's own `fit`); knows the epochs its weights
+    under test trained (`tested_epochs`)."""
 
     run_config: dict[str, Any] | None = None
     _loaded_for_test: int | None = None  # the epochs of the checkpoint a test loaded
@@ -26,9 +30,12 @@ class RunStateHooks:
         checkpoint["rng_states"] = rng_states()
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        if "rng_states" in checkpoint:
-            set_rng_states(checkpoint["rng_states"])
         trainer = getattr(self, "_trainer", None)  # none in `load_from_checkpoint`
+        if "rng_states" in checkpoint:  # checked here: Lightning calls this hook first
+            if (problem := rng_state_problem(checkpoint["rng_states"])) is not None:
+                where = getattr(trainer, "ckpt_path", None) or "the checkpoint"
+                raise UnsafeCheckpointError(f"{where}: {problem}")
+            set_rng_states(checkpoint["rng_states"])
         testing = trainer is not None and trainer.state.fn == "test" and "epoch" in checkpoint
         self._loaded_for_test = int(checkpoint["epoch"]) + 1 if testing else None  # 0-based
 
