@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-__all__ = ["EVALUATED_FILE", "OOD_EXAMPLES_FILE", "checkpoint_file", "config_dir"]
+__all__ = ["EVALUATED_FILE", "OOD_EXAMPLES_FILE", "TESTED_WEIGHTS", "checkpoint_file", "config_dir"]
 
 SWEEP_FILES = ("multirun.yaml", "jobs.json", "planned_jobs.json")  # what Hydra and rotlearn write
 # In an evaluation's directory (rotlearn-eval): the run config it evaluated, which rotlearn-report
@@ -13,6 +13,8 @@ SWEEP_FILES = ("multirun.yaml", "jobs.json", "planned_jobs.json")  # what Hydra 
 EVALUATED_FILE = "evaluated.yaml"
 # A run's own figure (the OOD evaluation's example pairs): a report's plot never takes its name.
 OOD_EXAMPLES_FILE = "ood_examples.png"
+# The weights a run's test scores (`test_ckpt`; metrics.json's `tested_weights`), in words.
+TESTED_WEIGHTS = {"last": "the last epoch's", "best": "the best validation epoch's"}
 
 
 def config_dir() -> Path:

@@ -40,6 +40,7 @@ from rotlearn.config.source import (
     typing_names,
 )
 from rotlearn.errors import ConfigError, validation_words
+from rotlearn.paths import TESTED_WEIGHTS
 
 __all__ = [
     "TOP_LEVEL",
@@ -74,7 +75,7 @@ TOP_LEVEL: dict[str, Any] = {  # conf/train.yaml's keys (and sweep=lr's); seed a
     "seed": Annotated[int, Ge(0), Le(2**32 - 1)],  # numpy's seed range
     "paths": dict[Literal["output_dir"], Annotated[str, MinLen(1)]],
     "ckpt_path": str | None,
-    "test_ckpt": Literal["last", "best"],
+    "test_ckpt": Literal[tuple(TESTED_WEIGHTS)],
     "calibrate": bool | Literal["auto"],  # auto: for every head with a belief
     "float32_matmul_precision": Literal["highest", "high", "medium"],
     "trial": Annotated[int, Ge(0), Le(2**31)],

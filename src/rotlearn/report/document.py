@@ -46,7 +46,7 @@ import numpy as np
 import pandas as pd
 
 from rotlearn.io import read_json, read_table, sync_folder, write_text_atomic
-from rotlearn.paths import OOD_EXAMPLES_FILE
+from rotlearn.paths import OOD_EXAMPLES_FILE, TESTED_WEIGHTS
 from rotlearn.report import figures, tables
 from rotlearn.report.runs import RUN_MARKS, collect_runs, label_without
 from rotlearn.report.tensorboard import read_curve
@@ -154,10 +154,10 @@ def _write_report(runs, roots, out: Path, stage: Path, group_by, pool) -> dict[s
 def _weights_tested(done: pd.DataFrame) -> str:
     """Which weights the runs' test scores are of (`test_ckpt`), e.g. "Weights tested: the last
     epoch's (4 runs)."."""
-    words = {"last": "the last epoch's", "best": "the best validation epoch's"}
     tested = done.get("tested_weights", pd.Series(index=done.index, dtype=object)).astype(object)
     counts = tested.where(tested.notna(), "not recorded").value_counts()
-    said = [f"{words.get(name, name)} ({n} run{'s' * (n != 1)})" for name, n in counts.items()]
+    said = [f"{TESTED_WEIGHTS.get(name, name)} ({n} run{'s' * (n != 1)})"
+            for name, n in counts.items()]  # fmt: skip
     return f"Weights tested: {', '.join(said)} (test_ckpt)."
 
 

@@ -31,7 +31,7 @@ import yaml
 
 from rotlearn import io
 from rotlearn.io import read_json
-from rotlearn.paths import EVALUATED_FILE
+from rotlearn.paths import EVALUATED_FILE, TESTED_WEIGHTS
 from rotlearn.report.identity import parse_override, short_value
 from rotlearn.report.layout import layout_of
 
@@ -157,13 +157,10 @@ def matches(key: str, specs: Sequence[str]) -> bool:
     return any(key == spec or key.startswith(f"{spec}.") for spec in specs)
 
 
-WEIGHTS = ("last", "best")  # what metrics.json's `tested_weights` says was tested
-
-
 def _weights(said: Any) -> str | None:
-    """metrics.json's `tested_weights` where it is one of `WEIGHTS` (a received file's other
-    text is not shown)."""
-    return said if said in WEIGHTS else None
+    """metrics.json's `tested_weights` where it is one of `TESTED_WEIGHTS` (a received file's
+    other text is not shown)."""
+    return said if isinstance(said, str) and said in TESTED_WEIGHTS else None
 
 
 def collect_runs(
