@@ -20,6 +20,7 @@ import pytest
 import torch
 
 from rotlearn.data import KittiOdometryDataModule, MAVDataModule, ShapeNetDataModule
+from rotlearn.data.mav import read_frame_list, read_pair_file
 from rotlearn.errors import ConfigError, NonFiniteError
 from rotlearn.io import plain_name, read_number_rows, resolve_inside
 from rotlearn.nets.pointnet import PointNet
@@ -293,6 +294,24 @@ def test_mav_frame_file_listed_twice_names_both_lines(demo_data, tmp_path):
     set_line(listing, 5, f"{stamp},{name}")
     pattern = rf"data\.csv:5: frame file '{re.escape(name)}' is listed again \(line 2\)"
     refuses(lambda: mav(root, cache), tmp_path, cache, ValueError, pattern)
+
+
+@pytest.mark.parametrize("kind", ["frames", "pairs"])
+def test_mav_rows_listed_again_name_the_first_repeat_in_the_file(tmp_path, kind):
+    """Of many rows listed again, the first one in the file is named, with the row it repeats:
+    the frame list named whichever its names' hashes sorted first (random from run to run)."""
+    rows = [*range(20), *range(19, -1, -1)]  # the first repeat: line 21, of line 20
+    path = tmp_path / "data.csv"
+    if kind == "frames":
+        path.write_text("".join(f"{i},f{n}.png\n" for i, n in enumerate(rows)))
+        pattern = r"data\.csv:21: frame file 'f19\.png' is listed again \(line 20\)"
+        read = lambda: read_frame_list(path)  # noqa: E731
+    else:
+        path.write_text("".join(f"{n},{n + 1}\n" for n in rows))
+        pattern = r"data\.csv:21: the pair 19,20 again \(line 20\); each pair once"
+        read = lambda: read_pair_file(path, num_frames=21)  # noqa: E731
+    with pytest.raises(ValueError, match=pattern):
+        read()
 
 
 def test_a_frame_cache_its_disk_cannot_hold_is_refused_before_any_frame_is_read(

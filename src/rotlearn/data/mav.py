@@ -24,7 +24,7 @@ from __future__ import annotations
 import array as pyarray
 import os
 import stat
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Literal, NamedTuple
 
@@ -98,6 +98,18 @@ def _rows(path: Path, columns: int | None = None, min_columns: int = 1):
         yield lineno, fields
 
 
+def _first_repeat(keys: np.ndarray, same: Callable[[int, int], bool] | None = None):
+    """The first row, in file order, whose key an earlier row has, as (the first row with that
+    key, it), or None. `keys`: (N,), any sortable dtype (a structured one for several columns);
+    `same(i, j)` tells rows i < j apart whose keys are equal hashes of their values."""
+    order = np.argsort(keys, kind="stable")  # equal keys sit together, in file order
+    at = np.flatnonzero(keys[order][1:] == keys[order][:-1])
+    for k in at[np.argsort(order[at + 1], kind="stable")]:  # the later rows in file order
+        if same is None or same(int(order[k]), int(order[k + 1])):
+            return int(order[k]), int(order[k + 1])
+    return None
+
+
 def read_frame_list(path: str | Path) -> tuple[np.ndarray, list[str], np.ndarray]:
     """Frames of `flea3/data.csv`: timestamps (N,) int64 ns, file names, and line numbers (N,).
 
@@ -117,14 +129,12 @@ def read_frame_list(path: str | Path) -> tuple[np.ndarray, list[str], np.ndarray
         raise ValueError(f"{path}: no frames")
     lines = np.frombuffer(lines, np.int64)
     hashes = np.fromiter(map(hash, names), np.int64, len(names))  # 8 bytes a row, not a set
-    order = np.argsort(hashes, kind="stable")  # equal names sit together, in file order
-    for i in np.flatnonzero(hashes[order][1:] == hashes[order][:-1]):
-        first, again = order[i], order[i + 1]
-        if names[first] == names[again]:
-            raise ValueError(
-                f"{path}:{lines[again]}: frame file {names[again]!r} is listed again (line "
-                f"{lines[first]}); each row names its own frame"
-            )
+    if repeat := _first_repeat(hashes, lambda i, j: names[i] == names[j]):
+        first, again = repeat
+        raise ValueError(
+            f"{path}:{lines[again]}: frame file {names[again]!r} is listed again (line "
+            f"{lines[first]}); each row names its own frame"
+        )
     return np.frombuffer(stamps, np.int64), names, lines
 
 
@@ -246,10 +256,8 @@ def read_pair_file(
         row = pairs[bad[0]]
         i = int(row[(row < 0) | (row >= num_frames)][0])
         raise ValueError(f"{missing(lines[bad[0]], str(i))}; {len(bad)} such pair(s) in all")
-    _, first = np.unique(pairs, axis=0, return_index=True)
-    if len(first) < len(pairs):
-        again = int(np.setdiff1d(np.arange(len(pairs)), first)[0])
-        before = int(np.flatnonzero((pairs == pairs[again]).all(axis=1))[0])
+    if repeat := _first_repeat(pairs.view([("a", np.int64), ("b", np.int64)]).ravel()):
+        before, again = repeat
         a, b = pairs[again].tolist()
         raise ValueError(f"{path}:{lines[again]}: the pair {a},{b} again (line {lines[before]}); "
                          "each pair once")  # fmt: skip
