@@ -37,8 +37,8 @@ def checkpoint_file(path: str | os.PathLike) -> Path:
 
     Raises:
         FileNotFoundError: saying what `path` is instead: nothing, a sweep directory or a folder
-            of runs such as outputs/ (naming the runs below it, one of which to pass), or a
-            folder that holds no rotlearn run.
+            of runs such as outputs/ (naming the runs up to three folders below it, one of
+            which to pass), or a folder that holds no rotlearn run.
     """
     path = Path(path)
     if not path.is_dir():
@@ -48,8 +48,11 @@ def checkpoint_file(path: str | os.PathLike) -> Path:
     last = path / "checkpoints" / "last.ckpt"
     if last.is_file():
         return last
-    jobs = sorted(p.parent.parent for p in path.glob("*/checkpoints/last.ckpt"))
     sweep = any((path / name).is_file() for name in SWEEP_FILES)
+    below = ("*/" * depth for depth in range(1, 2 if sweep else 4))  # outputs/multirun/<t>/<job>
+    jobs = sorted(
+        p.parent.parent for glob in below for p in path.glob(f"{glob}checkpoints/last.ckpt")
+    )
     if jobs:
         shown = ", ".join(str(job) for job in jobs[:8])
         more = f" and {len(jobs) - 8} more" if len(jobs) > 8 else ""
