@@ -100,7 +100,7 @@ def test_the_dataset_example_is_validated_writes_its_demo_and_trains(conf, tmp_p
         "data.batch_size=0": r"data\.batch_size: should be greater than 0, got 0",
         f"data.root={tmp_path / 'nowhere'}": r"data\.root: no directory .*nowhere; it must hold "
         r"train, test",
-        f"data.root={root / 'train'}": r"data\.root: .*train/train does not exist",
+        f"data.root={root / 'train'}": r"data\.root: .*train lacks train, test",
     }
     for override, message in refused.items():
         with pytest.raises(ConfigError, match=message):

@@ -21,7 +21,7 @@ _spec.loader.exec_module(bench)
 # comes from files (and the checkpoint, or the head and the loss, with torch).
 BOUND_S = 20
 OPTIONS = "options: a, fisher, quat, sixd, svd9d"
-KITTI = r"it must hold sequences/<train_sequences>/<camera>, poses/<train_sequences>\.txt"
+KITTI = r"sequences/00/image_2, poses/00\.txt, sequences/02/image_2, poses/02\.txt and 12 more"
 # case -> (exit code, the one line it ends with)
 EXPECTED = {
     "misspelt key": (1, r"^rotlearn-train: config key optim\.lrr: unknown key; did you mean "
@@ -42,9 +42,10 @@ EXPECTED = {
     "a schema as an option": (1, rf"^rotlearn-train: config key rep: no option 'head_schema'; "
                               rf"{OPTIONS} \("),
     "no data root": (1, rf"^rotlearn-train: config key data\.root: no directory /nonexistent; "
-                     rf"{KITTI}"),
-    "incomplete dataset": (1, r"^rotlearn-train: config key data\.train_sequences: .*/kitti/"
-                           rf"sequences/02/image_2 does not exist; {KITTI}"),
+                     rf"it must hold {KITTI} \(data/README\.md\)"),
+    "incomplete dataset": (1, r"^rotlearn-train: config key data\.train_sequences: .*/kitti "
+                           r"lacks sequences/02/image_2, poses/02\.txt, sequences/05/image_2, "
+                           r"poses/05\.txt and 10 more \(data/README\.md\)"),
     "an override the grammar cannot read": (1, r"^rotlearn-train: config key optim\.lr: cannot "
                                             r"read 'optim\.lr=\[1' \(no viable alternative at "
                                             r"input '\[1'\); a value with brackets, .* is quoted"),

@@ -205,5 +205,5 @@ def test_a_validation_sequence_missing_from_data_root_is_refused_before_anything
         "data.test_sequences=[0]",
     ]
     assert compose([*base, "data.val_sequences=[10]"]).data.val_sequences == [10]
-    with pytest.raises(ConfigError, match=r"data\.val_sequences: .*sequences/07/image_2 does not"):
+    with pytest.raises(ConfigError, match=r"data\.val_sequences: .*kitti lacks sequences/07/"):
         compose([*base, "data.val_sequences=[7]"])

@@ -145,10 +145,11 @@ def arguments(target: str, group: str) -> tuple | None:
 
 
 def data_paths(node: dict[str, Any]) -> list[tuple[str, Path]]:
-    """(config key, path) of what a data node's root holds: the root, then its `layout`."""
+    """(config key, path) of what a data node's root holds: the root, then its `layout`, those of
+    one value together (a KITTI sequence's frames, then its poses; those of no value first)."""
     if "root" not in node:
         return []
-    found = [("data.root", root := Path(str(node["root"])))]
+    root, found = Path(str(node["root"])), []
     for template in class_attribute(node["_target_"], "layout") or []:
         key, value, path = _CONDITION.fullmatch(template).groups()
         fields = [f for _, f, _, _ in string.Formatter().parse(path) if f]
@@ -157,8 +158,9 @@ def data_paths(node: dict[str, Any]) -> list[tuple[str, Path]]:
             continue  # a name that is no plain folder name: the datamodule refuses it itself
         for chosen in itertools.product(*choices) if not key or str(node.get(key)) == value else ():
             where = f"data.{fields[0]}" if fields else "data.root"
-            found.append((where, root / path.format(**dict(zip(fields, chosen, strict=True)))))
-    return found
+            path_of = root / path.format(**dict(zip(fields, chosen, strict=True)))
+            found.append((tuple(map(str, chosen[:1])), len(found), where, path_of))
+    return [("data.root", root), *((where, path) for *_, where, path in sorted(found))]
 
 
 def check_keys(values: dict[str, Any]) -> None:
@@ -188,17 +190,20 @@ def check_keys(values: dict[str, Any]) -> None:
                 raise ConfigError(
                     key, f"needs {what}; this run's {other} is {target.rpartition('.')[2]}"
                 )
-    found = [_CONDITION.fullmatch(t) for t in class_attribute(values["data"]["_target_"], "layout")
-             or []]  # fmt: skip
-    layout = [m[3] for m in found if m[1] is None or str(values["data"].get(m[1])) == m[2]]
-    shown = dict.fromkeys(re.sub(r"\{(\w+)[^}]*\}", r"<\1>", path) for path in layout)
-    expected = f"; it must hold {', '.join(shown)} (data/README.md)" if layout else ""
-    paths = data_paths(values["data"])
-    if paths and not paths[0][1].is_dir():
-        hint = _demo_hint(paths[0][1])
-        raise ConfigError("data.root", f"no directory {paths[0][1]}{expected}{hint}")
-    for key, path in (p for p in paths[1:] if not p[1].exists()):
-        raise ConfigError(key, f"{path} does not exist{expected}")
+    if not (paths := data_paths(values["data"])):
+        return
+    (_, root), needed = paths[0], paths[1:]
+
+    def listed(found: list[tuple[str, Path]]) -> str:  # the first four, under the root
+        names = list(dict.fromkeys(str(path.relative_to(root)) for _, path in found))
+        return ", ".join(names[:4]) + (f" and {len(names) - 4} more" if len(names) > 4 else "")
+
+    if not root.is_dir():
+        expected = f"; it must hold {listed(needed)} (data/README.md)" if needed else ""
+        raise ConfigError("data.root", f"no directory {root}{expected}{_demo_hint(root)}")
+    if missing := [(key, path) for key, path in needed if not path.exists()]:
+        key = "data.root" if len(missing) == len(needed) > 1 else missing[0][0]  # none: the root
+        raise ConfigError(key, f"{root} lacks {listed(missing)} (data/README.md)")
 
 
 def _demo_hint(root: Path) -> str:
