@@ -462,6 +462,17 @@ def test_check_config_reports_the_deepest_key_and_depth_bombs(tmp_path):
         check_config({"a": {1: "x"}}, source=tmp_path)
 
 
+def test_check_config_refuses_arguments_passed_by_position(tmp_path):
+    """What a component may write is checked by argument name (a checkpoint callback's
+    `dirpath`): a folder given by position went unseen, and a resume wrote there."""
+    named = {"_target_": "lightning.pytorch.callbacks.ModelCheckpoint", "dirpath": "/elsewhere"}
+    check_config({"callbacks": {"extra": named}}, source=tmp_path)  # its placement: rundir's
+    node = {"_target_": "lightning.pytorch.callbacks.ModelCheckpoint", "_args_": ["/elsewhere"]}
+    with pytest.raises(UntrustedConfigError, match=r"config key callbacks\.extra\._args_: "
+                       r"positional arguments are not taken from a file"):  # fmt: skip
+        check_config({"callbacks": {"extra": node}}, source=tmp_path)
+
+
 # ---- checkpoint files that are not checkpoints ---------------------------------------------
 
 

@@ -6,9 +6,10 @@ A Hydra config names the class or function that builds each component in its `_t
 Checkpoints, run directories and datasets can come from anyone, so every config rotlearn rebuilds
 from a file goes through `trusted_config` first. It walks every node, nested dicts and lists
 included, BEFORE anything is instantiated, and refuses the whole config, naming the key path and
-the target, when a `_target_` is not on the allowlist or a string could still be resolved into
-something else (an OmegaConf interpolation `${...}`). The user's own command line is trusted and is
-never checked.
+the target, when a `_target_` is not on the allowlist, a node passes arguments by position
+(`_args_`: what a component may write is checked by argument name), or a string could still be
+resolved into something else (an OmegaConf interpolation `${...}`). The user's own command line
+is trusted and is never checked.
 
 The allowlist:
 
@@ -124,10 +125,13 @@ def check_config(tree: Any, source: str | os.PathLike) -> None:
 
     Raises:
         UntrustedConfigError: naming the file, the key path and the offending target or string:
-            a `_target_` that is not on the allowlist (or not a string), a string holding an
-            OmegaConf interpolation `${`, a key that is not a string, or nesting deeper than 64.
+            a `_target_` that is not on the allowlist (or not a string), positional arguments
+            (`_args_`: the run-directory checks see arguments by name, such as a checkpoint
+            callback's `dirpath`), a string holding an OmegaConf interpolation `${`, a key that
+            is not a string, or nesting deeper than 64.
     """
     stack: list[tuple[str, Any, int]] = [("", tree, 0)]
+    positional = None
     while stack:
         path, node, depth = stack.pop()
         if depth > 64:
@@ -140,6 +144,8 @@ def check_config(tree: Any, source: str | os.PathLike) -> None:
                     "rotlearn's allowlist of components a file may build; nothing was built "
                     "(see README, Security)"
                 )
+            if "_args_" in node:  # a path passed by position: no check by name could see it
+                positional = positional or _path(path, "_args_")  # named after any target in it
             for key, value in node.items():
                 if not isinstance(key, str):
                     raise UntrustedConfigError(
@@ -153,6 +159,11 @@ def check_config(tree: Any, source: str | os.PathLike) -> None:
                 f"{source}: config key {path}: {node!r} is an interpolation; a config read from "
                 "a file must hold resolved values only"
             )
+    if positional is not None:
+        raise UntrustedConfigError(
+            f"{source}: config key {positional}: positional arguments are not taken from a file "
+            "(each argument is checked by its name); nothing was built"
+        )
 
 
 def trusted_config(tree: Any, source: str | os.PathLike):

@@ -216,6 +216,9 @@ OVERRIDE_ATTACKS = {
     "+callbacks.extra={_target_:lightning.pytorch.callbacks.ModelCheckpoint,dirpath:HOME/c}": (
         "callbacks.extra.dirpath"
     ),
+    # no dirpath: Lightning puts the file name below the logger's or the run's folder
+    "+callbacks.extra={_target_:lightning.pytorch.callbacks.ModelCheckpoint,"
+    "filename:../../../../../home/victim/important}": "callbacks.extra.filename",
     # another logger class (the config's schema allows no `paths.*` key but output_dir)
     "+logger.tb={_target_:rotlearn.lit.TensorBoardRunLogger,save_dir:HOME/tb,name:x}": (
         "logger.tb.save_dir"
@@ -238,6 +241,20 @@ def test_replayed_overrides_that_write_outside_the_run_are_refused(received, ove
     assert (OVERRIDE_ATTACKS[override] in message and "outside the run" in message) or (
         "paths.output_dir" in message and "own directory" in message
     ), message
+
+
+def test_a_folder_passed_by_position_is_refused(received):
+    """A review's reproduction: a checkpoint callback given a folder out of the run by position
+    (`_args_`), which the checks by key name did not see, saving `last.ckpt` as a link: the
+    resume deleted a folder of that name there (Lightning removes it itself) and wrote
+    checkpoints beside it."""
+    received.add_overrides(
+        "+callbacks.extra={_target_:lightning.pytorch.callbacks.ModelCheckpoint,"
+        f"_args_:[{received.home}/c],save_last:link,every_n_train_steps:1}}"
+    )
+    received.snapshot()
+    message = refused(received)
+    assert "callbacks.extra._args_: positional arguments are not taken from a file" in message
 
 
 def test_a_folder_reached_by_dropping_a_link_and_its_dotdot_is_outside(received):

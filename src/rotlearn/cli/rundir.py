@@ -176,7 +176,8 @@ def output_paths(cfg: DictConfig) -> list[tuple[tuple[str, ...], str]]:
     path), values resolved: each `paths.*` value; every node's `output_dir`,
     `default_root_dir`, `cache_dir`, `log_dir`, `root_dir`; a logger's
     `save_dir/name/version/sub_dir`; a checkpoint callback's `dirpath` and `dirpath/filename`
-    (also with the file name's braces dropped, as Lightning formats `{name}`).
+    (also with the file name's braces dropped, as Lightning formats `{name}`), where it has no
+    `dirpath` `<paths.output_dir>/checkpoints/filename`.
     The `hydra` node is Hydra's own and left out."""
     tree = {
         str(k): OmegaConf.to_container(v, resolve=True) if OmegaConf.is_config(v) else v
@@ -184,6 +185,7 @@ def output_paths(cfg: DictConfig) -> list[tuple[tuple[str, ...], str]]:
         if k != "hydra"
     }
     found: list[tuple[tuple[str, ...], str]] = []
+    output_dir = (tree.get("paths") or {}).get("output_dir")
     for name, value in (tree.get("paths") or {}).items():
         if _text(value) is not None:
             found.append(((f"paths.{name}",), str(value)))
@@ -202,13 +204,16 @@ def output_paths(cfg: DictConfig) -> list[tuple[tuple[str, ...], str]]:
             parts = [p for p in _LOGGER_PARTS if _text(node.get(p)) is not None]
             found.append((tuple(f"{key}.{p}" for p in parts),
                           os.path.join(*(str(node[p]) for p in parts))))  # fmt: skip
-        if _text(node.get("dirpath")) is not None:
-            found.append(((f"{key}.dirpath",), str(node["dirpath"])))
-            if _text(node.get("filename")) is not None:  # as written, and as formatted:
-                name = str(node["filename"])  # `{name}` becomes `name=<value>` ({/tmp/x}: /tmp/x)
-                for form in dict.fromkeys([name, name.replace("{", "").replace("}", "")]):
-                    path = os.path.join(str(node["dirpath"]), form)
-                    found.append(((f"{key}.dirpath", f"{key}.filename"), path))
+        if (folder := _text(node.get("dirpath"))) is not None:
+            found.append(((f"{key}.dirpath",), folder))
+        if _text(node.get("filename")) is not None and (folder or "_target_" in node):
+            # no dirpath: Lightning's <default_root_dir or logger folder>/checkpoints, the
+            # shallowest of which is the run's checkpoints/
+            keys = (f"{key}.dirpath",) * bool(folder) + (f"{key}.filename",)
+            folder = folder or os.path.join(str(output_dir), "checkpoints")
+            name = str(node["filename"])  # as written, and as formatted: `{name}` becomes
+            for form in dict.fromkeys([name, name.replace("{", "").replace("}", "")]):
+                found.append((keys, os.path.join(folder, form)))  # `name=<value>` ({/x}: /x)
     return found
 
 
