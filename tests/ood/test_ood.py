@@ -511,5 +511,13 @@ def test_calibrated_threshold_gives_keep_flags_for_image_pairs(trained_run, tiny
     assert answer["keep"] == (answer["dt_score"] < predictor.ood["threshold"])
     assert predict([str(run_dir), str(frames[0])]) == 2  # an image model needs two frames
     assert "two image files" in capsys.readouterr().err
+    for name in ("last.ckpt", "best.ckpt"):  # a received run whose data config does not build
+        checkpoint = torch.load(run_dir / "checkpoints" / name, weights_only=True)
+        checkpoint["rotlearn_config"]["data"]["mean"] = "x"
+        torch.save(checkpoint, run_dir / "checkpoints" / name)
+    assert predict([str(run_dir), str(frames[0]), str(frames[1])]) == 2  # was a traceback
+    said = capsys.readouterr().err
+    assert said.startswith(f"rotlearn-predict: {run_dir}: its data config does not build: ")
+    assert said.count("\n") == 1 and "could not convert string to float: 'x'" in said, said
     with pytest.raises(ValueError, match=r"shape \(B, 6, 16, 16\)"):
         predictor(torch.zeros(1, 6, 8, 8))

@@ -63,8 +63,10 @@ def read_point_pairs(path: str | Path, width: int = 6) -> np.ndarray:
         ) from None
 
 
-def _read_input(predictor, paths: list[str]):
-    """The model's input from the command line's files: a point-pair file, or an image pair."""
+def _read_input(predictor, paths: list[str], checkpoint: str):
+    """The model's input from the command line's files: a point-pair file, or an image pair
+    (read as the run's datamodule reads its frames; a checkpoint whose data config it refuses
+    is named, in one line)."""
     if predictor.image_size is None:
         if len(paths) != 1:
             got = f"{len(paths)} input{'s' * (len(paths) != 1)}"
@@ -73,9 +75,14 @@ def _read_input(predictor, paths: list[str]):
     if len(paths) != 2:
         got = f"{len(paths)} input{'s' * (len(paths) != 1)}"
         raise ValueError(f"an image-pair model reads two image files, got {got}")
+    from hydra.errors import InstantiationException
     from hydra.utils import instantiate
 
-    datamodule = instantiate(predictor.config["data"])
+    try:
+        datamodule = instantiate(predictor.config["data"])
+    except InstantiationException as exc:  # what the constructor raised, with Hydra's words
+        said = str(exc.__cause__ or exc).strip().splitlines()
+        raise ValueError(f"{checkpoint}: its data config does not build: {said[0]}") from None
     return datamodule.read_pair(*paths)
 
 
@@ -112,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
         predictor = load(args.checkpoint, device=args.device)
         with warnings.catch_warnings(record=True) as notes:  # e.g. u_i scaled to unit length
             warnings.simplefilter("always", InputAdjustedWarning)
-            estimate = predictor(_read_input(predictor, args.input))
+            estimate = predictor(_read_input(predictor, args.input, args.checkpoint))
     except (OSError, ValueError, TypeError, FloatingPointError) as exc:  # FP: a non-finite output
         print(f"rotlearn-predict: {exc}", file=sys.stderr)
         return 2
