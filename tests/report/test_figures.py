@@ -134,6 +134,22 @@ def test_a_text_longer_than_max_text_is_cut_and_keeps_apart_from_its_neighbour()
     assert len(set(legend)) == 2  # the hashes tell the two apart
 
 
+def test_a_curve_of_millions_of_epochs_is_drawn_at_max_points_first_and_last_kept(tmp_path):
+    """A received run's metrics log of 2 million epochs (38 MB, within the read bound) made
+    Agg raise OverflowError (cell block limit) midway through rotlearn-report."""
+    from rotlearn.report.figures import MAX_POINTS
+
+    values = 1.0 + np.arange(2_000_000) % 7
+    fig = curves_figure({"val": {"a": [values, values + 1]}})
+    save_figure(fig, tmp_path / "curves.png")
+    (line,) = fig.axes[0].get_lines()
+    epochs = line.get_xdata()
+    assert len(epochs) == MAX_POINTS and epochs[0] == 1 and epochs[-1] == len(values)
+    assert np.all(np.diff(epochs) > 0)
+    short = curves_figure({"val": {"a": [np.array([3.0, 2.0, 1.0])]}})
+    assert list(short.axes[0].get_lines()[0].get_xdata()) == [1, 2, 3]  # every epoch
+
+
 @pytest.mark.parametrize("umask", [0o022, 0o077])
 def test_a_saved_figure_follows_the_umask(tmp_path, umask):
     import os

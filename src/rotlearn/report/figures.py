@@ -46,6 +46,7 @@ __all__ = [
 
 UNCALIBRATED_ECE = 0.1  # above this ECE the reliability diagram says what to do
 MAX_TEXT = 2000  # characters of one text of a figure (a label, a title, the remedies' box)
+MAX_POINTS = 5000  # epochs drawn of one curve (a received log of millions overflowed Agg)
 LABELS = {"dt": "DT", "eigengap": "gap", "raw_norm": "norm", "autoencoder": "AE"}
 
 
@@ -128,7 +129,8 @@ def curves_figure(panels: Mapping[str, Mapping[str, Sequence[np.ndarray]]]) -> A
     Returns:
         The Figure (x: epochs trained, integers; y: degrees on a log axis with plain numbers;
         the legend below, "(median of n)" after a label of n > 1 runs), or None when no panel
-        has data.
+        has data. A curve of more than `MAX_POINTS` epochs is drawn at `MAX_POINTS` of them,
+        evenly spread, the first and last included.
     """
     panels = {
         m: {k: [np.asarray(c, float) for c in v if len(c)] for k, v in p.items()}
@@ -146,9 +148,10 @@ def curves_figure(panels: Mapping[str, Mapping[str, Sequence[np.ndarray]]]) -> A
             if not runs:
                 continue
             n = min(len(c) for c in runs)
-            stack = np.stack([c[:n] for c in runs])
+            drawn = np.unique(np.linspace(0, n - 1, min(n, MAX_POINTS)).round().astype(int))
+            stack = np.stack([c[drawn] for c in runs])
             p10, p50, p90 = np.percentile(stack, [10, 50, 90], axis=0)
-            epochs = np.arange(1, n + 1)
+            epochs = drawn + 1
             (line,) = ax.plot(epochs, p50, color=f"C{i % 10}", marker="." if n < 15 else None)
             if len(runs) > 1:
                 ax.fill_between(epochs, p10, p90, color=f"C{i % 10}", alpha=0.2, linewidth=0)
