@@ -5,7 +5,15 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-__all__ = ["EVALUATED_FILE", "OOD_EXAMPLES_FILE", "TESTED_WEIGHTS", "checkpoint_file", "config_dir"]
+__all__ = [
+    "CSV_LOG",
+    "EVALUATED_FILE",
+    "HISTORY_DIR",
+    "OOD_EXAMPLES_FILE",
+    "TESTED_WEIGHTS",
+    "checkpoint_file",
+    "config_dir",
+]
 
 SWEEP_FILES = ("multirun.yaml", "jobs.json", "planned_jobs.json")  # what Hydra and rotlearn write
 # In an evaluation's directory (rotlearn-eval): the run config it evaluated, which rotlearn-report
@@ -13,6 +21,10 @@ SWEEP_FILES = ("multirun.yaml", "jobs.json", "planned_jobs.json")  # what Hydra 
 EVALUATED_FILE = "evaluated.yaml"
 # A run's own figure (the OOD evaluation's example pairs): a report's plot never takes its name.
 OOD_EXAMPLES_FILE = "ood_examples.png"
+# A run's earlier records, one folder per resume (<run>/history/<n>/: rotlearn.cli.resume).
+HISTORY_DIR = "history"
+# logger=csv's per-epoch log in a run (conf/logger/csv.yaml); a resume keeps the earlier one.
+CSV_LOG = "csv/metrics.csv"
 # The weights a run's test scores (`test_ckpt`; metrics.json's `tested_weights`), in words.
 TESTED_WEIGHTS = {"last": "the last epoch's", "best": "the best validation epoch's"}
 

@@ -10,6 +10,7 @@ import signal
 import time
 from pathlib import Path
 
+import pandas as pd
 import pytest
 import yaml
 
@@ -201,7 +202,7 @@ def test_ckpt_path_last_skips_completed_runs_and_names_its_pick(tmp_path, capsys
 
 def test_a_completed_run_trains_longer_and_keeps_its_earlier_records(tmp_path, finished_run):
     run = _completed_run(finished_run, tmp_path, "2026-01-03_00-00-00-000000")
-    records = ["metrics.json", "status.json", "timing.json", "test_errors.json",
+    records = ["metrics.json", "status.json", "timing.json", "test_errors.json", "csv/metrics.csv",
                ".hydra/config.yaml", ".hydra/overrides.yaml", ".hydra/hydra.yaml"]  # fmt: skip
     before = {name: (run / name).read_bytes() for name in records}
     job = start_cli([f"ckpt_path={run}", "trainer.max_epochs=2"], tmp_path)
@@ -212,6 +213,15 @@ def test_a_completed_run_trains_longer_and_keeps_its_earlier_records(tmp_path, f
     assert metrics["epochs"] == 2 and json.loads(before["metrics.json"])["epochs"] == 1
     assert json.loads((run / "status.json").read_text())["status"] == "COMPLETED"
     assert "trainer.max_epochs=2" in (run / ".hydra" / "overrides.yaml").read_text()
+    # logger=csv: Lightning deleted the first attempt's log (its epoch was lost); the report's
+    # curve reads both
+    from rotlearn.report.document import _curve
+
+    first = pd.read_csv(run / "history" / "1" / "csv" / "metrics.csv")
+    second = pd.read_csv(run / "csv" / "metrics.csv")
+    assert set(first["epoch"].dropna()) == {0} and set(second["epoch"].dropna()) == {1}
+    curve = _curve(run, "val/err_mean")
+    assert list(curve) == [*first["val/err_mean"].dropna(), *second["val/err_mean"].dropna()]
 
 
 def test_keep_earlier_records_numbers_each_attempt(tmp_path):

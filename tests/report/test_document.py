@@ -24,3 +24,26 @@ def test_the_precision_recall_curve_of_several_seeds_is_their_mean_at_each_q():
     nothing = [{"q": 0.25, "recall": 0.0, "precision": math.nan}]
     assert math.isnan(_mean_curve([nothing, nothing])[0]["precision"])
     assert _mean_curve([second]) == second  # one run: its own curve
+
+
+def test_a_resumed_runs_curve_joins_its_csv_logs_the_latest_value_of_an_epoch_kept(
+    tmp_path, monkeypatch
+):
+    """Each resume keeps the earlier CSV log in history/<n>/ (Lightning's CSVLogger deletes
+    it); the curve reads them in n's order (10 after 9), then the run's own, an epoch logged
+    again keeping its last value, and no more than the latest MAX_EARLIER_LOGS earlier ones."""
+    import rotlearn.report.document as document
+
+    def log(folder, rows):
+        (folder / "csv").mkdir(parents=True)
+        lines = [f"{epoch},{value}" for epoch, value in rows]
+        (folder / "csv" / "metrics.csv").write_text("\n".join(["epoch,val/err_mean", *lines]))
+
+    run = tmp_path / "run"
+    log(run / "history" / "9", [(0, 50.0), (1, 40.0)])
+    log(run / "history" / "10", [(2, 30.0)])
+    log(run / "history" / "x", [(0, 99.0)])  # not an attempt's folder
+    log(run, [(2, 20.0), (3, 10.0)])  # epoch 2 again: its last value
+    assert list(document._curve(run, "val/err_mean")) == [50.0, 40.0, 20.0, 10.0]
+    monkeypatch.setattr(document, "MAX_EARLIER_LOGS", 1)
+    assert list(document._curve(run, "val/err_mean")) == [20.0, 10.0]

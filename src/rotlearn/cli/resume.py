@@ -63,6 +63,7 @@ from rotlearn.cli.rundir import (
 from rotlearn.errors import ConfigError
 from rotlearn.io import UnreadableFileError, read_bytes, read_record, write_bytes_atomic
 from rotlearn.locks import RunLockedError, check_free
+from rotlearn.paths import CSV_LOG, HISTORY_DIR
 from rotlearn.report.tensorboard import SESSION_RUN, event_runs
 from rotlearn.trust import UntrustedConfigError
 
@@ -510,7 +511,8 @@ def _copy_bounded(source: Path, target: Path) -> None:
 
 def keep_earlier_records(run_dir: Path) -> Path | None:
     """Before a resume trains (holding the run's lock): move the run's records (metrics.json,
-    status.json, timing.json, test_errors.json) and copy its `.hydra/*.yaml` into
+    status.json, timing.json, test_errors.json, and `CSV_LOG`, logger=csv's log, which
+    Lightning's CSVLogger deletes when it starts again) and copy its `.hydra/*.yaml` into
     `<run_dir>/history/<n>/` (n = 1, 2, ... per resume), so the new attempt never overwrites
     them. The event files of the earlier test (its results, figures and HPARAMS session: the
     `test` sub-run of `tensorboard/<name>/`) move there too, renamed `events.out.kept.*` so that
@@ -521,6 +523,8 @@ def keep_earlier_records(run_dir: Path) -> Path | None:
     `.<n>.*.partial` folder, and every record in place). Returns the folder (None when the run
     had no records)."""
     records = [(run_dir / name, Path(name)) for name in _RECORDS if os.path.lexists(run_dir / name)]
+    if (log := run_dir / CSV_LOG).is_file() and not log.is_symlink():  # Lightning deletes it
+        records.append((log, Path(CSV_LOG)))
     for events in event_runs(run_dir):
         for path in sorted((events / SESSION_RUN).glob("*tfevents*")):
             if path.is_file() and not path.is_symlink():
@@ -529,7 +533,7 @@ def keep_earlier_records(run_dir: Path) -> Path | None:
     configs = sorted(p for p in (run_dir / ".hydra").glob("*.yaml") if p.is_file())
     if not records and not configs:
         return None
-    history = run_dir / "history"
+    history = run_dir / HISTORY_DIR
     if os.path.lexists(history) and (history.is_symlink() or not history.is_dir()):
         raise UnreadableFileError(f"{history}: not a folder, where the earlier records are kept")
     history.mkdir(exist_ok=True)

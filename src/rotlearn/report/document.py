@@ -46,7 +46,7 @@ import numpy as np
 import pandas as pd
 
 from rotlearn.io import read_json, read_table, sync_folder, write_text_atomic
-from rotlearn.paths import OOD_EXAMPLES_FILE, TESTED_WEIGHTS
+from rotlearn.paths import CSV_LOG, HISTORY_DIR, OOD_EXAMPLES_FILE, TESTED_WEIGHTS
 from rotlearn.report import figures, tables
 from rotlearn.report.runs import RUN_MARKS, collect_runs, label_without
 from rotlearn.report.tensorboard import read_curve
@@ -55,6 +55,7 @@ __all__ = ["CURVE_METRICS", "make_report"]
 
 log = logging.getLogger("rotlearn")
 CURVE_METRICS = ["train/err_mean", "val/err_mean"]
+MAX_EARLIER_LOGS = 64  # a resumed run's earlier CSV logs read for its curves (each one bounded)
 OUTPUT_FILES = {  # what make_report returns -> the file in the report's folder
     "summary": "summary.csv",
     "report": "report.md",
@@ -204,21 +205,38 @@ def _grouping_note(done: pd.DataFrame, grouping: list[str], layout: Mapping[str,
 # ---------------------------------------------------------------------------------- plots
 
 
+def _csv_logs(run: Path) -> list[Path]:
+    """The run's `CSV_LOG` files, the earlier attempts' first (`HISTORY_DIR`/<n>/, kept by each
+    resume, in n's order; the latest `MAX_EARLIER_LOGS` of them), then its own."""
+    history = run / HISTORY_DIR
+    try:
+        earlier = sorted((p for p in history.iterdir() if p.name.isascii() and p.name.isdigit()),
+                         key=lambda p: int(p.name)) if history.is_dir() else []  # fmt: skip
+    except OSError:
+        earlier = []
+    logs = [p / CSV_LOG for p in earlier[-MAX_EARLIER_LOGS:]] + [run / CSV_LOG]
+    return [log for log in logs if os.path.lexists(log)]
+
+
 def _curve(run: Path, key: str) -> np.ndarray | None:
-    """Per-epoch values of a metric, from the run's CSV log or else its TensorBoard events."""
-    csv = run / "csv" / "metrics.csv"
-    if os.path.lexists(csv):
+    """Per-epoch values of a metric, from the run's CSV logs (a resumed run's earlier ones
+    first; an epoch logged again keeps its last value) or else its TensorBoard events."""
+    frames = []
+    for csv in _csv_logs(run):
         try:
             frame = read_table(csv, run, "metrics log", ("epoch", key))  # bounded, in the run
         except (OSError, ValueError, MemoryError) as exc:
             log.warning("%s (ignored)", exc if str(exc) else f"{csv}: {type(exc).__name__}")
-            frame = pd.DataFrame()
+            continue
         if key in frame and "epoch" in frame:
             numeric = [c for c in ("epoch", key) if not pd.api.types.is_numeric_dtype(frame[c])]
             if not numeric:
-                values = frame.dropna(subset=[key]).groupby("epoch")[key].last()
-                return values.to_numpy(dtype=float)
-            log.warning("%s: column %s is not numeric (ignored)", csv, numeric[0])
+                frames.append(frame.dropna(subset=[key]))
+            else:
+                log.warning("%s: column %s is not numeric (ignored)", csv, numeric[0])
+    if frames:
+        values = pd.concat(frames).groupby("epoch", sort=True)[key].last()
+        return values.to_numpy(dtype=float)
     return read_curve(run, key)
 
 
