@@ -33,7 +33,8 @@ autodoc_default_options = {"members": True, "show-inheritance": True}
 autodoc_member_order = "bysource"
 autodoc_inherit_docstrings = False  # not Lightning's docstrings of the hooks rotlearn overrides
 autodoc_typehints = "description"
-autodoc_class_signature = "separated"
+autodoc_typehints_description_target = "documented_params"  # not a base's *args, **kwargs
+autodoc_class_signature = "mixed"  # class Name(arg=default, ...): how a reader calls it
 napoleon_google_docstring = True
 napoleon_numpy_docstring = False
 napoleon_use_rtype = False
@@ -148,7 +149,18 @@ def _code_or_xref(name, rawtext, text, lineno, inliner, options=None, content=No
     return role(name, rawtext, text, lineno, inliner, options or {}, content or [])
 
 
+def _own_signature(app, what, name, obj, options, signature, return_annotation):
+    """A class that takes no argument of its own (a layer on `torch.nn.Module`'s `__init__`)
+    shows `()`, not the base's `(*args, **kwargs)`."""
+    own = any("__init__" in vars(c) for c in getattr(obj, "__mro__", ())
+              if c.__module__.startswith("rotlearn"))  # fmt: skip
+    if what == "class" and signature == "(*args, **kwargs)" and not own:
+        return "()", return_annotation
+    return None
+
+
 def setup(app) -> None:
     app.add_role("code-or-xref", _code_or_xref)
+    app.connect("autodoc-process-signature", _own_signature)
     app.connect("autodoc-process-docstring", _plain_text_docstring, priority=400)  # before napoleon
     app.add_directive("command-help", _command_help_directive())
