@@ -86,9 +86,10 @@ class RotationEstimate:
         R: (B, 3, 3) rotation matrices.
         q: (B, 4) unit quaternions (x, y, z, w), w >= 0.
         dispersion: (B, 3) Bingham dispersion coefficients (l1 - l4, l1 - l3, l1 - l2) <= 0
-            (A head only; more negative = more concentrated belief), else None.
+            (heads with a belief: rep=a, rep=fisher; more negative = more concentrated belief),
+            else None.
         dt: (B,) dispersion-thresholding score tr(Lambda) = 3 l1 - l2 - l3 - l4 (paper eq. 26;
-            A head only; lower = more confident), else None.
+            heads with a belief; lower = more confident), else None.
         keep: (B,) bool, True where the OOD score passes the checkpoint's calibrated threshold,
             or None when the checkpoint carries no threshold.
         A: (B, 4, 4) the Bingham belief p(q) ~ exp(-q^T A q) (paper eqs. 8, 14), tempered
@@ -192,7 +193,9 @@ class Predictor:
     Args:
         net: the backbone; head: the representation head.
         config: the run's resolved config (as saved in the checkpoint).
-        ood: optional {"score": "dt", "threshold": float} calibrated on the training set.
+        ood: optional {"score": "dt", "threshold": float, ...}: the threshold a run's OOD
+            evaluation set on its reference pairs (the validation set by default; the run's
+            `checkpoints/ood_thresholds.json`).
         temperature: the belief's post-hoc temperature T > 0 (A -> A / T; `calibrate`).
         level_map: the recalibration of the tempered belief's credible levels, or None.
         device: where to run.
