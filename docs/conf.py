@@ -63,7 +63,8 @@ def _escape(text: str) -> str:
 
 def _named_returns(lines: list[str]) -> None:
     """A Returns: section that names several results ("q: (..., 4) ...") reads as a list of
-    them, as Args: does (napoleon would take the first name for a type)."""
+    them, as Args: does (napoleon would take the first name for a type); one that names none
+    reads as written, colons and all."""
     for start, line in enumerate(lines):
         if line.strip() != "Returns:":
             continue
@@ -80,6 +81,11 @@ def _named_returns(lines: list[str]) -> None:
         named = [e for e in items if len(e) - len(e.lstrip()) == step and _NAMED.match(e)]
         if len(named) >= 2:
             lines[start] = line.replace("Returns:", "Return values:")
+        elif not _NAMED.match(items[0]) and ":" in _CODE.sub("", items[0]):
+            # "(...,) degrees in [0, 180]: the angle": napoleon reads the text before the first
+            # colon as the type; an empty one before it keeps the whole line the description
+            at = lines.index(items[0], start)
+            lines[at] = f"{' ' * step}: {items[0].lstrip()}"
 
 
 def _plain_text_docstring(app, what, name, obj, options, lines) -> None:
