@@ -45,6 +45,7 @@ CASES: dict[str, tuple[str, list[str]]] = {
     "a sweep folder for one run": ("rotlearn-train", ["hydra.sweep.dir=new"]),
     "a misspelt key of Hydra's": ("rotlearn-train", ["hydra.run.dirr=new"]),
     "a setting of another launcher": ("rotlearn-train", ["hydra.launcher.n_jobs=2"]),
+    "a sweep's config asked for": ("rotlearn-train", ["-m", "rep=a,sixd", "--cfg", "job"]),
     "a sweep of Hydra's own settings": (
         "rotlearn-train",
         ["-m", "sweep=seeds", "hydra.sweeper.params.trial=range(0,5)"],

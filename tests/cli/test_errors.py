@@ -60,6 +60,8 @@ EXPECTED = {
     "a setting of another launcher": (1, r"^rotlearn-train: config key hydra\.launcher\.n_jobs: "
                                       r"unknown key; allowed: _target_; n_jobs is a setting of "
                                       r"hydra/launcher=joblib \(nothing was written\)$"),
+    "a sweep's config asked for": (1, r"^rotlearn-train: -m and --cfg do not go together \(Hydra "
+                                   r"takes one of .*rotlearn-train <its values> --cfg job$"),
     "a sweep of Hydra's own settings": (1, r"^rotlearn-train: config key hydra\.sweeper\.params"
                                         r"\.trial: Hydra's own settings take one value, not a "
                                         r"sweep; to sweep trial: trial='range\(0,5\)'; a value"),

@@ -160,9 +160,28 @@ def main() -> float | None:
 
     if not is_child_rank():  # another rank repeats rank 0's command line, already checked
         with refusals_exit_at_once():
+            _refuse_two_modes(argv)
             _refuse_a_run_in_use(argv)
             sys.argv[1:] = _checked_command_line(argv)
     return _hydra_main()
+
+
+# Hydra's flags that choose what a command does; it takes one (a second: a ValueError traceback)
+_MODES = {"-m": "-m", "--multirun": "-m", "-c": "--cfg", "--cfg": "--cfg", "-i": "--info",
+          "--info": "--info", "-sc": "--shell-completion", "--run": "--run", "-r": "--run",
+          "--shell-completion": "--shell-completion"}  # fmt: skip
+
+
+def _refuse_two_modes(argv: list[str]) -> None:
+    """SystemExit, in one line, where the command line gives two of Hydra's modes (`-m` and
+    `--cfg job`, to see a sweep's config: Hydra raised a ValueError with a traceback)."""
+    modes = list(dict.fromkeys(_MODES[f] for a in argv if (f := a.split("=")[0]) in _MODES))
+    if len(modes) > 1:
+        raise SystemExit(
+            f"rotlearn-train: {' and '.join(modes)} do not go together (Hydra takes one of -m, "
+            "--cfg, --info, --shell-completion); to see one sweep job's config, give its values "
+            "without -m: rotlearn-train <its values> --cfg job"
+        )
 
 
 def _refuse_a_run_in_use(argv: list[str]) -> None:
