@@ -9,6 +9,7 @@ and line (or frame, or the config key), and that nothing was written outside the
 from __future__ import annotations
 
 import math
+import os
 import re
 import shutil
 from collections.abc import Iterator
@@ -112,6 +113,19 @@ def test_kitti_too_few_pose_lines_name_the_file(demo_data, tmp_path):
     poses.write_text("\n".join(lines[:-1]) + "\n")
     pattern = rf"00\.txt: {len(lines) - 1} poses, but .*image_2 holds {len(lines)} frames"
     refuses(lambda: kitti(root, cache), tmp_path, cache, ValueError, pattern)
+
+
+def test_kitti_poses_that_are_a_named_pipe_are_named_so(demo_data, tmp_path):
+    """A FIFO in place of poses/00.txt was reported as "no poses file"; it is named for what it
+    is, and never opened (a read would hang)."""
+    from rotlearn.io import UnreadableFileError
+
+    root, cache = copy_demo(demo_data, "kitti", tmp_path), tmp_path / "cache"
+    poses = root / "poses" / "00.txt"
+    poses.unlink()
+    os.mkfifo(poses)
+    pattern = r"00\.txt: a named pipe \(FIFO\), not a regular file; not read"
+    refuses(lambda: kitti(root, cache), tmp_path, cache, UnreadableFileError, pattern)
 
 
 def _png_bytes(width: int, height: int) -> bytes:

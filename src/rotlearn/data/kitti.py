@@ -208,7 +208,7 @@ class KittiOdometryDataModule(ImagePairDataModule):
         deltas = [self.delta] if deltas is None else list(deltas)
         files = self.frames(sequence)
         poses_path = self._inside(self.root / "poses" / f"{sequence}.txt", sequence)
-        if not poses_path.is_file():
+        if not poses_path.exists():  # a pipe or a folder: named as such by the bounded read
             raise FileNotFoundError(f"sequence {sequence}: no poses file {poses_path}")
         poses = read_kitti_poses(poses_path)
         if len(poses) != len(files):
