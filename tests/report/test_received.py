@@ -74,6 +74,24 @@ def test_a_plot_file_a_received_config_names_stays_in_the_report_folder(
     assert (sweep / "0" / "metrics.json").read_text() == records
 
 
+def test_a_failed_runs_long_error_is_cut_in_the_report_saying_where_the_whole_is(tmp_path):
+    """A received status.json with 10 MB of error text put all of it into report.md and
+    summary.csv; the report shows MAX_ERROR characters and names the file that holds it all."""
+    from rotlearn.report.runs import MAX_ERROR
+
+    sweep = tmp_path / "sweep"
+    _run(sweep / "0")
+    failed = _run(sweep / "1", seed=1)
+    (failed / "metrics.json").unlink()
+    said = "boom " * 2_000_000
+    (failed / "status.json").write_text(json.dumps({"status": "FAILED", "error": said}))
+    assert main([str(sweep)]) == 0
+    for name in ("report.md", "summary.csv"):
+        text = (sweep / name).read_text()
+        assert len(text) < 20 * MAX_ERROR, name
+        assert f"({len(said)} characters; the whole in {failed / 'status.json'})" in text, name
+
+
 def test_received_config_text_reads_as_written_in_the_report(tmp_path):
     """Settings and keys come from the runs' configs: `<img onerror=...>` and a key holding
     `<script>` reached report.md as raw HTML, `[x](javascript:...)` as a link, and line breaks

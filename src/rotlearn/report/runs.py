@@ -52,6 +52,7 @@ MODEL_PARTS = ("rep", "loss", "scheduler")  # settings only where the model take
 _MISSING = "-"
 NOT_READ = "NOT READ"  # the status of a job whose folder leads out of its sweep
 RUN_MARKS = (".hydra/config.yaml", "status.json", "metrics.json")  # what makes a run directory
+MAX_ERROR = 2000  # characters of a run's error shown (a received status.json held 10 MB of it)
 
 
 def read_yaml(path: Path, kind: str = "YAML config", run: Path | None = None) -> Any:
@@ -211,7 +212,7 @@ def collect_runs(
                 "job": _job_name(sweep, run, roots),
                 "dir": str(run),
                 "status": state,
-                "error": status.get("error"),  # INTERRUPTED: the signal, epoch, resume command
+                "error": _cut(status.get("error"), run / "status.json"),  # INTERRUPTED: resume
                 "overrides": " ".join(overrides),
                 "tested_weights": _weights(metrics.get("tested_weights")),
                 **{
@@ -258,6 +259,14 @@ def label_without(frame: pd.DataFrame, keys: Sequence[str]) -> pd.Series:
         return " ".join(kept) or "all"
 
     return frame.apply(label, axis=1) if len(frame) else pd.Series(dtype=str)
+
+
+def _cut(error: Any, source: Path) -> Any:
+    """A run's error as the report shows it: text past `MAX_ERROR` characters cut, saying where
+    the whole is."""
+    if not isinstance(error, str) or len(error) <= MAX_ERROR:
+        return error
+    return f"{error[:MAX_ERROR]}... ({len(error)} characters; the whole in {source})"
 
 
 def _job_name(sweep: Path, run: Path, roots: list[Path]) -> str:
@@ -392,7 +401,7 @@ def _unstarted_jobs(root: Path, seen: set[str]) -> list[dict[str, Any]]:
                 "job": name,
                 "dir": str(job["dir"]) if job.get("dir") else None,
                 "status": status,
-                "error": error,
+                "error": _cut(error, root / "jobs.json"),
                 "overrides": " ".join(str(o) for o in overrides),
             }
         )
