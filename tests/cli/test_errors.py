@@ -145,3 +145,27 @@ def test_a_mistake_is_refused_in_one_line_writing_nothing(case, folders, tmp_pat
     assert "Traceback" not in done.stderr + done.stdout
     assert list(tmp_path.iterdir()) == []  # no run, eval or output directory
     assert seconds < BOUND_S
+
+
+@pytest.mark.parametrize(
+    ("argv", "said"),
+    [
+        (["-m", "rep=a,sixd", "--cfg", "job"], "-m and --cfg do not go together"),
+        (["-mc", "job"], "-m and --cfg do not go together"),  # as Hydra's parser reads it
+        (["--multi", "--cfg=job"], "-m and --cfg do not go together"),
+        (["-m", "--info"], "-m and --info do not go together"),
+        (["--resolve"], "--resolve goes with --cfg"),
+        (["-m", "--cfg", "job", "--hydra-help"], None),  # help wins, as in Hydra
+        (["rep=a", "--cfg", "job", "--resolve"], None),
+        (["-m", "rep=a,sixd"], None),
+        (["--cfg"], None),  # no value: Hydra's own message
+    ],
+)
+def test_hydras_modes_are_read_as_hydra_reads_them(argv, said):
+    from rotlearn.cli.train import _refuse_two_modes
+
+    if said is None:
+        _refuse_two_modes(argv)
+        return
+    with pytest.raises(SystemExit, match=rf"^rotlearn-train: {re.escape(said)}"):
+        _refuse_two_modes(argv)

@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import os
 import shlex
@@ -60,10 +61,23 @@ def is_child_rank() -> bool:
     return any(os.environ.get(name, "0") not in ("", "0") for name in _RANK_VARIABLES)
 
 
+def hydra_flags(argv: list[str]) -> argparse.Namespace | None:
+    """Hydra's flags in a command line, read by Hydra's own parser (`-m`, `--multirun`, `-mc
+    job`, `--multi`: as Hydra reads them), or None where Hydra would refuse them (it says why)."""
+    from hydra._internal.utils import get_args_parser
+
+    parser = get_args_parser()
+    parser.exit_on_error = False
+    try:
+        return parser.parse_known_args(argv)[0]
+    except argparse.ArgumentError:
+        return None
+
+
 def runs_a_sweep(argv: list[str], cfg: DictConfig | None = None) -> bool:
-    """Whether a command line runs a sweep: `-m`, or (given its composed config with the `hydra`
-    node) an experiment that sets `hydra.mode: MULTIRUN`."""
-    if "-m" in argv or "--multirun" in argv:
+    """Whether a command line runs a sweep: `-m` (`hydra_flags`), or (given its composed config
+    with the `hydra` node) an experiment that sets `hydra.mode: MULTIRUN`."""
+    if (flags := hydra_flags(argv)) is not None and flags.multirun:
         return True
     from hydra.types import RunMode
 

@@ -166,22 +166,27 @@ def main() -> float | None:
     return _hydra_main()
 
 
-# Hydra's flags that choose what a command does; it takes one (a second: a ValueError traceback)
-_MODES = {"-m": "-m", "--multirun": "-m", "-c": "--cfg", "--cfg": "--cfg", "-i": "--info",
-          "--info": "--info", "-sc": "--shell-completion", "--run": "--run", "-r": "--run",
-          "--shell-completion": "--shell-completion"}  # fmt: skip
-
-
 def _refuse_two_modes(argv: list[str]) -> None:
     """SystemExit, in one line, where the command line gives two of Hydra's modes (`-m` and
-    `--cfg job`, to see a sweep's config: Hydra raised a ValueError with a traceback)."""
-    modes = list(dict.fromkeys(_MODES[f] for a in argv if (f := a.split("=")[0]) in _MODES))
+    `--cfg job`, to see a sweep's config), or `--resolve` without `--cfg`, as Hydra reads its
+    flags (`rundir.hydra_flags`: `-mc job` too): Hydra raised a ValueError with a traceback."""
+    from rotlearn.cli.rundir import hydra_flags
+
+    flags = hydra_flags(argv)
+    if flags is None or flags.help or flags.hydra_help:  # help wins, as in Hydra
+        return
+    modes = [name for name, given in (("--run", flags.run), ("-m", flags.multirun),
+             ("--cfg", flags.cfg is not None), ("--info", flags.info is not None),
+             ("--shell-completion", flags.shell_completion)) if given]  # fmt: skip
     if len(modes) > 1:
         raise SystemExit(
-            f"rotlearn-train: {' and '.join(modes)} do not go together (Hydra takes one of -m, "
-            "--cfg, --info, --shell-completion); to see one sweep job's config, give its values "
-            "without -m: rotlearn-train <its values> --cfg job"
+            f"rotlearn-train: {' and '.join(modes)} do not go together (Hydra takes one of "
+            "--run, -m, --cfg, --info, --shell-completion); to see one sweep job's config, give "
+            "its values without -m: rotlearn-train <its values> --cfg job"
         )
+    if flags.resolve and flags.cfg is None:
+        raise SystemExit("rotlearn-train: --resolve goes with --cfg (it resolves the config "
+                         "shown): rotlearn-train <values> --cfg job --resolve")  # fmt: skip
 
 
 def _refuse_a_run_in_use(argv: list[str]) -> None:
