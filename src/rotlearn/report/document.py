@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from rotlearn.io import read_json, read_table, sync_folder, write_text_atomic
+from rotlearn.io import MAX_BYTES, read_json, read_table, sync_folder, write_text_atomic
 from rotlearn.paths import CSV_LOG, HISTORY_DIR, OOD_EXAMPLES_FILE, TESTED_WEIGHTS
 from rotlearn.report import figures, tables
 from rotlearn.report.runs import RUN_MARKS, collect_runs, label_without
@@ -55,7 +55,8 @@ __all__ = ["CURVE_METRICS", "make_report"]
 
 log = logging.getLogger("rotlearn")
 CURVE_METRICS = ["train/err_mean", "val/err_mean"]
-MAX_EARLIER_LOGS = 64  # a resumed run's earlier CSV logs read for its curves (each one bounded)
+MAX_EARLIER_LOGS = 64  # a resumed run's earlier CSV logs read for its curves (`_curve`)
+MAX_EPOCHS = 1_000_000  # epochs of a curve read from a CSV log (a received one's are data)
 OUTPUT_FILES = {  # what make_report returns -> the file in the report's folder
     "summary": "summary.csv",
     "report": "report.md",
@@ -219,25 +220,42 @@ def _csv_logs(run: Path) -> list[Path]:
 
 
 def _curve(run: Path, key: str) -> np.ndarray | None:
-    """Per-epoch values of a metric, from the run's CSV logs (a resumed run's earlier ones
-    first; an epoch logged again keeps its last value) or else its TensorBoard events."""
-    frames = []
-    for csv in _csv_logs(run):
+    """Per-epoch values of a metric, index i the value after epoch i + 1 (NaN where no log has
+    that epoch: a gap in the curve), from the run's CSV logs (`_csv_logs`; an epoch logged
+    again keeps its last attempt's value; the logs read newest first, together within one
+    log's read bound; epochs that are not integers 0 ... `MAX_EPOCHS` - 1 left out), or else
+    its TensorBoard events."""
+    frames, budget = [], MAX_BYTES["metrics log"]
+    for newer, csv in enumerate(reversed(_csv_logs(run))):
         try:
+            size = csv.stat().st_size
+            if newer and size > budget:  # the newest alone: read_table's bound, its message
+                log.warning("%s and the logs before it: over the read bound of a metrics log "
+                            "together (left out)", csv)  # fmt: skip
+                break
+            budget -= size
             frame = read_table(csv, run, "metrics log", ("epoch", key))  # bounded, in the run
         except (OSError, ValueError, MemoryError) as exc:
             log.warning("%s (ignored)", exc if str(exc) else f"{csv}: {type(exc).__name__}")
             continue
-        if key in frame and "epoch" in frame:
-            numeric = [c for c in ("epoch", key) if not pd.api.types.is_numeric_dtype(frame[c])]
-            if not numeric:
-                frames.append(frame.dropna(subset=[key]))
-            else:
-                log.warning("%s: column %s is not numeric (ignored)", csv, numeric[0])
-    if frames:
-        values = pd.concat(frames).groupby("epoch", sort=True)[key].last()
-        return values.to_numpy(dtype=float)
-    return read_curve(run, key)
+        if key not in frame or "epoch" not in frame or frame.empty:  # a header only: no epoch
+            continue
+        numeric = [c for c in ("epoch", key) if not pd.api.types.is_numeric_dtype(frame[c])]
+        if numeric:
+            log.warning("%s: column %s is not numeric (ignored)", csv, numeric[0])
+            continue
+        epoch = frame["epoch"]
+        whole = (epoch >= 0) & (epoch < MAX_EPOCHS) & (epoch == epoch.round())
+        if not whole.all():
+            log.warning("%s: %d row(s) whose epoch is no integer in [0, %d) left out", csv,
+                        int((~whole).sum()), MAX_EPOCHS)  # fmt: skip
+        kept = frame[whole].dropna(subset=[key])
+        frames.append(kept.groupby(kept["epoch"].astype(np.int64))[key].last())
+    if not frames:
+        return read_curve(run, key)
+    values = pd.concat(frames[::-1])  # oldest first: the last attempt's value of an epoch wins
+    values = values.groupby(level=0).last()
+    return values.reindex(range(int(values.index.max()) + 1)).to_numpy(dtype=float)
 
 
 def _curves(runs: pd.DataFrame, metric: str) -> list[np.ndarray]:
