@@ -181,3 +181,34 @@ def test_checkpoint_io_keeps_the_previous_checkpoint_when_a_write_fails(run, mon
     monkeypatch.undo()
     assert load_checkpoint(path)["epoch"] == 0
     assert sorted(p.name for p in path.parent.iterdir()) == ["last.ckpt"]
+
+
+def test_checkpoint_io_writes_only_inside_the_run_or_a_callbacks_folder(tmp_path):
+    """A review's reproduction: a checkpoint callback without a dirpath writes below the
+    logger's folder, and a run may hold a link inside it (csv/checkpoints -> ..); its file name
+    ../pwned then wrote beside the run. The write is refused; a callback's own folder outside
+    the run (a user's dirpath) is written."""
+    from lightning.pytorch.loggers import CSVLogger
+    from torch.utils.data import DataLoader, TensorDataset
+
+    from tests.lit.test_state import Tiny
+
+    run = tmp_path / "run"
+    (run / "csv").mkdir(parents=True)
+    (run / "csv" / "checkpoints").symlink_to("..")  # resolves inside the run
+    escape = ModelCheckpoint(filename="../pwned")
+    data = DataLoader(TensorDataset(torch.randn(8, 2)), batch_size=4)
+    trainer = pl.Trainer(max_epochs=1, default_root_dir=run, logger=CSVLogger(run, "csv", ""),
+                         callbacks=[escape], plugins=[RunCheckpointIO(run)],
+                         enable_progress_bar=False, enable_model_summary=False)  # fmt: skip
+    with pytest.raises(UnsafeCheckpointError, match=r"refusing to write .*pwned\.ckpt: it "
+                       r"resolves to .*, outside the run"):  # fmt: skip
+        trainer.fit(Tiny(), data)
+    assert not (tmp_path / "pwned.ckpt").exists()
+    elsewhere = tmp_path / "elsewhere"
+    given = ModelCheckpoint(dirpath=elsewhere, filename="kept")
+    trainer = pl.Trainer(max_epochs=1, default_root_dir=run, logger=False, callbacks=[given],
+                         plugins=[RunCheckpointIO(run, [given.dirpath])],
+                         enable_progress_bar=False, enable_model_summary=False)  # fmt: skip
+    trainer.fit(Tiny(), data)
+    assert (elsewhere / "kept.ckpt").is_file()

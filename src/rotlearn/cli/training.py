@@ -211,6 +211,7 @@ def build(cfg: DictConfig) -> tuple[pl.LightningModule, pl.LightningDataModule, 
         callbacks.append(ProgressBar())
     hparams = hparams_record(model.run_config, runtime.overrides, runtime.choices)
     callbacks.append(RunRecords(cfg.paths.output_dir, hparams))  # last: it reads the others
+    folders = [c.dirpath for c in callbacks if isinstance(c, pl.callbacks.ModelCheckpoint)]
     plugins = OmegaConf.select(cfg, "trainer.plugins") or []
     plugins = list(plugins) if isinstance(plugins, list | ListConfig) else [plugins]
     trainer = _instantiate(
@@ -219,7 +220,7 @@ def build(cfg: DictConfig) -> tuple[pl.LightningModule, pl.LightningDataModule, 
         callbacks=callbacks,
         logger=_loggers(cfg, model.run_config, runtime) or False,
         enable_model_summary=False,  # the summary is the callback above
-        plugins=[*plugins, RunCheckpointIO(cfg.paths.output_dir)],  # durable, bounded, inside
+        plugins=[*plugins, RunCheckpointIO(cfg.paths.output_dir, folders)],  # durable, inside
     )
     return model, datamodule, trainer
 

@@ -14,7 +14,9 @@ normalise `..`. A checkpoint is data someone may have sent, so:
 - `RunCheckpointIO`, the trainer's checkpoint I/O, writes checkpoints durably (a temporary file
   beside the target, fsynced, renamed: a full disk leaves the previous `last.ckpt` whole and
   loadable), reads them through rotlearn's bounded loader (`rotlearn.checkpoint.load_checkpoint`:
-  never unpickled) and deletes only regular `.ckpt` files inside the run.
+  never unpickled), writes only inside the run or the folders its checkpoint callbacks were
+  given (a callback without one put its file name's `..` beside the run), and deletes only
+  regular `.ckpt` files inside the run.
 """
 
 from __future__ import annotations
@@ -192,21 +194,35 @@ class CheckpointStateGuard(pl.Callback):
 
 
 class RunCheckpointIO(CheckpointIO):
-    """The trainer's checkpoint I/O (module docstring): durable writes, rotlearn's bounded
-    loader, and deletion of nothing but the run's own checkpoint files.
+    """The trainer's checkpoint I/O (module docstring): durable writes inside the run or the
+    folders given, rotlearn's bounded loader, and deletion of nothing but the run's own
+    checkpoint files.
 
     Args:
         run_dir: the run directory.
+        folders: other folders checkpoints may be written to: those the run's checkpoint
+            callbacks were given (`dirpath`; a resumed run's only where its own command line
+            set them, `rotlearn.cli.rundir.check_placement`).
     """
 
-    def __init__(self, run_dir: str | os.PathLike) -> None:
+    def __init__(
+        self, run_dir: str | os.PathLike, folders: Iterable[str | os.PathLike] = ()
+    ) -> None:
         self.run_dir = Path(run_dir)
+        self.folders = [Path(os.path.realpath(f)) for f in folders if f]
 
     def save_checkpoint(
         self, checkpoint: dict[str, Any], path: str | os.PathLike, storage_options: Any = None
     ) -> None:
         if storage_options is not None:
             raise TypeError("rotlearn's checkpoint I/O takes no storage_options")
+        real = Path(os.path.realpath(Path(path).parent)) / Path(path).name
+        allowed = [Path(os.path.realpath(self.run_dir)), *self.folders]
+        if not any(real.is_relative_to(folder) for folder in allowed):
+            raise UnsafeCheckpointError(
+                f"refusing to write {path}: it resolves to {real}, outside the run "
+                f"{self.run_dir} and every checkpoint callback's dirpath"
+            )
         save_checkpoint(checkpoint, path)
 
     def load_checkpoint(
