@@ -614,3 +614,22 @@ def test_point_pairs_are_read_as_the_synthetic_training_pairs_with_unit_u(
     assert captured.err == (f"rotlearn-predict: note: {npy}: 15 of 16 u_i were not of unit length;"
                             " each pair (u_i, v_i) was divided by |u_i|, as the network was trained"
                             " on unit u_i\n")  # fmt: skip
+
+
+def test_predict_names_a_data_config_that_does_not_build_even_without_words(monkeypatch):
+    """A datamodule that raised an error without a message made rotlearn-predict's one-line
+    refusal an IndexError traceback: the error's type stands in for the words."""
+    from types import SimpleNamespace
+
+    import hydra.utils
+    from hydra.errors import InstantiationException
+
+    from rotlearn.cli.predict import _read_input
+
+    def refuse(config):
+        raise InstantiationException("") from ValueError()
+
+    monkeypatch.setattr(hydra.utils, "instantiate", refuse)
+    predictor = SimpleNamespace(image_size=16, config={"data": {}})
+    with pytest.raises(ValueError, match=r"^run: its data config does not build: ValueError$"):
+        _read_input(predictor, ["a.png", "b.png"], "run")

@@ -285,3 +285,20 @@ def test_a_sweep_is_checked_job_by_job_or_value_by_value():
     assert CHECKED_JOBS < 2 * 20
     assert jobs(["-m", "rep=a,quat", "seed=range(0,20)"]) == [
         ("quat", "ChordalLoss", 0), ("a", "ChordalLoss", 19)]  # fmt: skip
+
+
+def test_a_data_roots_layout_is_listed_a_value_at_a_time_in_the_order_given():
+    """The paths a root must hold, as a missing one is named: a sequence's frames then its
+    poses, the sequences in the order the config lists them (they were sorted as text: 01, 10,
+    02 for [2, 10, 1]), a value listed twice once."""
+    from rotlearn.config.checks import data_paths
+
+    node = {"_target_": "rotlearn.data.kitti.KittiOdometryDataModule", "root": "/r",
+            "train_sequences": [2, 10, 1], "test_sequences": [9, 10], "val_sequences": ["03"],
+            "camera": "image_2"}  # fmt: skip
+    found = [(key, str(path)) for key, path in data_paths(node)]
+    assert found[0] == ("data.root", "/r")
+    names = list(dict.fromkeys(path.removeprefix("/r/") for _, path in found[1:]))
+    assert names == [kind for seq in ("02", "10", "01", "09", "03")
+                     for kind in (f"sequences/{seq}/image_2", f"poses/{seq}.txt")]  # fmt: skip
+    assert found[1][0] == "data.train_sequences" and found[-1][0] == "data.val_sequences"

@@ -81,7 +81,7 @@ def _read_input(predictor, paths: list[str], checkpoint: str):
     try:
         datamodule = instantiate(predictor.config["data"])
     except InstantiationException as exc:  # what the constructor raised, with Hydra's words
-        said = str(exc.__cause__ or exc).strip().splitlines()
+        said = str(exc.__cause__ or exc).strip().splitlines() or [type(exc.__cause__).__name__]
         raise ValueError(f"{checkpoint}: its data config does not build: {said[0]}") from None
     return datamodule.read_pair(*paths)
 

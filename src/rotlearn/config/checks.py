@@ -146,10 +146,11 @@ def arguments(target: str, group: str) -> tuple | None:
 
 def data_paths(node: dict[str, Any]) -> list[tuple[str, Path]]:
     """(config key, path) of what a data node's root holds: the root, then its `layout`, those of
-    one value together (a KITTI sequence's frames, then its poses; those of no value first)."""
+    one value together, in the order the values first appear (a KITTI sequence's frames, then
+    its poses; the training sequences as listed, then the others)."""
     if "root" not in node:
         return []
-    root, found = Path(str(node["root"])), []
+    root, found, first = Path(str(node["root"])), [], {}
     for template in class_attribute(node["_target_"], "layout") or []:
         key, value, path = _CONDITION.fullmatch(template).groups()
         fields = [f for _, f, _, _ in string.Formatter().parse(path) if f]
@@ -159,7 +160,8 @@ def data_paths(node: dict[str, Any]) -> list[tuple[str, Path]]:
         for chosen in itertools.product(*choices) if not key or str(node.get(key)) == value else ():
             where = f"data.{fields[0]}" if fields else "data.root"
             path_of = root / path.format(**dict(zip(fields, chosen, strict=True)))
-            found.append((tuple(map(str, chosen[:1])), len(found), where, path_of))
+            group = first.setdefault(tuple(map(str, chosen[:1])), len(first))
+            found.append((group, len(found), where, path_of))
     return [("data.root", root), *((where, path) for *_, where, path in sorted(found))]
 
 

@@ -16,10 +16,11 @@ __all__ = ["RunStateHooks", "rng_state_problem", "rng_states", "set_rng_states"]
 
 class RunStateHooks:
     """Mixin for LightningModules: stores `run_config` (when set) as `rotlearn_config`, and the
-    global random states, in every checkpoint; restores the random states on resume, all or none
-    (a state that cannot be restored is refused, `rng_state_problem`, whatever loads the
-    checkpoint: a resume, Lightning's requeue, a user's own `fit`); knows the epochs its weights
-    under test trained (`tested_epochs`)."""
+    global random states, in every checkpoint; restores the random states on resume, the CPU
+    ones all or none (a state that cannot be restored is refused, `rng_state_problem`, whatever
+    loads the checkpoint: a resume, Lightning's requeue, a user's own `fit`; the CUDA ones are
+    checked for their type only); knows the epochs its weights under test trained
+    (`tested_epochs`)."""
 
     run_config: dict[str, Any] | None = None
     _loaded_for_test: int | None = None  # the epochs of the checkpoint a test loaded
