@@ -162,8 +162,8 @@ def check_config(tree: Any, source: str | os.PathLike) -> None:
     if positional is not None:
         raise UntrustedConfigError(
             f"{source}: config key {positional}: positional arguments are not taken from a file "
-            "(each argument is checked by its name: a run started with them resumes with them "
-            "given by name); nothing was built"
+            "(each argument is checked by its name: a run to be resumed or loaded gives its "
+            "arguments by name, never in _args_); nothing was built"
         )
 
 
