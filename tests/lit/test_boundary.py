@@ -183,6 +183,8 @@ def test_checkpoint_io_keeps_the_previous_checkpoint_when_a_write_fails(run, mon
     assert sorted(p.name for p in path.parent.iterdir()) == ["last.ckpt"]
 
 
+@pytest.mark.filterwarnings("ignore:Experiment logs directory .* exists and is not empty")
+@pytest.mark.filterwarnings("ignore:Checkpoint directory .* exists and is not empty")  # the link
 def test_checkpoint_io_writes_only_inside_the_run_or_a_callbacks_folder(tmp_path):
     """A review's reproduction: a checkpoint callback without a dirpath writes below the
     logger's folder, and a run may hold a link inside it (csv/checkpoints -> ..); its file name
