@@ -165,7 +165,31 @@ def _own_signature(app, what, name, obj, options, signature, return_annotation):
     return None
 
 
+_DOTTED = re.compile(r"rotlearn(\.\w+)*")
+
+
+def _link_api_names(app, doctree, docname) -> None:
+    """On the Markdown pages, a code span that is a documented name (`rotlearn.nn.ALayer`,
+    `rotlearn.bingham`) links to its API entry, as the docstrings' names do."""
+    from docutils import nodes
+
+    if app.env.doc2path(docname).suffix != ".md":
+        return
+    domain = app.env.get_domain("py")
+    for literal in list(doctree.findall(nodes.literal)):
+        name = literal.astext().removesuffix("()")
+        if isinstance(literal.parent, nodes.reference) or not _DOTTED.fullmatch(name):
+            continue
+        found = domain.objects.get(name)
+        if found is None:
+            continue
+        uri = app.builder.get_relative_uri(docname, found.docname) + "#" + found.node_id
+        literal.replace_self(nodes.reference("", "", literal.deepcopy(), refuri=uri,
+                                             internal=True))  # fmt: skip
+
+
 def setup(app) -> None:
+    app.connect("doctree-resolved", _link_api_names)
     app.add_role("code-or-xref", _code_or_xref)
     app.connect("autodoc-process-signature", _own_signature)
     app.connect("autodoc-process-docstring", _plain_text_docstring, priority=400)  # before napoleon
