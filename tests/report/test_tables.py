@@ -44,3 +44,19 @@ def test_a_runs_results_are_one_table_of_what_it_measured():
     assert "| dt: AUROC, noisiest 10 % | 0.9 |" in lines
     assert "| OOD AUROC, dt | 0.97 |" in lines and "| diverged | no |" in lines
     assert not any("train" in line for line in lines)  # per-epoch series are curves, not results
+
+
+def test_the_error_table_gives_one_runs_setting_its_numbers_once():
+    """A setting of several runs gets the percentiles over them; where every setting has one
+    run, p10, median and p90 were one number three times: the table gives it once."""
+    from rotlearn.report.tables import percentile_table
+
+    one = pd.DataFrame({"setting": ["a", "sixd"], "test/err_mean": [1.5, 2.5],
+                        "test/err_median": [1.25, 2.25]})  # fmt: skip
+    table = percentile_table(one).splitlines()
+    assert table[0] == "| setting | test err mean | test err median |"
+    assert table[2:] == ["| a | 1.500 | 1.250 |", "| sixd | 2.500 | 2.250 |"]
+    seeds = pd.concat([one, one.assign(**{"test/err_mean": [2.5, 3.5]})])
+    header = percentile_table(seeds).splitlines()[0]
+    assert header == ("| setting | runs | test err mean: p10 | median | p90 | "
+                      "median of per-run medians |")  # fmt: skip

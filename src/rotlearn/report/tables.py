@@ -182,7 +182,8 @@ def percentile_table(
 ) -> str:
     """Per setting: its runs and the 10th, 50th, 90th percentile of their final `metric` (the
     mean test error; `name` in the header), and the median of their per-run `medians` (None: no
-    such column)."""
+    such column). Where every setting has one run, its `metric` and `medians` alone (three
+    percentiles of one number said it three times)."""
     rows = []
     for setting in setting_order(done):
         runs = done[done["setting"] == setting]
@@ -192,6 +193,9 @@ def percentile_table(
         if medians is not None:
             row["medians"] = float(np.median(runs[medians].to_numpy(float)))
         rows.append(row)
+    if all(row["runs"] == 1 for row in rows):
+        own = [("medians", medians.replace("/", " ").replace("_", " "))] if medians else []
+        return markdown_table(rows, [("setting", "setting"), ("p50", name), *own], digits=3)
     columns = [
         ("setting", "setting"),
         ("runs", "runs"),
