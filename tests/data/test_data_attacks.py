@@ -328,6 +328,18 @@ def test_mav_rows_listed_again_name_the_first_repeat_in_the_file(tmp_path, kind)
         read()
 
 
+def test_a_repeat_among_names_whose_hashes_collide_is_found():
+    """Names are compared where their hashes are equal: with x and y colliding, x, y, x was no
+    repeat (only neighbours in hash order were compared)."""
+    from rotlearn.data.mav import _first_repeat
+
+    names = ["x", "y", "w", "x", "y"]
+    collide = np.array([7, 7, 1, 7, 7], dtype=np.int64)  # x and y share a hash
+    assert _first_repeat(collide, lambda i, j: names[i] == names[j]) == (0, 3)
+    assert _first_repeat(collide[:3], lambda i, j: names[i] == names[j]) is None
+    assert _first_repeat(np.array([5, 3, 5, 5, 3])) == (0, 2)  # exact keys: the first's row
+
+
 def test_a_frame_cache_its_disk_cannot_hold_is_refused_before_any_frame_is_read(
     demo_data, tmp_path, monkeypatch
 ):

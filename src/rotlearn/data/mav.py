@@ -101,12 +101,22 @@ def _rows(path: Path, columns: int | None = None, min_columns: int = 1):
 def _first_repeat(keys: np.ndarray, same: Callable[[int, int], bool] | None = None):
     """The first row, in file order, whose key an earlier row has, as (the first row with that
     key, it), or None. `keys`: (N,), any sortable dtype (a structured one for several columns);
-    `same(i, j)` tells rows i < j apart whose keys are equal hashes of their values."""
+    `same(i, j)` tells rows i < j apart whose keys are equal hashes of their values (names whose
+    hashes collide: x, y, x is a repeat of x)."""
     order = np.argsort(keys, kind="stable")  # equal keys sit together, in file order
-    at = np.flatnonzero(keys[order][1:] == keys[order][:-1])
+    ordered = keys[order]
+    at = np.flatnonzero(ordered[1:] == ordered[:-1])
     for k in at[np.argsort(order[at + 1], kind="stable")]:  # the later rows in file order
-        if same is None or same(int(order[k]), int(order[k + 1])):
-            return int(order[k]), int(order[k + 1])
+        later, earlier = int(order[k + 1]), None
+        for m in range(k, -1, -1):  # the rows before it with its key, back to the first
+            if ordered[m] != ordered[k + 1]:
+                break
+            if same is None or same(int(order[m]), later):
+                earlier = int(order[m])
+                if same is None:  # exact keys: the row before is the first (a first repeat)
+                    break
+        if earlier is not None:
+            return earlier, later
     return None
 
 
