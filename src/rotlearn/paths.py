@@ -13,6 +13,7 @@ __all__ = [
     "TESTED_WEIGHTS",
     "checkpoint_file",
     "config_dir",
+    "earlier_attempts",
 ]
 
 SWEEP_FILES = ("multirun.yaml", "jobs.json", "planned_jobs.json")  # what Hydra and rotlearn write
@@ -27,6 +28,16 @@ HISTORY_DIR = "history"
 CSV_LOG = "csv/metrics.csv"
 # The weights a run's test scores (`test_ckpt`; metrics.json's `tested_weights`), in words.
 TESTED_WEIGHTS = {"last": "the last epoch's", "best": "the best validation epoch's"}
+
+
+def earlier_attempts(run_dir: str | os.PathLike) -> list[Path]:
+    """The folders of a run's earlier attempts, `<run>/HISTORY_DIR/<n>/`, in n's order (names of
+    ASCII digits only); none where the run has no history folder. Looks at the file system only."""
+    history = Path(run_dir) / HISTORY_DIR
+    if not history.is_dir():
+        return []
+    numbered = (p for p in history.iterdir() if p.name.isascii() and p.name.isdigit())
+    return sorted(numbered, key=lambda p: int(p.name))
 
 
 def config_dir() -> Path:

@@ -63,7 +63,7 @@ from rotlearn.cli.rundir import (
 from rotlearn.errors import ConfigError
 from rotlearn.io import UnreadableFileError, read_bytes, read_record, write_bytes_atomic
 from rotlearn.locks import RunLockedError, check_free
-from rotlearn.paths import CSV_LOG, HISTORY_DIR
+from rotlearn.paths import CSV_LOG, HISTORY_DIR, earlier_attempts
 from rotlearn.report.tensorboard import SESSION_RUN, event_runs
 from rotlearn.trust import UntrustedConfigError
 
@@ -537,8 +537,7 @@ def keep_earlier_records(run_dir: Path) -> Path | None:
     if os.path.lexists(history) and (history.is_symlink() or not history.is_dir()):
         raise UnreadableFileError(f"{history}: not a folder, where the earlier records are kept")
     history.mkdir(exist_ok=True)
-    numbers = (int(p.name) for p in history.iterdir() if p.name.isascii() and p.name.isdigit())
-    n = 1 + max(numbers, default=0)
+    n = 1 + max((int(p.name) for p in earlier_attempts(run_dir)), default=0)
     target = history / str(n)
     staging = history / f".{n}.{secrets.token_hex(4)}.partial"
     (staging / ".hydra").mkdir(parents=True)  # the mode the umask allows

@@ -46,7 +46,7 @@ import numpy as np
 import pandas as pd
 
 from rotlearn.io import MAX_BYTES, read_json, read_table, sync_folder, write_text_atomic
-from rotlearn.paths import CSV_LOG, HISTORY_DIR, OOD_EXAMPLES_FILE, TESTED_WEIGHTS
+from rotlearn.paths import CSV_LOG, OOD_EXAMPLES_FILE, TESTED_WEIGHTS, earlier_attempts
 from rotlearn.report import figures, tables
 from rotlearn.report.runs import RUN_MARKS, collect_runs, label_without
 from rotlearn.report.tensorboard import read_curve
@@ -207,12 +207,10 @@ def _grouping_note(done: pd.DataFrame, grouping: list[str], layout: Mapping[str,
 
 
 def _csv_logs(run: Path) -> list[Path]:
-    """The run's `CSV_LOG` files, the earlier attempts' first (`HISTORY_DIR`/<n>/, kept by each
+    """The run's `CSV_LOG` files, the earlier attempts' first (`earlier_attempts`, kept by each
     resume, in n's order; the latest `MAX_EARLIER_LOGS` of them), then its own."""
-    history = run / HISTORY_DIR
     try:
-        earlier = sorted((p for p in history.iterdir() if p.name.isascii() and p.name.isdigit()),
-                         key=lambda p: int(p.name)) if history.is_dir() else []  # fmt: skip
+        earlier = earlier_attempts(run)
     except OSError:
         earlier = []
     logs = [p / CSV_LOG for p in earlier[-MAX_EARLIER_LOGS:]] + [run / CSV_LOG]
