@@ -246,11 +246,12 @@ class RunInterrupted(SystemExit):
         words = ["rotlearn-train", resume_word(run_dir.resolve()), *again]
         self.resume_command = " ".join(words) if done and resumable else None
         again_anew = "start the run again in a new folder (this one keeps the attempt's log)"
-        if self.resume_command:
-            after = f"after {done} finished epoch{'s' * (done != 1)}; resume: {self.resume_command}"
-        elif done:  # no checkpoints/last.ckpt that loads (callbacks=none, a damaged one)
-            after = f"after {done} finished epoch{'s' * (done != 1)}, but no checkpoints/last.ckpt"
-            after += f" loads to resume from: {again_anew}"
+        if done:
+            after = f"after {done} finished epoch{'s' * (done != 1)}"
+            if self.resume_command:
+                after += f"; resume: {self.resume_command}"
+            else:  # no checkpoints/last.ckpt that loads (callbacks=none, a damaged one)
+                after += f", but no checkpoints/last.ckpt loads to resume from: {again_anew}"
         else:
             after = "before its first epoch ended, so no checkpoint holds anything to resume: "
             after += again_anew
